@@ -1,0 +1,73 @@
+"""Rigid transforms named by frames: `T_b_from_a @ p_a = p_b` (DESIGN §2)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from pyquaternion import Quaternion
+
+__all__ = [
+    "invert_rigid",
+    "project_points",
+    "quaternion_wxyz_from_matrix",
+    "rotation_from_quaternion_wxyz",
+    "transform_from_pose",
+    "transform_points",
+]
+
+
+def rotation_from_quaternion_wxyz(q_wxyz: Sequence[float]) -> np.ndarray:
+    """3x3 rotation `(3, 3) float64` of a nuScenes quaternion `[w, x, y, z]` (normalised first)."""
+    return Quaternion(*[float(v) for v in q_wxyz]).normalised.rotation_matrix
+
+
+def quaternion_wxyz_from_matrix(R: np.ndarray) -> list[float]:
+    """`[w, x, y, z]` of a rotation matrix; w >= 0 so the output is unique."""
+    q = Quaternion(matrix=np.asarray(R, dtype=np.float64), atol=1e-6, rtol=1e-6)
+    wxyz = [float(q.w), float(q.x), float(q.y), float(q.z)]
+    return [-v for v in wxyz] if wxyz[0] < 0 else wxyz
+
+
+def transform_from_pose(translation: Sequence[float], rotation_wxyz: Sequence[float]) -> np.ndarray:
+    """4x4 `float64` transform of a nuScenes (translation, rotation) record.
+
+    A calibrated_sensor record gives `T_ego_from_sensor`; an ego_pose record gives `T_global_from_ego`.
+    """
+    T = np.eye(4)
+    T[:3, :3] = rotation_from_quaternion_wxyz(rotation_wxyz)
+    T[:3, 3] = np.asarray(translation, dtype=np.float64)
+    return T
+
+
+def invert_rigid(T_b_from_a: np.ndarray) -> np.ndarray:
+    """Exact inverse `T_a_from_b` of a rigid 4x4 transform (R^T, -R^T t)."""
+    R = T_b_from_a[..., :3, :3]
+    t = T_b_from_a[..., :3, 3]
+    out = np.zeros_like(T_b_from_a)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def transform_points(T_b_from_a: np.ndarray, points_a: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to points `(N, 3)`; returns `(N, 3)` in frame b (float64)."""
+    p = np.asarray(points_a, dtype=np.float64)
+    return p @ T_b_from_a[:3, :3].T + T_b_from_a[:3, 3]
+
+
+def project_points(K: np.ndarray, points_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole projection of camera-frame points `(N, 3)`.
+
+    Returns `uv_img (N, 2) float64` (pixels; x right, y down) and `depth (N,) float64` (camera z).
+    Points with depth <= 0 get NaN pixel coordinates.
+    """
+    p = np.asarray(points_cam, dtype=np.float64)
+    depth = p[:, 2].copy()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uvw = p @ np.asarray(K, dtype=np.float64).T
+        uv = uvw[:, :2] / uvw[:, 2:3]
+    uv[depth <= 0] = np.nan
+    return uv, depth
