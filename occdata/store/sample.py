@@ -162,10 +162,7 @@ def process_sample(
     try:
         validate_sample(sample)
         jpeg = tuple(_read_jpeg(c.path, c.width, c.height, options) for c in sample.cameras)
-        try:
-            points = load_lidar_points(sample.lidar.path)
-        except OccDataError as exc:
-            raise SampleError(str(exc)) from None
+        points = load_lidar_points(sample.lidar.path)
         T_cam_from_lidar = np.stack([sample.T_cam_from_lidar(i) for i in range(len(sample.cameras))])
         K = static["calib/K"]
         sizes = static["cam/image_size"].astype(np.int64)
@@ -182,7 +179,7 @@ def process_sample(
         else:
             arrays["labels/present"] = np.bool_(False)
         return SampleResult(index=index, token=sample.token, arrays=arrays, jpeg=jpeg, uvd=uvd)
-    except SampleError as exc:
+    except OccDataError as exc:  # SampleError, or a calibration rejected by validate_sample
         return SampleResult(index=index, token=sample.token, arrays=dict(static), jpeg=(), uvd=(), error=str(exc))
 
 
