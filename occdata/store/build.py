@@ -81,7 +81,7 @@ def _identity(config: BuildConfig, ds: NuScenesDataset) -> dict[str, Any]:
 
 
 def _compressor(name: str) -> Any:
-    return None if name == "images/jpeg" else ZstdCodec(level=3)
+    return None if name == "images/jpeg" else ZstdCodec(level=1)
 
 
 def _create(root: zarr.Group, n: int, block: int, attrs: dict[str, Any]) -> None:
@@ -177,24 +177,25 @@ class _Writer:
             return
         i0, i1 = results[0].index, results[-1].index + 1
         assert [r.index for r in results] == list(range(i0, i1))
-        flat_parts: dict[str, list[bytes]] = {name: [] for name in FLAT_ARRAYS}
+        # Offsets and payloads of the ragged arrays, sample after sample.
         per_sample_flat: list[dict[str, bytes]] = []
         offsets = {name: np.zeros((len(results), 6, 2), dtype=np.int64) for name in FLAT_OF_OFFSETS}
+        rows_so_far = dict(self.cursor)
         for k, r in enumerate(results):
-            payload = {"images/jpeg": list(r.jpeg), "depth/uvd": [u.tobytes() for u in r.uvd]}
-            rows = {"images/jpeg": [len(b) for b in r.jpeg], "depth/uvd": [len(u) for u in r.uvd]}
+            parts = {"images/jpeg": list(r.jpeg), "depth/uvd": [u.tobytes() for u in r.uvd]}
             mine = {}
             for off_name, flat_name in FLAT_OF_OFFSETS.items():
-                start = self.cursor[flat_name] + sum(len(b) for b in flat_parts[flat_name]) // _row_bytes(flat_name)
-                for c, n_rows in enumerate(rows[flat_name] or [0] * 6):
-                    offsets[off_name][k, c] = (start, n_rows)
-                    start += n_rows
-                flat_parts[flat_name].extend(payload[flat_name])
-                mine[flat_name] = b"".join(payload[flat_name])
+                row_bytes = _row_bytes(flat_name)
+                for c, part in enumerate(parts[flat_name]):
+                    offsets[off_name][k, c] = (rows_so_far[flat_name], len(part) // row_bytes)
+                    rows_so_far[flat_name] += len(part) // row_bytes
+                if not parts[flat_name]:  # failed sample: empty ranges at the cursor
+                    offsets[off_name][k, :, 0] = rows_so_far[flat_name]
+                mine[flat_name] = b"".join(parts[flat_name])
             per_sample_flat.append(mine)
         # 1. ragged payloads
-        for flat_name, parts in flat_parts.items():
-            blob = b"".join(parts)
+        for flat_name in FLAT_ARRAYS:
+            blob = b"".join(m[flat_name] for m in per_sample_flat)
             row_shape, dtype, _ = FLAT_ARRAYS[flat_name]
             data = np.frombuffer(blob, dtype=dtype).reshape((-1, *row_shape))
             start = self.cursor[flat_name]
@@ -213,7 +214,8 @@ class _Writer:
             if s.name in offsets:
                 block[s.name] = offsets[s.name]
             else:
-                block[s.name] = np.stack([r.arrays.get(s.name, self.fill[s.name]) for r in results]).astype(s.dtype)
+                stacked = np.stack([r.arrays.get(s.name, self.fill[s.name]) for r in results])
+                block[s.name] = stacked.astype(s.dtype, copy=False)
             self.arrays[s.name][i0:i1] = block[s.name]
         # 3. checksums, then errors, then the state flags (the commit point)
         sums = np.stack([

@@ -122,7 +122,7 @@ def load_occ3d_labels(path: Path) -> dict[str, np.ndarray]:
     for k in ("mask_lidar", "mask_camera"):
         if out[k].max() > 1 or out[k].min() < 0:
             raise SampleError(f"bad labels {path}: {k} is not 0/1")
-    return {k: v.astype(np.uint8) for k, v in out.items()}
+    return {k: v.astype(np.uint8, copy=False) for k, v in out.items()}
 
 
 def static_arrays(
