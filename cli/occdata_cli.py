@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import click
+import numpy as np
 
 from cli._common import friendly_errors
 
@@ -110,6 +111,32 @@ def bev_gt(store: Path, no_progress: bool) -> None:
     open_store(store)  # validates the schema first
     n = compute_bev_gt(store, progress=not no_progress)
     click.echo(f"{store}: BEV GT written for {n} labelled samples")
+
+
+@main.command()
+@_store_opt
+@click.option("--recompute", is_flag=True,
+              help="Recompute for every labelled sample (default: only those without a shipped camera mask), "
+                   "and report the agreement with the shipped Occ3D masks.")
+@click.option("--no-progress", is_flag=True, help="No progress bar.")
+@friendly_errors
+def visibility(store: Path, recompute: bool, no_progress: bool) -> None:
+    """Camera and LiDAR visibility masks by ray casting through the voxel grid (3D DDA).
+
+    A voxel is camera-visible if its centre projects inside some camera image with positive depth
+    and no occupied voxel lies strictly between the camera centre and it. The LiDAR mask holds the
+    voxels the stored keyframe LiDAR rays pass through or end in. Occupancy comes from the stored
+    semantics, so only labelled samples are processed.
+    """
+    from occdata.store.visibility_cmd import compute_visibility
+
+    report = compute_visibility(store, recompute=recompute, progress=not no_progress)
+    click.echo(f"{store}: visibility computed for {report.computed} samples "
+               f"({report.seconds_per_sample:.2f} s/sample); {report.skipped_unlabelled} unlabelled skipped")
+    if report.agreement_iou:
+        ious = np.array(list(report.agreement_iou.values()))
+        click.echo(f"agreement with shipped mask_camera (IoU of visible sets) over {len(ious)} samples: "
+                   f"mean {ious.mean():.4f}, min {ious.min():.4f}")
 
 
 @main.command()
