@@ -25,7 +25,7 @@ from occdata.image_ops import normalise_chw, normalise_lut
 from occdata.store.layout import N_CAM, STATE_DONE
 from occdata.store.reader import StoreReader
 
-__all__ = ["RawSample", "SampleConfig", "SampleMaker", "StoreSamples"]
+__all__ = ["RawSample", "SampleConfig", "SampleMaker", "StoreSamples", "decode_augmented"]
 
 _REDUCE_FLAG = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
                 8: cv2.IMREAD_REDUCED_COLOR_8}
@@ -136,6 +136,23 @@ class StoreSamples:
         return bool(self.state[i] == STATE_DONE)
 
 
+def decode_augmented(jpeg: np.ndarray, A: np.ndarray, scale: float, orig_w: int, orig_h: int, width: int,
+                     height: int, stored_scale: float = 1.0, max_upsample: float = 1.1) -> np.ndarray | None:
+    """JPEG bytes -> augmented RGB input `(height, width, 3) uint8`, or None if the JPEG is unreadable.
+
+    Decodes at 1/r straight from the DCT where that is cheap (`choose_reduce`), then ONE warpAffine
+    with A @ inv(T_decoded_from_original): the decode scale is folded into the warp, not into A.
+    """
+    r = choose_reduce(scale, stored_scale, max_upsample)
+    img = cv2.imdecode(jpeg, _REDUCE_FLAG[r])
+    if img is None:
+        return None
+    dh, dw = img.shape[:2]
+    warp = A @ np.linalg.inv(T_decoded_from_original(orig_w, orig_h, dw, dh))
+    out = cv2.warpAffine(img, warp[:2], (width, height), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    return cv2.cvtColor(out, cv2.COLOR_BGR2RGB)
+
+
 class SampleMaker:
     """RawSample -> per-sample dict of numpy arrays keyed like `Batch` fields (see batch.py)."""
 
@@ -156,14 +173,10 @@ class SampleMaker:
             ow, oh = (int(x) for x in s.image_size[i, c])
             aug = sample_image_aug(cfg.image, ow, oh, rng)
             A = aug.matrix
-            r = choose_reduce(aug.scale, s.stored_scale, cfg.image.max_upsample)
-            img = cv2.imdecode(raw.jpegs[c], _REDUCE_FLAG[r])
-            if img is None:
+            out = decode_augmented(raw.jpegs[c], A, aug.scale, ow, oh, W, H, s.stored_scale,
+                                   cfg.image.max_upsample)
+            if out is None:
                 raise OccDataError(f"corrupt image data for sample {i} ({s.reader.token(i)}), camera {c}")
-            dh, dw = img.shape[:2]
-            warp = A @ np.linalg.inv(T_decoded_from_original(ow, oh, dw, dh))
-            out = cv2.warpAffine(img, warp[:2], (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-            out = cv2.cvtColor(out, cv2.COLOR_BGR2RGB)
             normalise_chw(out, self.lut, images[c])
             img_aug[c] = A
             depth[c] = depth_target(raw.uvd[c], A, H, W, cfg.depth_stride, *cfg.depth_range)
