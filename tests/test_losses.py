@@ -33,7 +33,9 @@ def _labels(values: list[int]) -> torch.Tensor:
 
 # Two voxels, three classes, free = class 2. Logits are log-probabilities, so softmax gives:
 #   voxel a: p = (0.5, 0.25, 0.25), label 0;  voxel b: p = (0.25, 0.5, 0.25), label 2 (free).
-SOFT_LOGITS = _voxels([[math.log(0.5), math.log(0.25), math.log(0.25)], [math.log(0.25), math.log(0.5), math.log(0.25)]])
+SOFT_LOGITS = _voxels(
+    [[math.log(0.5), math.log(0.25), math.log(0.25)], [math.log(0.25), math.log(0.5), math.log(0.25)]]
+)
 SOFT_LABELS = _labels([0, 2])
 
 # Focal case: sigmoid logits; voxel a (0, ln 3, 0) -> p = (0.5, 0.75, 0.5), label 1; voxel b (0, 0, 0), label 0.
@@ -123,7 +125,9 @@ def test_combined_loss_weights_and_camera_mask_switch() -> None:
     cfg = LossConfig(focal=0, sem_scal=0, geo_scal=0.5, dice=2.0, lovasz=0, depth=0, bev=0, use_camera_mask=False)
     targets = LossTargets(voxel_labels=SOFT_LABELS)
     # geo_scal uses FREE_LABEL = 17 here, so use an 18-class version of the soft case: pad 15 classes with p = 0
-    logits = torch.cat([SOFT_LOGITS[:, :2], torch.full((1, 15, 2, 1, 1), -1e9, dtype=torch.float64), SOFT_LOGITS[:, 2:]], 1)
+    logits = torch.cat(
+        [SOFT_LOGITS[:, :2], torch.full((1, 15, 2, 1, 1), -1e9, dtype=torch.float64), SOFT_LOGITS[:, 2:]], 1
+    )
     labels = torch.where(SOFT_LABELS == 2, 17, SOFT_LABELS)
     targets = LossTargets(voxel_labels=labels)
     total, terms = occupancy_loss(logits, targets, cfg)

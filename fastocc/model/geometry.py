@@ -85,9 +85,9 @@ def project_points_to_feature(
     visibility mask `(B, N, P) bool`: depth > min_depth and the augmented pixel inside [0, W-1] x [0, H-1].
     """
     T_cam_from_aug = torch.linalg.inv(bev_aug[:, None] @ T_keyego_from_cam)  # (B, N, 4, 4)
-    points_cam = torch.einsum("bnij,pj->bnpi", T_cam_from_aug[..., :3, :3], points_aug) + T_cam_from_aug[
-        ..., None, :3, 3
-    ]
+    points_cam = (
+        torch.einsum("bnij,pj->bnpi", T_cam_from_aug[..., :3, :3], points_aug) + T_cam_from_aug[..., None, :3, 3]
+    )
     depth = points_cam[..., 2]
     uvw = torch.einsum("bnij,bnpj->bnpi", img_aug @ K, points_cam)
     uv_img = uvw[..., :2] / uvw[..., 2:3].clamp_min(1e-6)

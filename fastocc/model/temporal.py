@@ -76,9 +76,9 @@ class TemporalFusion(nn.Module):
         poses = torch.where(s.view(B, 1, 1, 1), pose[:, None].expand(B, T, 4, 4), self._poses)
         augs = torch.where(s.view(B, 1, 1, 1), inputs.bev_aug[:, None].expand(B, T, 4, 4), self._bev_aug)
         # T_curaug_from_prevaug = M_cur inv(T_g_from_cur) T_g_from_prev inv(M_prev), per queued frame
-        T_rel = (
-            inputs.bev_aug[:, None] @ torch.linalg.inv(pose)[:, None] @ poses @ torch.linalg.inv(augs)
-        ).reshape(B * T, 4, 4)
+        T_rel = (inputs.bev_aug[:, None] @ torch.linalg.inv(pose)[:, None] @ poses @ torch.linalg.inv(augs)).reshape(
+            B * T, 4, 4
+        )
         warped = warp_bev(feats.reshape(B * T, C, *bev.shape[2:]), T_rel, self.grid).view(B, T * C, *bev.shape[2:])
         fused = self.reduce(torch.cat([bev, warped], dim=1))
         self._feats = torch.cat([cur[:, None], feats[:, :-1]], dim=1)
