@@ -94,7 +94,11 @@ class DeconvHead(nn.Module):
 
 
 class BEVMultiHotHead(nn.Module):
-    """UNet-like 2D head: B `(B, C3, 100, 100)` -> multi-hot logits `(B, M, 200, 200)` (M = 18, free kept)."""
+    """UNet-like 2D head: B `(B, C3, 100, 100)` -> multi-hot logits `(B, M, 200, 200)` (M = 18, free kept).
+
+    One down/up level with a skip at 100 x 100; the logits are upsampled bilinearly to 200 x 200 (convs at
+    200 x 200 would cost as much as the rest of the head on CPU).
+    """
 
     def __init__(self, c3: int, num_classes: int, out_hw: tuple[int, int]) -> None:
         super().__init__()
@@ -108,15 +112,13 @@ class BEVMultiHotHead(nn.Module):
         self.enc1 = block(c3, c3)
         self.enc2 = block(c3, 2 * c3, 2)
         self.dec1 = block(3 * c3, c3)
-        self.dec0 = block(c3, c3 // 2)
-        self.out = nn.Conv2d(c3 // 2, num_classes, 1)
+        self.out = nn.Conv2d(c3, num_classes, 1)
 
     def forward(self, bev_map: Tensor) -> Tensor:
         e1 = self.enc1(bev_map)
         e2 = self.enc2(e1)
         d1 = self.dec1(torch.cat([e1, F.interpolate(e2, size=e1.shape[2:], mode="bilinear", align_corners=False)], 1))
-        d0 = self.dec0(F.interpolate(d1, size=self.out_hw, mode="bilinear", align_corners=False))
-        return self.out(d0)
+        return F.interpolate(self.out(d1), size=self.out_hw, mode="bilinear", align_corners=False)
 
 
 def build_head(cfg: ModelConfig) -> nn.Module:

@@ -61,32 +61,30 @@ class InterpolationSampler(nn.Module):
 
     def _build(self, inputs: SceneInputs, feat_hw: tuple[int, int], device: torch.device) -> SamplingIndex:
         h, w = feat_hw
-        B, N = inputs.batch_size, inputs.num_cams
+        N = inputs.num_cams
         points_aug = voxel_centres(self.grid, device).reshape(-1, 3)
         V = points_aug.shape[0]
         feat_xy, visible = project_points_to_feature(
             points_aug, inputs.K, inputs.T_keyego_from_cam, inputs.img_aug, inputs.bev_aug, self.input_hw, self.stride
         )  # (B, N, V, 2), (B, N, V)
-        count = visible.sum(dim=1, keepdim=True).clamp_min(1)  # cameras per voxel
-        b, n, v = torch.nonzero(visible, as_tuple=True)
+        # pairs ordered by (b, v, n) so the entries come out grouped by voxel (bag) without a sort
+        b, v, n = torch.nonzero(visible.permute(0, 2, 1), as_tuple=True)
         xy = feat_xy[b, n, v]
-        inv_count = 1.0 / count[b, 0, v].float()
+        per_voxel = visible.sum(dim=1).reshape(-1)  # (B*V,) cameras that see each voxel
+        inv_count = 1.0 / per_voxel[b * V + v].float()
         x0 = torch.floor(xy[:, 0])
         y0 = torch.floor(xy[:, 1])
         fx, fy = xy[:, 0] - x0, xy[:, 1] - y0
         x0, y0 = x0.long(), y0.long()
-        bags, rows, weights = [], [], []
-        for dx, dy, wt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
-            xi, yi = x0 + dx, y0 + dy
-            ok = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)  # zero padding outside the map
-            bags.append((b * V + v)[ok])
-            rows.append((((b * N + n) * h + yi) * w + xi)[ok])
-            weights.append((wt * inv_count)[ok])
-        bag = torch.cat(bags)
-        order = torch.argsort(bag, stable=True)
-        per_bag = torch.bincount(bag, minlength=B * V)
+        xs = torch.stack([x0, x0 + 1, x0, x0 + 1], dim=1)  # (P, 4) bilinear corners
+        ys = torch.stack([y0, y0, y0 + 1, y0 + 1], dim=1)
+        wts = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], dim=1)
+        inside = (xs >= 0) & (xs < w) & (ys >= 0) & (ys < h)  # zero padding: outside corners weigh 0
+        rows = ((b * N + n)[:, None] * h + ys.clamp(0, h - 1)) * w + xs.clamp(0, w - 1)
+        weights = torch.where(inside, wts * inv_count[:, None], torch.zeros_like(wts))
+        per_bag = 4 * per_voxel
         offsets = torch.cumsum(per_bag, 0) - per_bag
-        return SamplingIndex(rows=torch.cat(rows)[order], weights=torch.cat(weights)[order], offsets=offsets)
+        return SamplingIndex(rows=rows.reshape(-1), weights=weights.reshape(-1), offsets=offsets)
 
     def forward(self, feat: Tensor, inputs: SceneInputs) -> Tensor:
         """feat `(B*N, C, h, w)` -> P `(B, X, Y, Z, C)` (channels last)."""
