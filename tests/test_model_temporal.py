@@ -76,3 +76,19 @@ def test_seq_start_resets_the_queue_and_history_length_is_capped() -> None:
     assert float(out[0, 0, 50, 50]) == pytest.approx(19.0, rel=1e-4)  # two frames back (BN eps)
     out = fusion(torch.full((1, 1, 100, 100), 7.0), _frame(eye, eye, start=True))
     assert float(out[0, 0, 50, 50]) == pytest.approx(7.0, rel=1e-4)  # reset: history filled with the current frame
+
+
+@torch.no_grad()
+def test_seq_start_resets_only_the_flagged_sample_of_a_batch() -> None:
+    fusion = TemporalFusion(channels=1, num_history=1, grid=COARSE_GRID)
+    _select_warped(fusion, 1)
+    eye = torch.eye(4).expand(2, 4, 4)
+
+    def frame(start: list[bool]) -> SceneInputs:
+        z = torch.zeros(2, 1)
+        return SceneInputs(z, z, z, z, eye, eye, torch.tensor(start))
+
+    fusion(torch.full((2, 1, 100, 100), 3.0), frame([True, True]))
+    out = fusion(torch.full((2, 1, 100, 100), 5.0), frame([False, True]))
+    assert float(out[0, 0, 50, 50]) == pytest.approx(3.0, rel=1e-4)  # continues: previous frame
+    assert float(out[1, 0, 50, 50]) == pytest.approx(5.0, rel=1e-4)  # new sequence: its own frame
