@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import click
+
+from cli._common import friendly_errors
 
 __all__ = ["main"]
 
@@ -61,6 +64,25 @@ def bench(
     except ValueError as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(json.dumps(result, indent=2) if as_json else format_report(result))
+
+
+@main.command("show-batch")
+@click.option("--store", required=True, help="Store path or fsspec URL.")
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="PNG to write.")
+@click.option("--index", "-i", type=click.IntRange(min=0), default=0, help="Store index of the sample.")
+@click.option("--train", is_flag=True, help="Random training augmentation (default: the test transform).")
+@click.option("--seed", type=int, default=0, help="Augmentation seed (with --train).")
+@click.option("--height", type=click.IntRange(min=16), default=256)
+@click.option("--width", type=click.IntRange(min=16), default=704)
+@friendly_errors
+def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height: int, width: int) -> None:
+    """Draw one sample as the loader delivers it: augmented images with depth targets, BEV labels and GT."""
+    from fastocc.data import BevAugConfig, ImageAugConfig, SampleConfig
+    from fastocc.data.show import ShowConfig, show_batch
+
+    sample = SampleConfig(image=ImageAugConfig(height=height, width=width, train=train), bev=BevAugConfig(train=train))
+    path = show_batch(ShowConfig(store=store, out=out, index=index, seed=seed, sample=sample))
+    click.echo(f"wrote {path}")
 
 
 if __name__ == "__main__":

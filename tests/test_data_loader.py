@@ -181,3 +181,17 @@ def test_corrupt_chunk_names_the_sample(store: Path, tmp_path: Path, workers: in
     with pytest.raises(OccDataError, match="corrupt store data in labels/semantics for sample") as info:
         _indices(loader)
     assert any(t in str(info.value) for t in tokens)
+
+
+def test_show_batch_cli(store: Path, tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from cli.fastocc_cli import main
+
+    out = tmp_path / "b.png"
+    r = CliRunner().invoke(main, ["show-batch", "--store", str(store), "--out", str(out), "-i", "1", "--train"])
+    assert r.exit_code == 0, r.output
+    img = __import__("cv2").imread(str(out))
+    assert img.shape[1] == 3 * 704 and img.std() > 20
+    r = CliRunner().invoke(main, ["show-batch", "--store", str(store), "--out", str(out), "-i", "4"])
+    assert r.exit_code != 0 and "did not build" in r.output

@@ -23,7 +23,7 @@ from occdata.errors import OccDataError
 from occdata.store.layout import STATE_DONE
 from occdata.store.reader import open_store
 
-__all__ = ["LoaderConfig", "StoreDataset", "make_loader"]
+__all__ = ["LoaderConfig", "StoreDataset", "load_batch", "make_loader"]
 
 
 @dataclass(frozen=True)
@@ -159,3 +159,17 @@ def make_loader(config: LoaderConfig, num_workers: int = 0, pin_memory: bool = F
     ds = StoreDataset(config)
     return torch.utils.data.DataLoader(ds, batch_size=None, num_workers=num_workers, pin_memory=pin_memory,
                                        **kwargs)
+
+
+def load_batch(store: str | Path, indices: list[int], sample: SampleConfig, seed: int = 0, epoch: int = 0) -> Batch:
+    """A Batch of the given store indices (random access; the same augmentation as the loader draws)."""
+    samples = StoreSamples(open_store(store))
+    make = SampleMaker(samples, sample)
+    out = []
+    for i in indices:
+        samples.reader._check_index(i)
+        if not samples.loadable(i):
+            raise OccDataError(f"sample {i} ({samples.reader.token(i)}) did not build (status != done)")
+        (raw,) = samples.read_run(i, i + 1)
+        out.append(make(raw, np.random.default_rng([seed, epoch, i])))
+    return collate(out)
