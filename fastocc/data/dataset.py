@@ -71,6 +71,11 @@ class StoreDataset(IterableDataset):
             keep &= np.isin(reader.small("sample/split"), wanted)
         return np.flatnonzero(keep)
 
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_samples"] = None  # each worker opens its own store handle
+        return state
+
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
 
@@ -155,7 +160,16 @@ class StoreDataset(IterableDataset):
 
 def make_loader(config: LoaderConfig, num_workers: int = 0, pin_memory: bool = False,
                 **kwargs) -> torch.utils.data.DataLoader:
-    """A DataLoader over `StoreDataset(config)` (batching happens in the dataset)."""
+    """A DataLoader over `StoreDataset(config)` (batching happens in the dataset).
+
+    Workers start from a forkserver, not a plain fork: zarr reads run on an asyncio IO thread and
+    a thread pool, and a fork taken while one of them holds a lock (e.g. right after a failed read
+    in the parent) can leave the child blocked forever. Pass multiprocessing_context to override.
+    """
+    if num_workers > 0 and "multiprocessing_context" not in kwargs:
+        ctx = torch.multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(["torch", "zarr", "cv2", "fastocc.data"])  # cheap worker starts
+        kwargs["multiprocessing_context"] = ctx
     ds = StoreDataset(config)
     return torch.utils.data.DataLoader(ds, batch_size=None, num_workers=num_workers, pin_memory=pin_memory,
                                        **kwargs)

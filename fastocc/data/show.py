@@ -77,10 +77,11 @@ def render_batch(batch: Batch, k: int = 0) -> np.ndarray:
         img = np.ascontiguousarray(np.clip(img, 0, 255).astype(np.uint8))
         d = batch.depth_target[k, c].numpy()
         stride = img.shape[0] // d.shape[0]
-        for y, x in zip(*np.nonzero(d), strict=True):
-            val = int(np.clip(d[y, x] / 45.0 * 255, 0, 255))
-            col = cv2.applyColorMap(np.uint8([[val]]), cv2.COLORMAP_JET)[0, 0][::-1].tolist()
-            cv2.circle(img, (x * stride + stride // 2, y * stride + stride // 2), 2, col, -1)
+        ys, xs = np.nonzero(d)
+        vals = np.clip(d[ys, xs] / 45.0 * 255, 0, 255).astype(np.uint8)[:, None]
+        cols = cv2.applyColorMap(vals, cv2.COLORMAP_JET)[:, 0, ::-1].tolist()  # BGR -> RGB
+        for y, x, col in zip(ys, xs, cols, strict=True):
+            cv2.circle(img, (int(x) * stride + stride // 2, int(y) * stride + stride // 2), 2, col, -1)
         cv2.rectangle(img, (0, 0), (img.shape[1] - 1, img.shape[0] - 1), (255, 255, 255), 1)
         tiles.append(img)
     rows = [np.hstack(tiles[:3]), np.hstack(tiles[3:6])]
