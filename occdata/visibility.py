@@ -24,9 +24,11 @@ __all__ = [
 
 @njit(cache=True)
 def _dda_setup(
-    a: np.ndarray, b: np.ndarray, lower: np.ndarray, voxel_size: float, shape: np.ndarray
-) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-    """Clip segment a->b (param t in [0, 1]) to the grid; start voxel, steps, next-boundary t, t deltas."""
+    a: np.ndarray, b: np.ndarray, lower: np.ndarray, voxel_size: float, shape: np.ndarray,
+    idx: np.ndarray, step: np.ndarray, t_next: np.ndarray, t_delta: np.ndarray,
+) -> tuple[bool, float]:
+    """Clip segment a->b (param t in [0, 1]) to the grid; fill the start voxel `idx`, `step`, next
+    boundary `t_next` and `t_delta` (3,) scratch arrays; returns (non-empty, t at the segment end)."""
     d = b - a
     t0, t1 = 0.0, 1.0
     for k in range(3):
@@ -42,13 +44,12 @@ def _dda_setup(
                 ta, tb = tb, ta
             t0 = max(t0, ta)
             t1 = min(t1, tb)
-    idx = np.zeros(3, np.int64)
-    step = np.zeros(3, np.int64)
-    t_next = np.full(3, np.inf)
-    t_delta = np.full(3, np.inf)
     if t0 > t1:
-        return False, idx, step, t_next, t_delta, t1
+        return False, t1
     for k in range(3):
+        step[k] = 0
+        t_next[k] = np.inf
+        t_delta[k] = np.inf
         p = a[k] + t0 * d[k]
         i = int(np.floor((p - lower[k]) / voxel_size))
         i = min(max(i, 0), shape[k] - 1)
@@ -61,7 +62,7 @@ def _dda_setup(
             step[k] = -1
             t_next[k] = (lower[k] + i * voxel_size - a[k]) / d[k]
             t_delta[k] = -voxel_size / d[k]
-    return True, idx, step, t_next, t_delta, t1
+    return True, t1
 
 
 @njit(cache=True)
@@ -82,20 +83,70 @@ def _advance(idx: np.ndarray, step: np.ndarray, t_next: np.ndarray, t_delta: np.
 
 @njit(cache=True)
 def _blocked(
-    occupied: np.ndarray, a: np.ndarray, b: np.ndarray, target: np.ndarray, lower: np.ndarray, voxel_size: float,
-    shape: np.ndarray,
+    occupied: np.ndarray, ax: float, ay: float, az: float, bx: float, by: float, bz: float,
+    ti: int, tj: int, tk: int, lower: np.ndarray, voxel_size: float,
 ) -> bool:
-    """Whether an occupied voxel other than `target (3,)` lies on segment a -> b before `target`."""
-    ok, idx, step, t_next, t_delta, t_end = _dda_setup(a, b, lower, voxel_size, shape)
-    if not ok:
+    """Whether an occupied voxel other than the target (ti, tj, tk) lies on segment a -> b before it.
+
+    Scalar-only 3D DDA (this is the hot loop of the camera mask)."""
+    X, Y, Z = occupied.shape
+    dx, dy, dz = bx - ax, by - ay, bz - az
+    t0, t1 = 0.0, 1.0
+    for k in range(3):
+        o = ax if k == 0 else ay if k == 1 else az
+        d = dx if k == 0 else dy if k == 1 else dz
+        n = X if k == 0 else Y if k == 1 else Z
+        lo = lower[k]
+        hi = lo + n * voxel_size
+        if abs(d) < 1e-15:
+            if o < lo or o >= hi:
+                return False
+        else:
+            ta = (lo - o) / d
+            tb = (hi - o) / d
+            if ta > tb:
+                ta, tb = tb, ta
+            t0 = max(t0, ta)
+            t1 = min(t1, tb)
+    if t0 > t1:
         return False
+    i = min(max(int(np.floor((ax + t0 * dx - lower[0]) / voxel_size)), 0), X - 1)
+    j = min(max(int(np.floor((ay + t0 * dy - lower[1]) / voxel_size)), 0), Y - 1)
+    k = min(max(int(np.floor((az + t0 * dz - lower[2]) / voxel_size)), 0), Z - 1)
+    inf = np.inf
+    si = 1 if dx > 0.0 else -1 if dx < 0.0 else 0
+    sj = 1 if dy > 0.0 else -1 if dy < 0.0 else 0
+    sk = 1 if dz > 0.0 else -1 if dz < 0.0 else 0
+    ni = (lower[0] + (i + (si > 0)) * voxel_size - ax) / dx if si != 0 else inf
+    nj = (lower[1] + (j + (sj > 0)) * voxel_size - ay) / dy if sj != 0 else inf
+    nk = (lower[2] + (k + (sk > 0)) * voxel_size - az) / dz if sk != 0 else inf
+    di = voxel_size / abs(dx) if si != 0 else inf
+    dj = voxel_size / abs(dy) if sj != 0 else inf
+    dk = voxel_size / abs(dz) if sk != 0 else inf
     while True:
-        if idx[0] == target[0] and idx[1] == target[1] and idx[2] == target[2]:
+        if i == ti and j == tj and k == tk:
             return False
-        if occupied[idx[0], idx[1], idx[2]] != 0:
+        if occupied[i, j, k] != 0:
             return True
-        t = _advance(idx, step, t_next, t_delta, shape)
-        if t > t_end:
+        if ni <= nj and ni <= nk:
+            t = ni
+            i += si
+            ni += di
+            if i < 0 or i >= X:
+                return False
+        elif nj <= nk:
+            t = nj
+            j += sj
+            nj += dj
+            if j < 0 or j >= Y:
+                return False
+        else:
+            t = nk
+            k += sk
+            nk += dk
+            if k < 0 or k >= Z:
+                return False
+        if t > t1:
             return False
 
 
@@ -110,7 +161,6 @@ def camera_visible_mask(
     key ego -> camera), `K (3, 3) float64`, image `width x height`, `lower (3,) float64`.
     """
     X, Y, Z = occupied.shape
-    shape = np.array([X, Y, Z], np.int64)
     out = np.zeros((X, Y, Z), np.uint8)
     R = T_cam_from_grid[:3, :3]
     t = T_cam_from_grid[:3, 3]
@@ -120,7 +170,6 @@ def camera_visible_mask(
         cam[a] = -(R[0, a] * t[0] + R[1, a] * t[1] + R[2, a] * t[2])
     for i in prange(X):
         c = np.empty(3)
-        target = np.empty(3, np.int64)
         for j in range(Y):
             for k in range(Z):
                 c[0] = lower[0] + (i + 0.5) * voxel_size
@@ -135,8 +184,7 @@ def camera_visible_mask(
                 v = K[1, 1] * yc / zc + K[1, 2]
                 if u < -0.5 or u >= width - 0.5 or v < -0.5 or v >= height - 0.5:
                     continue
-                target[0], target[1], target[2] = i, j, k
-                if not _blocked(occupied, cam, c, target, lower, voxel_size, shape):
+                if not _blocked(occupied, cam[0], cam[1], cam[2], c[0], c[1], c[2], i, j, k, lower, voxel_size):
                     out[i, j, k] = 1
     return out
 
@@ -188,7 +236,11 @@ def lidar_ray_mask(
     end voxel included; `(X, Y, Z) uint8` 0/1 for `shape (3,) int64`."""
     out = np.zeros((shape[0], shape[1], shape[2]), np.uint8)
     for n in prange(origins.shape[0]):
-        ok, idx, step, t_next, t_delta, t_end = _dda_setup(origins[n], endpoints[n], lower, voxel_size, shape)
+        idx = np.empty(3, np.int64)
+        step = np.empty(3, np.int64)
+        t_next = np.empty(3)
+        t_delta = np.empty(3)
+        ok, t_end = _dda_setup(origins[n], endpoints[n], lower, voxel_size, shape, idx, step, t_next, t_delta)
         if not ok:
             continue
         while True:

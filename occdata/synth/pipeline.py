@@ -63,6 +63,7 @@ class WorldGrid:
     prims: Primitives
     cell_start: np.ndarray
     items: np.ndarray
+    cell_ztop: np.ndarray
     x0: float
     y0: float
     cell: float
@@ -76,13 +77,13 @@ class WorldGrid:
         g = world.ground
         nx = int(math.ceil(g.codes.shape[1] * g.cell / CELL))
         ny = int(math.ceil(g.codes.shape[0] * g.cell / CELL))
-        cs, items = render.build_cell_grid(prims.params, g.x0, g.y0, CELL, nx, ny)
+        cs, items, cell_ztop = render.build_cell_grid(prims.params, g.x0, g.y0, CELL, nx, ny)
         z_top = float(max(prims.params[:, 8].max(initial=0.0), 1.0)) + 0.01
-        return WorldGrid(prims, cs, items, g.x0, g.y0, CELL, nx, ny, z_top)
+        return WorldGrid(prims, cs, items, cell_ztop, g.x0, g.y0, CELL, nx, ny, z_top)
 
     def cast(self, origin: np.ndarray, dirs: np.ndarray, t_max: float) -> tuple[np.ndarray, np.ndarray]:
         return render.cast_rays(np.ascontiguousarray(origin, np.float64), np.ascontiguousarray(dirs, np.float64),
-                                t_max, self.prims.params, self.cell_start, self.items, self.x0, self.y0, self.cell,
+                                t_max, self.prims.params, self.cell_start, self.items, self.cell_ztop, self.x0, self.y0, self.cell,
                                 self.nx, self.ny, self.z_top)
 
 
@@ -103,21 +104,14 @@ def render_camera(
 
     Returns `rgb (H, W, 3) uint8` and `depth (H, W) float32` (metres along the camera z axis, 0 = sky).
     """
-    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-    K_inv = np.linalg.inv(K)
-    # Camera-frame directions with z = 1, so the ray parameter t is the depth.
-    dirs_cam = np.stack([K_inv[0, 0] * u + K_inv[0, 1] * v + K_inv[0, 2], K_inv[1, 1] * v + K_inv[1, 2]], -1)
-    dirs_cam = np.concatenate([dirs_cam.reshape(-1, 2), np.ones((width * height, 1))], axis=1)
-    dirs_global = dirs_cam @ T_global_from_cam[:3, :3].T
-    origin = T_global_from_cam[:3, 3].copy()
-    t, hit = wg.cast(origin, dirs_global, CAMERA_MAX_DEPTH)
-    normals = render.hit_normals(origin, dirs_global, t, hit, wg.prims.params)
     _, variants = render.palette_tables()
     g = world.ground
-    rgb = render.shade(origin, dirs_global, t, hit, normals, wg.prims.cls, wg.prims.style, g.codes, g.x0, g.y0,
-                       g.cell, variants, render.SUN_DIR)
-    depth = np.where(hit == render.HIT_NONE, 0.0, t).astype(np.float32)
-    return rgb.reshape(height, width, 3), depth.reshape(height, width)
+    origin = np.ascontiguousarray(T_global_from_cam[:3, 3])
+    rgb, depth = render.render_camera_kernel(
+        np.linalg.inv(K), np.ascontiguousarray(T_global_from_cam[:3, :3]), origin, width, height, CAMERA_MAX_DEPTH,
+        wg.prims.params, wg.cell_start, wg.items, wg.cell_ztop, wg.x0, wg.y0, wg.cell, wg.nx, wg.ny, wg.z_top,
+        wg.prims.cls, wg.prims.style, g.codes, g.x0, g.y0, g.cell, variants, render.SUN_DIR)
+    return rgb, depth
 
 
 _REFLECTIVITY = np.array([0.3, 0.8, 0.5, 0.6, 0.6, 0.5, 0.5, 0.35, 0.9, 0.5, 0.55, 0.12, 0.2, 0.25, 0.3, 0.4, 0.28,

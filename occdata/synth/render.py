@@ -23,6 +23,8 @@ __all__ = [
     "hit_normals",
     "hit_normals_reference",
     "palette_tables",
+    "render_camera_kernel",
+    "render_camera_reference",
     "shade",
     "shade_reference",
 ]
@@ -48,8 +50,9 @@ def build_cell_grid(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Bin primitives `params (P, 9) float64` into a 2D grid of `nx * ny` cells.
 
-    Returns `cell_start (nx*ny + 1,) int64` and `items (M,) int32`: the primitives of cell
-    (ix, iy) are `items[cell_start[c]:cell_start[c + 1]]`, c = iy * nx + ix, in increasing order.
+    Returns `cell_start (nx*ny + 1,) int64`, `items (M,) int32` and `cell_ztop (nx*ny,) float64`:
+    the primitives of cell (ix, iy) are `items[cell_start[c]:cell_start[c + 1]]`, c = iy * nx + ix,
+    in increasing order; `cell_ztop[c]` is the highest top among them (-inf if none).
     """
     n_cells = nx * ny
     counts = np.zeros(n_cells + 1, np.int64)
@@ -73,7 +76,11 @@ def build_cell_grid(
                 c = iy * nx + ix
                 items[fill[c]] = i
                 fill[c] += 1
-    return cell_start, items
+    cell_ztop = np.full(n_cells, -np.inf)
+    for c in range(n_cells):
+        for k in range(cell_start[c], cell_start[c + 1]):
+            cell_ztop[c] = max(cell_ztop[c], params[items[k], 8])
+    return cell_start, items, cell_ztop
 
 
 def build_cell_grid_reference(
@@ -94,7 +101,8 @@ def build_cell_grid_reference(
         per_cell.append(np.flatnonzero(sel).astype(np.int32))
     cell_start = np.concatenate([[0], np.cumsum([len(p) for p in per_cell])]).astype(np.int64)
     items = np.concatenate(per_cell).astype(np.int32) if per_cell else np.zeros(0, np.int32)
-    return cell_start, items
+    cell_ztop = np.array([params[p, 8].max() if len(p) else -np.inf for p in per_cell], np.float64)
+    return cell_start, items, cell_ztop
 
 
 # --------------------------------------------------------------------------------------------
@@ -149,7 +157,7 @@ def _hit_primitive(p: np.ndarray, ox: float, oy: float, oz: float, dx: float, dy
 @njit(cache=True)
 def _cast_one(
     ox: float, oy: float, oz: float, dx: float, dy: float, dz: float, t_max: float,
-    params: np.ndarray, cell_start: np.ndarray, items: np.ndarray,
+    params: np.ndarray, cell_start: np.ndarray, items: np.ndarray, cell_ztop: np.ndarray,
     x0: float, y0: float, cell: float, nx: int, ny: int, z_top: float,
 ) -> tuple[float, int]:
     t_ground = np.inf
@@ -182,15 +190,19 @@ def _cast_one(
         else:
             t_next_y = np.inf
             t_dy = np.inf
+        t_in = ta
         while True:
             c = iy * nx + ix
-            for k in range(cell_start[c], cell_start[c + 1]):
-                j = items[k]
-                th = _hit_primitive(params[j], ox, oy, oz, dx, dy, dz)
-                if th < best_t:
-                    best_t = th
-                    best = j
             t_exit = min(t_next_x, t_next_y)
+            # Skip the cell when the ray passes above everything in it.
+            if min(oz + t_in * dz, oz + min(t_exit, tb) * dz) <= cell_ztop[c]:
+                for k in range(cell_start[c], cell_start[c + 1]):
+                    j = items[k]
+                    th = _hit_primitive(params[j], ox, oy, oz, dx, dy, dz)
+                    if th < best_t:
+                        best_t = th
+                        best = j
+            t_in = t_exit
             if best_t <= t_exit or t_exit > tb:
                 break
             if t_next_x < t_next_y:
@@ -213,7 +225,7 @@ def _cast_one(
 @njit(cache=True, parallel=True)
 def cast_rays(
     origin: np.ndarray, dirs: np.ndarray, t_max: float,
-    params: np.ndarray, cell_start: np.ndarray, items: np.ndarray,
+    params: np.ndarray, cell_start: np.ndarray, items: np.ndarray, cell_ztop: np.ndarray,
     x0: float, y0: float, cell: float, nx: int, ny: int, z_top: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Cast rays `origin (3,) + t * dirs (N, 3)` (float64, global) into the world.
@@ -228,7 +240,7 @@ def cast_rays(
     hit_out = np.full(n, -1, np.int32)
     for i in prange(n):
         t, h = _cast_one(origin[0], origin[1], origin[2], dirs[i, 0], dirs[i, 1], dirs[i, 2], t_max,
-                         params, cell_start, items, x0, y0, cell, nx, ny, z_top)
+                         params, cell_start, items, cell_ztop, x0, y0, cell, nx, ny, z_top)
         t_out[i] = t
         hit_out[i] = h
     return t_out, hit_out
@@ -613,3 +625,81 @@ def shade_reference(
     sky = horizon + a[:, None] * (np.array([100.0, 150.0, 215.0]) - horizon)
     col = np.where((hit == -1)[:, None], sky, col)
     return np.clip(np.floor(col + 0.5), 0, 255).astype(np.uint8)
+
+
+# --------------------------------------------------------------------------------------------
+# Fused camera renderer
+# --------------------------------------------------------------------------------------------
+@njit(cache=True, parallel=True)
+def render_camera_kernel(
+    K_inv: np.ndarray, R_global_from_cam: np.ndarray, origin: np.ndarray, width: int, height: int, t_max: float,
+    params: np.ndarray, cell_start: np.ndarray, items: np.ndarray, cell_ztop: np.ndarray,
+    x0: float, y0: float, cell: float, nx: int, ny: int, z_top: float,
+    prim_cls: np.ndarray, prim_style: np.ndarray, gcodes: np.ndarray, gx0: float, gy0: float, gcell: float,
+    variants: np.ndarray, sun: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Render one pinhole camera: rays through pixel centres (integer pixel coordinates), camera-frame
+    direction `K_inv @ (u, v, 1)` (z = 1, so the ray parameter is the depth), rotated to global.
+
+    Returns `rgb (H, W, 3) uint8` and `depth (H, W) float32` (camera z, 0 where nothing is hit).
+    Same per-pixel maths as `cast_rays` + `hit_normals` + `shade`, without the large temporaries.
+    """
+    rgb = np.zeros((height, width, 3), np.uint8)
+    depth = np.zeros((height, width), np.float32)
+    gny, gnx = gcodes.shape
+    for v in prange(height):
+        for u in range(width):
+            cx = K_inv[0, 0] * u + K_inv[0, 1] * v + K_inv[0, 2]
+            cy = K_inv[1, 0] * u + K_inv[1, 1] * v + K_inv[1, 2]
+            cz = K_inv[2, 0] * u + K_inv[2, 1] * v + K_inv[2, 2]
+            dx = R_global_from_cam[0, 0] * cx + R_global_from_cam[0, 1] * cy + R_global_from_cam[0, 2] * cz
+            dy = R_global_from_cam[1, 0] * cx + R_global_from_cam[1, 1] * cy + R_global_from_cam[1, 2] * cz
+            dz = R_global_from_cam[2, 0] * cx + R_global_from_cam[2, 1] * cy + R_global_from_cam[2, 2] * cz
+            t, h = _cast_one(origin[0], origin[1], origin[2], dx, dy, dz, t_max, params, cell_start, items,
+                             cell_ztop, x0, y0, cell, nx, ny, z_top)
+            nx_, ny_, nz_ = 0.0, 0.0, 0.0
+            c = 0
+            st = 0
+            gc = 0
+            if h >= 0:
+                nx_, ny_, nz_ = _normal_one(params[h], origin[0] + t * dx, origin[1] + t * dy, origin[2] + t * dz)
+                c = prim_cls[h]
+                st = prim_style[h]
+                depth[v, u] = t
+            elif h == -2:
+                nz_ = 1.0
+                ix = int(np.floor((origin[0] + t * dx - gx0) / gcell))
+                iy = int(np.floor((origin[1] + t * dy - gy0) / gcell))
+                gc = 14
+                if 0 <= ix < gnx and 0 <= iy < gny:
+                    gc = gcodes[iy, ix]
+                c = gc & 31
+                depth[v, u] = t
+            # Normals are stored as float32 by `hit_normals`; round the same way for identical shading.
+            r, g, b = _shade_one(origin[0], origin[1], origin[2], dx, dy, dz, t, h, np.float32(nx_),
+                                 np.float32(ny_), np.float32(nz_), c, st, gc, variants, sun)
+            rgb[v, u, 0] = min(max(int(r + 0.5), 0), 255)
+            rgb[v, u, 1] = min(max(int(g + 0.5), 0), 255)
+            rgb[v, u, 2] = min(max(int(b + 0.5), 0), 255)
+    return rgb, depth
+
+
+def camera_rays_reference(K: np.ndarray, R_global_from_cam: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Global ray directions `(H*W, 3) float64` through pixel centres (row-major), camera z = 1."""
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=1)
+    return pix @ np.linalg.inv(K).T @ R_global_from_cam.T
+
+
+def render_camera_reference(
+    K: np.ndarray, R_global_from_cam: np.ndarray, origin: np.ndarray, width: int, height: int, t_max: float,
+    params: np.ndarray, prim_cls: np.ndarray, prim_style: np.ndarray, gcodes: np.ndarray, gx0: float, gy0: float,
+    gcell: float, variants: np.ndarray, sun: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Numpy twin of `render_camera_kernel`: brute-force casting + numpy normals and shading."""
+    dirs = camera_rays_reference(K, R_global_from_cam, width, height)
+    t, hit = cast_rays_reference(origin, dirs, t_max, params)
+    nrm = hit_normals_reference(origin, dirs, t, hit, params)
+    rgb = shade_reference(origin, dirs, t, hit, nrm, prim_cls, prim_style, gcodes, gx0, gy0, gcell, variants, sun)
+    depth = np.where(hit == HIT_NONE, 0.0, t).astype(np.float32)
+    return rgb.reshape(height, width, 3), depth.reshape(height, width)
