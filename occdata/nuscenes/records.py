@@ -1,0 +1,119 @@
+"""Frozen records for the keyframe data that occupancy needs (DESIGN §3)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from occdata.geometry import invert_rigid
+
+__all__ = ["CameraRecord", "LidarRecord", "NuScenesDataset", "SampleRecord", "SceneRecord"]
+
+
+@dataclass(frozen=True, eq=False)
+class CameraRecord:
+    """One camera image of a keyframe.
+
+    `K (3, 3) float64`; `T_ego_from_cam (4, 4) float64` (calibrated_sensor);
+    `T_global_from_ego (4, 4) float64` (ego pose at the camera's own timestamp).
+    """
+
+    channel: str
+    token: str  # sample_data token
+    path: Path  # absolute
+    K: np.ndarray
+    T_ego_from_cam: np.ndarray
+    T_global_from_ego: np.ndarray
+    timestamp: int  # microseconds
+    width: int
+    height: int
+
+
+@dataclass(frozen=True, eq=False)
+class LidarRecord:
+    """The LIDAR_TOP sweep of a keyframe; its ego pose defines the key-ego frame of the sample."""
+
+    channel: str
+    token: str  # sample_data token
+    path: Path  # absolute
+    T_ego_from_lidar: np.ndarray
+    T_global_from_ego: np.ndarray
+    timestamp: int
+
+
+@dataclass(frozen=True, eq=False)
+class SampleRecord:
+    """A keyframe sample: 6 cameras in CAMERA_ORDER and the LIDAR_TOP sweep."""
+
+    token: str
+    scene_token: str
+    scene_name: str
+    index_in_scene: int
+    timestamp: int
+    prev: str
+    next: str
+    cameras: tuple[CameraRecord, ...]
+    lidar: LidarRecord
+
+    @property
+    def T_global_from_keyego(self) -> np.ndarray:
+        """`(4, 4) float64`: key ego (ego at the LiDAR keyframe timestamp) -> global."""
+        return self.lidar.T_global_from_ego
+
+    def T_keyego_from_cam(self, i: int) -> np.ndarray:
+        """Exact camera -> key-ego transform through global (DESIGN §2), `(4, 4) float64`."""
+        cam = self.cameras[i]
+        return invert_rigid(self.T_global_from_keyego) @ cam.T_global_from_ego @ cam.T_ego_from_cam
+
+    def T_cam_from_lidar(self, i: int) -> np.ndarray:
+        """The devkit's chain lidar -> ego(t_lidar) -> global -> ego(t_cam) -> camera, `(4, 4) float64`."""
+        cam = self.cameras[i]
+        return (
+            invert_rigid(cam.T_ego_from_cam)
+            @ invert_rigid(cam.T_global_from_ego)
+            @ self.lidar.T_global_from_ego
+            @ self.lidar.T_ego_from_lidar
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class SceneRecord:
+    token: str
+    name: str
+    description: str
+    log_token: str
+    location: str
+    split: str  # train/val/test, mini_train/mini_val, or a tag from the description; "unassigned"
+    sample_tokens: tuple[str, ...]  # time order
+
+
+@dataclass(frozen=True, eq=False)
+class NuScenesDataset:
+    """A version folder's keyframes: scenes, and samples in scene order then time order."""
+
+    root: Path
+    version: str
+    scenes: tuple[SceneRecord, ...]
+    samples: tuple[SampleRecord, ...]
+    _index: dict[str, int] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "_index", {s.token: i for i, s in enumerate(self.samples)})
+
+    def sample(self, token: str) -> SampleRecord:
+        return self.samples[self._index[token]]
+
+    def split_of(self, sample: SampleRecord) -> str:
+        return next(sc.split for sc in self.scenes if sc.token == sample.scene_token)
+
+    def select(self, splits: tuple[str, ...] | None) -> NuScenesDataset:
+        """A dataset restricted to scenes whose split is in `splits` (None: everything)."""
+        if not splits:
+            return self
+        scenes = tuple(sc for sc in self.scenes if sc.split in splits)
+        keep = {sc.token for sc in scenes}
+        return NuScenesDataset(
+            self.root, self.version, scenes, tuple(s for s in self.samples if s.scene_token in keep)
+        )

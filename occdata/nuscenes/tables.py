@@ -1,0 +1,135 @@
+"""Streaming reader for nuScenes JSON tables.
+
+The trainval `sample_data.json` and `ego_pose.json` hold millions of rows; parsing them whole costs
+several GB. Rows are decoded one at a time from a bounded buffer and filtered on the fly, so memory
+stays proportional to the rows kept.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+from occdata.errors import OccDataError
+
+__all__ = ["TABLE_NAMES", "iter_table_rows", "load_table"]
+
+TABLE_NAMES: tuple[str, ...] = (
+    "attribute",
+    "calibrated_sensor",
+    "category",
+    "ego_pose",
+    "instance",
+    "log",
+    "map",
+    "sample",
+    "sample_annotation",
+    "sample_data",
+    "scene",
+    "sensor",
+    "visibility",
+)
+
+_CHUNK = 1 << 20
+_WS = " \t\r\n"
+
+
+def iter_table_rows(path: Path) -> Iterator[dict[str, Any]]:
+    """Yield the rows (dicts) of one table file: a JSON array of objects, decoded incrementally.
+
+    Raises `OccDataError` naming the file for a missing file, malformed JSON, a top level that is
+    not an array, or a row that is not an object.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise OccDataError(f"missing table: {path}")
+    decoder = json.JSONDecoder()
+    try:
+        fh = open(path, encoding="utf-8")  # noqa: SIM115 - closed in finally
+    except OSError as exc:
+        raise OccDataError(f"cannot read table {path}: {exc.strerror}") from None
+    try:
+        buf = fh.read(_CHUNK)
+        eof = len(buf) < _CHUNK
+        pos = 0
+        consumed = 0  # characters dropped from the front of buf, for error offsets
+
+        def fill() -> bool:
+            nonlocal buf, pos, eof, consumed
+            if eof:
+                return False
+            more = fh.read(_CHUNK)
+            eof = len(more) < _CHUNK
+            consumed += pos
+            buf = buf[pos:] + more
+            pos = 0
+            return bool(more)
+
+        def skip_ws() -> None:
+            nonlocal pos
+            while True:
+                while pos < len(buf) and buf[pos] in _WS:
+                    pos += 1
+                if pos < len(buf) or not fill():
+                    return
+
+        def fail(why: str) -> OccDataError:
+            return OccDataError(f"malformed JSON in {path}: {why} at character {consumed + pos}")
+
+        skip_ws()
+        if pos >= len(buf) or buf[pos] != "[":
+            raise fail("expected a JSON array of rows")
+        pos += 1
+        expect_row = True
+        first = True
+        while True:
+            skip_ws()
+            if pos >= len(buf):
+                raise fail("unexpected end of file")
+            ch = buf[pos]
+            if ch == "]" and (first or not expect_row):
+                pos += 1
+                skip_ws()
+                if pos < len(buf):
+                    raise fail("extra data after the array")
+                return
+            if not expect_row:
+                if ch != ",":
+                    raise fail("expected ',' or ']' between rows")
+                pos += 1
+                expect_row = True
+                continue
+            while True:
+                try:
+                    row, end = decoder.raw_decode(buf, pos)
+                    break
+                except json.JSONDecodeError as exc:
+                    if not fill():
+                        raise fail(exc.msg) from None
+            if not isinstance(row, dict):
+                raise fail("a row is not a JSON object")
+            pos = end
+            first = False
+            expect_row = False
+            yield row
+    except UnicodeDecodeError:
+        raise OccDataError(f"malformed JSON in {path}: not UTF-8 text") from None
+    finally:
+        fh.close()
+
+
+def load_table(
+    path: Path, keep: Callable[[dict[str, Any]], bool] | None = None
+) -> dict[str, dict[str, Any]]:
+    """Rows of a table keyed by `token`, optionally filtered by `keep(row)`."""
+    out: dict[str, dict[str, Any]] = {}
+    for row in iter_table_rows(path):
+        if keep is not None and not keep(row):
+            continue
+        token = row.get("token")
+        if not isinstance(token, str):
+            raise OccDataError(f"malformed table {path}: a row has no string 'token' field")
+        out[token] = row
+    return out

@@ -1,0 +1,369 @@
+"""`occdata build`: a nuScenes-format tree (+ Occ3D labels) -> one chunked zarr store.
+
+Workers convert samples; the main process is the only writer. It writes whole blocks of samples
+(one shard per block for the big arrays), then the per-sample checksums, then the state flags:
+a sample is complete only once its state says so. `--resume` continues after the last committed
+sample and gives a store identical to an uninterrupted build.
+"""
+
+from __future__ import annotations
+
+import collections
+import multiprocessing as mp
+import shutil
+import zlib
+from collections.abc import Iterator
+from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import zarr
+from tqdm import tqdm
+from zarr.codecs import ZstdCodec
+
+from occdata.constants import CAMERA_ORDER, CLASS_COLORS, CLASS_NAMES, FREE_LABEL, GRID
+from occdata.errors import OccDataError
+from occdata.nuscenes import NuScenesDataset, load_nuscenes
+from occdata.store.layout import (
+    FLAT_ARRAYS,
+    FLAT_OF_OFFSETS,
+    PER_SAMPLE,
+    SCHEMA_NAME,
+    SCHEMA_VERSION,
+    STATE_DONE,
+    STATE_ERROR,
+    STATE_PENDING,
+    checksummed_names,
+)
+from occdata.store.sample import SampleOptions, SampleResult, process_sample, static_arrays, temporal_indices
+
+__all__ = ["BuildConfig", "BuildReport", "build_store", "sample_checksums"]
+
+
+@dataclass(frozen=True)
+class BuildConfig:
+    root: Path
+    out: Path
+    version: str | None = None
+    gts: Path | None = None
+    splits: tuple[str, ...] = ()
+    workers: int = 1
+    resume: bool = False
+    on_error: Literal["fail", "skip"] = "fail"
+    block_samples: int = 32
+    options: SampleOptions = field(default_factory=SampleOptions)
+    progress: bool = True
+
+
+@dataclass(frozen=True)
+class BuildReport:
+    store: Path
+    n_samples: int
+    n_done: int
+    n_errors: int
+    n_labelled: int
+    processed_now: int
+
+
+def _identity(config: BuildConfig, ds: NuScenesDataset) -> dict[str, Any]:
+    """What a resumed build must match (workers, resume and on_error may change between runs)."""
+    return {
+        "source_root": str(ds.root),
+        "source_version": ds.version,
+        "gts": str(Path(config.gts).resolve()) if config.gts else None,
+        "splits": list(config.splits),
+        "block_samples": config.block_samples,
+        "options": asdict(config.options),
+        "sample_tokens_crc32": zlib.crc32("".join(s.token for s in ds.samples).encode()),
+    }
+
+
+def _compressor(name: str) -> Any:
+    return None if name == "images/jpeg" else ZstdCodec(level=1)
+
+
+def _create(root: zarr.Group, n: int, block: int, attrs: dict[str, Any]) -> None:
+    n_check = len(checksummed_names())
+    for s in PER_SAMPLE:
+        shape = (n, *s.shape)
+        if s.name == "status/checksum":
+            shape = (n, n_check)
+        if s.sharded:
+            chunks, shards = (1, *shape[1:]), (min(block, n), *shape[1:])
+        else:
+            chunks, shards = (min(block, n), *shape[1:]), None
+        root.create_array(
+            s.name, shape=shape, dtype=s.dtype, chunks=chunks, shards=shards,
+            fill_value=s.fill, compressors=_compressor(s.name),
+        )
+    for name, (row, dtype, chunk_rows) in FLAT_ARRAYS.items():
+        root.create_array(
+            name, shape=(0, *row), dtype=dtype, chunks=(chunk_rows, *row), fill_value=0,
+            compressors=_compressor(name),
+        )
+    root.attrs.update(attrs)
+
+
+def _root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str]) -> dict[str, Any]:
+    first = 0
+    scenes = []
+    for sc in ds.scenes:
+        scenes.append({
+            "name": sc.name, "token": sc.token, "split": sc.split, "location": sc.location,
+            "description": sc.description, "first_index": first, "num_samples": len(sc.sample_tokens),
+        })
+        first += len(sc.sample_tokens)
+    opts = config.options
+    return {
+        "schema": SCHEMA_NAME,
+        "schema_version": SCHEMA_VERSION,
+        "n_samples": len(ds.samples),
+        "camera_order": list(CAMERA_ORDER),
+        "class_names": list(CLASS_NAMES),
+        "class_colors": [list(c) for c in CLASS_COLORS],
+        "free_label": FREE_LABEL,
+        "grid": {"lower": list(GRID.lower), "upper": list(GRID.upper), "voxel_size": GRID.voxel_size,
+                 "shape": list(GRID.shape), "frame": "key ego (LIDAR_TOP keyframe ego pose)",
+                 "axis_order": "x, y, z"},
+        "splits": split_names,
+        "scenes": scenes,
+        "images": {"encoding": "jpeg", "scale": opts.image_scale,
+                   "reencoded": opts.image_scale != 1.0, "jpeg_quality": opts.jpeg_quality if
+                   opts.image_scale != 1.0 else None},
+        "depth": {"columns": ["u", "v", "depth"], "pixel_frame": "original image pixels",
+                  "min_depth": opts.min_depth, "source": "keyframe LIDAR_TOP"},
+        "bev": {"encoding": "uint32 bit field, bit c = class c present in the column",
+                "free_bit": FREE_LABEL},
+        "checksum_arrays": list(checksummed_names()),
+        "checksum": "crc32 of each array's per-sample C-order bytes (flat arrays: its 6 camera slices)",
+        "build_identity": _identity(config, ds),
+        "build_config": {"workers": config.workers, "on_error": config.on_error},
+        "errors": [],
+        "complete": False,
+    }
+
+
+def sample_checksums(arrays: dict[str, np.ndarray], flat: dict[str, bytes]) -> np.ndarray:
+    """`(A,) uint32` crc32 per checksummed array, in `checksummed_names()` order."""
+    out = []
+    for name in checksummed_names():
+        if name in FLAT_ARRAYS:
+            out.append(zlib.crc32(flat[name]))
+        else:
+            out.append(zlib.crc32(np.ascontiguousarray(arrays[name]).tobytes()))
+    return np.array(out, dtype=np.uint32)
+
+
+class _Writer:
+    """Commits runs of consecutive sample results to the store (the single writer)."""
+
+    def __init__(self, root: zarr.Group, n: int) -> None:
+        self.root = root
+        self.arrays = {s.name: root[s.name] for s in PER_SAMPLE}
+        self.flat = {name: root[name] for name in FLAT_ARRAYS}
+        state = self.arrays["status/state"][:]
+        self.cursor = {name: 0 for name in FLAT_ARRAYS}
+        committed = state != STATE_PENDING
+        for off_name, flat_name in FLAT_OF_OFFSETS.items():
+            if committed.any():
+                off = self.arrays[off_name][:][committed]
+                self.cursor[flat_name] = int((off[..., 0] + off[..., 1]).max(initial=0))
+        self.fill = {s.name: np.full(s.shape, s.fill, dtype=s.dtype) for s in PER_SAMPLE}
+
+    def commit(self, results: list[SampleResult]) -> None:
+        if not results:
+            return
+        i0, i1 = results[0].index, results[-1].index + 1
+        assert [r.index for r in results] == list(range(i0, i1))
+        # Offsets and payloads of the ragged arrays, sample after sample.
+        per_sample_flat: list[dict[str, bytes]] = []
+        offsets = {name: np.zeros((len(results), 6, 2), dtype=np.int64) for name in FLAT_OF_OFFSETS}
+        rows_so_far = dict(self.cursor)
+        for k, r in enumerate(results):
+            parts = {"images/jpeg": list(r.jpeg), "depth/uvd": [u.tobytes() for u in r.uvd]}
+            mine = {}
+            for off_name, flat_name in FLAT_OF_OFFSETS.items():
+                row_bytes = _row_bytes(flat_name)
+                for c, part in enumerate(parts[flat_name]):
+                    offsets[off_name][k, c] = (rows_so_far[flat_name], len(part) // row_bytes)
+                    rows_so_far[flat_name] += len(part) // row_bytes
+                if not parts[flat_name]:  # failed sample: empty ranges at the cursor
+                    offsets[off_name][k, :, 0] = rows_so_far[flat_name]
+                mine[flat_name] = b"".join(parts[flat_name])
+            per_sample_flat.append(mine)
+        # 1. ragged payloads
+        for flat_name in FLAT_ARRAYS:
+            blob = b"".join(m[flat_name] for m in per_sample_flat)
+            row_shape, dtype, _ = FLAT_ARRAYS[flat_name]
+            data = np.frombuffer(blob, dtype=dtype).reshape((-1, *row_shape))
+            start = self.cursor[flat_name]
+            end = start + len(data)
+            arr = self.flat[flat_name]
+            if arr.shape[0] != end:
+                arr.resize((end, *row_shape))
+            if len(data):
+                arr[start:end] = data
+            self.cursor[flat_name] = end
+        # 2. per-sample arrays (failed samples: static arrays only, the rest stays at fill)
+        block: dict[str, np.ndarray] = {}
+        for s in PER_SAMPLE:
+            if s.name.startswith("status/"):
+                continue
+            if s.name in offsets:
+                block[s.name] = offsets[s.name]
+            else:
+                stacked = np.stack([r.arrays.get(s.name, self.fill[s.name]) for r in results])
+                block[s.name] = stacked.astype(s.dtype, copy=False)
+            self.arrays[s.name][i0:i1] = block[s.name]
+        # 3. checksums, then errors, then the state flags (the commit point)
+        sums = np.stack([
+            sample_checksums({n: block[n][k] for n in block}, per_sample_flat[k]) for k in range(len(results))
+        ])
+        self.arrays["status/checksum"][i0:i1] = sums
+        failed = [r for r in results if r.error]
+        if failed:
+            errors = [e for e in self.root.attrs.get("errors", []) if not i0 <= e["index"] < i1]
+            errors += [{"index": r.index, "token": r.token, "reason": r.error} for r in failed]
+            self.root.attrs["errors"] = sorted(errors, key=lambda e: e["index"])
+        self.arrays["status/state"][i0:i1] = np.array(
+            [STATE_ERROR if r.error else STATE_DONE for r in results], dtype=np.uint8
+        )
+
+    def finish(self) -> None:
+        for flat_name, arr in self.flat.items():
+            if arr.shape[0] != self.cursor[flat_name]:
+                arr.resize((self.cursor[flat_name], *arr.shape[1:]))
+
+
+def _row_bytes(flat_name: str) -> int:
+    row_shape, dtype, _ = FLAT_ARRAYS[flat_name]
+    return int(np.dtype(dtype).itemsize * int(np.prod(row_shape, dtype=np.int64)))
+
+
+def _open_or_create(config: BuildConfig, ds: NuScenesDataset, split_names: list[str]) -> zarr.Group:
+    out = Path(config.out)
+    attrs = _root_attrs(config, ds, split_names)
+    if out.exists():
+        if not config.resume:
+            raise OccDataError(f"store exists: {out} (pass --resume to continue it, or choose another --out)")
+        try:
+            root = zarr.open_group(out, mode="r+")
+        except Exception as exc:  # noqa: BLE001 - any unreadable store is reported the same way
+            raise OccDataError(f"cannot resume {out}: not a readable zarr store ({exc})") from None
+        if root.attrs.get("schema") != SCHEMA_NAME or root.attrs.get("build_identity") != attrs["build_identity"]:
+            raise OccDataError(
+                f"cannot resume {out}: it was built from other inputs or options (compare `occdata info`); "
+                "use a new --out"
+            )
+        for partial in out.rglob("*.partial"):  # atomic-write leftovers of a killed run
+            partial.unlink(missing_ok=True)
+        return root
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".creating")
+    shutil.rmtree(tmp, ignore_errors=True)
+    root = zarr.open_group(tmp, mode="w")
+    _create(root, len(ds.samples), config.block_samples, attrs)
+    tmp.rename(out)  # the store appears only once its layout is complete
+    return zarr.open_group(out, mode="r+")
+
+
+def _work(args: tuple[Any, ...]) -> SampleResult:
+    return process_sample(*args)
+
+
+def build_store(config: BuildConfig) -> BuildReport:
+    """Build (or resume) a store. Raises `OccDataError` on bad options or, with on_error=fail,
+    at the first bad sample, after committing every sample before it."""
+    if config.block_samples < 1 or config.workers < 1:
+        raise OccDataError("--workers and --block-samples must be >= 1")
+    if not 0.05 <= config.options.image_scale <= 1.0:
+        raise OccDataError("--image-scale must be in [0.05, 1]")
+    ds = load_nuscenes(config.root, config.version).select(config.splits or None)
+    if not ds.samples:
+        raise OccDataError(f"no samples selected under {config.root} (splits: {list(config.splits) or 'all'})")
+    if config.gts is not None and not Path(config.gts).is_dir():
+        raise OccDataError(f"labels folder not found: {config.gts}")
+    split_names = sorted({sc.split for sc in ds.scenes})
+    scene_pos = {sc.token: i for i, sc in enumerate(ds.scenes)}
+    scene_index = np.array([scene_pos[s.scene_token] for s in ds.samples])
+    in_scene = np.array([s.index_in_scene for s in ds.samples])
+    prev_index, prev_valid = temporal_indices(scene_index, in_scene)
+    split_code = {name: i for i, name in enumerate(split_names)}
+
+    root = _open_or_create(config, ds, split_names)
+    writer = _Writer(root, len(ds.samples))
+    state = root["status/state"][:]
+    pending = np.flatnonzero(state == STATE_PENDING)
+
+    def label_path(i: int) -> Path | None:
+        if config.gts is None:
+            return None
+        s = ds.samples[i]
+        return Path(config.gts) / s.scene_name / s.token / "labels.npz"
+
+    def tasks() -> Iterator[tuple[Any, ...]]:
+        for i in pending:
+            s = ds.samples[i]
+            static = static_arrays(
+                s, int(scene_index[i]), split_code[ds.scenes[scene_index[i]].split], prev_index[i], prev_valid[i]
+            )
+            yield (int(i), s, static, label_path(int(i)), config.options)
+
+    block = config.block_samples
+    run: list[SampleResult] = []
+    processed = 0
+    bar = tqdm(total=len(pending), desc="build", unit="sample", disable=not config.progress, dynamic_ncols=True)
+    try:
+        for result in _results(tasks(), config.workers):
+            if result.error and config.on_error == "fail":
+                writer.commit(run)
+                writer.finish()
+                raise OccDataError(
+                    f"sample {result.index} ({result.token}) failed: {result.error}. "
+                    f"Everything before it is committed; fix the input and rerun with --resume "
+                    f"(or use --on-error skip)."
+                )
+            if run and result.index != run[-1].index + 1:
+                writer.commit(run)
+                run = []
+            run.append(result)
+            processed += 1
+            bar.update(1)
+            if (result.index + 1) % block == 0 or result.index == len(ds.samples) - 1:
+                writer.commit(run)
+                run = []
+        writer.commit(run)
+        writer.finish()
+    finally:
+        bar.close()
+    final_state = root["status/state"][:]
+    complete = bool((final_state != STATE_PENDING).all())
+    root.attrs["complete"] = complete
+    root.attrs["build_config"] = {"workers": config.workers, "on_error": config.on_error}
+    return BuildReport(
+        store=Path(config.out),
+        n_samples=len(ds.samples),
+        n_done=int((final_state == STATE_DONE).sum()),
+        n_errors=int((final_state == STATE_ERROR).sum()),
+        n_labelled=int(root["labels/present"][:].sum()),
+        processed_now=processed,
+    )
+
+
+def _results(tasks: Iterator[tuple[Any, ...]], workers: int) -> Iterator[SampleResult]:
+    """Results in task order; at most a few tasks in flight per worker, so memory stays bounded."""
+    if workers == 1:
+        for t in tasks:
+            yield _work(t)
+        return
+    window: collections.deque[Future[SampleResult]] = collections.deque()
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+        for t in tasks:
+            window.append(pool.submit(_work, t))
+            if len(window) >= 3 * workers:
+                yield window.popleft().result()
+        while window:
+            yield window.popleft().result()
+

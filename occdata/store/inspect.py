@@ -1,0 +1,97 @@
+"""`occdata info` and `occdata dump`: a store described, and one sample as plain numpy arrays."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from occdata.bev import unpack_bev
+from occdata.constants import CAMERA_ORDER
+from occdata.store.layout import FLAT_ARRAYS, PER_SAMPLE, STATE_DONE, STATE_ERROR, STATE_PENDING
+from occdata.store.reader import StoreReader
+
+__all__ = ["DUMP_KEYS", "dump_sample", "store_info"]
+
+
+def store_info(reader: StoreReader) -> dict[str, Any]:
+    state = reader.state
+    arrays = {}
+    for name in [s.name for s in PER_SAMPLE] + list(FLAT_ARRAYS):
+        a = reader.group[name]
+        shards = getattr(a, "shards", None)
+        arrays[name] = {"shape": list(a.shape), "dtype": str(a.dtype), "chunks": list(a.chunks),
+                        "shards": list(shards) if shards else None}
+    attrs = dict(reader.attrs)
+    scenes = attrs.pop("scenes", [])
+    errors = attrs.pop("errors", [])
+    return {
+        "store": reader.path,
+        "samples": reader.n_samples,
+        "done": int((state == STATE_DONE).sum()),
+        "errors": int((state == STATE_ERROR).sum()),
+        "pending": int((state == STATE_PENDING).sum()),
+        "labelled": int(reader.group["labels/present"][:].sum()),
+        "with_visibility": int(reader.group["visibility/present"][:].sum()),
+        "scenes": len(scenes),
+        "scene_table": scenes,
+        "recorded_errors": errors,
+        "arrays": arrays,
+        "attrs": attrs,
+    }
+
+
+DUMP_KEYS = {
+    "images": "(6, H, W, 3) uint8 RGB, decoded stored JPEGs, camera order in attrs",
+    "camera_order": "(6,) str",
+    "K": "(6, 3, 3) float64 intrinsics of the original image",
+    "T_ego_from_cam": "(6, 4, 4) float64",
+    "T_keyego_from_cam": "(6, 4, 4) float64",
+    "T_ego_from_lidar": "(4, 4) float64",
+    "T_global_from_keyego": "(4, 4) float64",
+    "T_global_from_ego_cam": "(6, 4, 4) float64",
+    "depth_uvd_<c>": "(M_c, 3) float32 per camera c = 0..5: u, v (original pixels), depth (m)",
+    "semantics / mask_lidar / mask_camera": "(200, 200, 16) uint8 (absent without labels)",
+    "bev": "(18, 200, 200) uint8 multi-hot (absent without labels)",
+    "visibility_camera / visibility_lidar": "(200, 200, 16) uint8 (absent until `occdata visibility`)",
+    "prev_index / prev_valid": "(16,) int32 / bool temporal indices, nearest first",
+    "token / timestamp": "str / int64",
+}
+
+
+def dump_sample(reader: StoreReader, index: int, out: Path) -> list[str]:
+    """Write one sample as a plain `.npz` (no pickles); returns the keys written."""
+    a = reader.sample_arrays(index)
+    images = reader.images(index)
+    data: dict[str, np.ndarray] = {
+        "token": np.array(reader.token(index)),
+        "timestamp": a["sample/timestamp"],
+        "camera_order": np.array(reader.attrs.get("camera_order", list(CAMERA_ORDER))),
+        "K": a["calib/K"],
+        "T_ego_from_cam": a["calib/T_ego_from_cam"],
+        "T_keyego_from_cam": a["calib/T_keyego_from_cam"],
+        "T_ego_from_lidar": a["calib/T_ego_from_lidar"],
+        "T_global_from_keyego": a["pose/T_global_from_keyego"],
+        "T_global_from_ego_cam": a["pose/T_global_from_ego_cam"],
+        "prev_index": a["temporal/prev_index"],
+        "prev_valid": a["temporal/prev_valid"],
+    }
+    if len({im.shape for im in images}) == 1:
+        data["images"] = np.stack(images)
+    else:
+        data.update({f"image_{c}": im for c, im in enumerate(images)})
+    for c, pts in enumerate(reader.depth_points(index)):
+        data[f"depth_uvd_{c}"] = pts
+    if a["labels/present"]:
+        for k in ("semantics", "mask_lidar", "mask_camera"):
+            data[k] = a[f"labels/{k}"]
+        data["bev"] = unpack_bev(a["labels/bev"])
+    if a["visibility/present"]:
+        data["visibility_camera"] = a["visibility/camera"]
+        data["visibility_lidar"] = a["visibility/lidar"]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp.npz")
+    np.savez_compressed(tmp, **data)
+    tmp.replace(out)
+    return sorted(data)

@@ -1,0 +1,116 @@
+"""The store schema (version 1): array names, shapes, dtypes, chunking. See docs/store.md.
+
+Every per-sample array has the sample axis first. Small arrays are chunked by blocks of samples;
+large label arrays have one chunk per sample inside one shard per block (few files, cheap random
+access). Ragged data (JPEG bytes, LiDAR depth points) lives in flat arrays with (start, length)
+offsets per (sample, camera).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from occdata.constants import GRID
+
+__all__ = [
+    "FLAT_ARRAYS",
+    "FLAT_OF_OFFSETS",
+    "N_CAM",
+    "checksummed_names",
+    "spec",
+    "token_bytes",
+    "token_str",
+    "PER_SAMPLE",
+    "SCHEMA_NAME",
+    "SCHEMA_VERSION",
+    "STATE_DONE",
+    "STATE_ERROR",
+    "STATE_PENDING",
+    "ArraySpec",
+    "N_PREV",
+]
+
+SCHEMA_NAME = "occdata.store"
+SCHEMA_VERSION = 1
+N_PREV = 16  # temporal history length (DESIGN §5.4)
+N_CAM = 6
+
+STATE_PENDING, STATE_DONE, STATE_ERROR = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """One per-sample array: `shape` excludes the leading sample axis."""
+
+    name: str
+    shape: tuple[int, ...]
+    dtype: str
+    fill: int | float = 0
+    sharded: bool = False  # one chunk per sample, one shard per block
+    checksummed: bool = True
+
+
+_G = GRID.shape
+PER_SAMPLE: tuple[ArraySpec, ...] = (
+    ArraySpec("sample/token", (32,), "uint8"),
+    ArraySpec("sample/scene_index", (), "int32"),
+    ArraySpec("sample/split", (), "uint8"),  # index into attrs["splits"]
+    ArraySpec("sample/index_in_scene", (), "int32"),
+    ArraySpec("sample/timestamp", (), "int64"),
+    ArraySpec("sample/lidar_token", (32,), "uint8"),
+    ArraySpec("cam/token", (N_CAM, 32), "uint8"),
+    ArraySpec("cam/timestamp", (N_CAM,), "int64"),
+    ArraySpec("cam/image_size", (N_CAM, 2), "int32"),
+    ArraySpec("calib/K", (N_CAM, 3, 3), "float64"),
+    ArraySpec("calib/T_ego_from_cam", (N_CAM, 4, 4), "float64"),
+    ArraySpec("calib/T_keyego_from_cam", (N_CAM, 4, 4), "float64"),
+    ArraySpec("calib/T_ego_from_lidar", (4, 4), "float64"),
+    ArraySpec("pose/T_global_from_keyego", (4, 4), "float64"),
+    ArraySpec("pose/T_global_from_ego_cam", (N_CAM, 4, 4), "float64"),
+    ArraySpec("temporal/prev_index", (N_PREV,), "int32"),
+    ArraySpec("temporal/prev_valid", (N_PREV,), "bool"),
+    ArraySpec("images/offsets", (N_CAM, 2), "int64"),
+    ArraySpec("depth/offsets", (N_CAM, 2), "int64"),
+    ArraySpec("labels/present", (), "bool"),
+    ArraySpec("labels/semantics", _G, "uint8", fill=255, sharded=True),
+    ArraySpec("labels/mask_lidar", _G, "uint8", sharded=True),
+    ArraySpec("labels/mask_camera", _G, "uint8", sharded=True),
+    ArraySpec("labels/bev", _G[:2], "uint32", sharded=True),
+    ArraySpec("visibility/present", (), "bool"),
+    ArraySpec("visibility/camera", _G, "uint8", sharded=True),
+    ArraySpec("visibility/lidar", _G, "uint8", sharded=True),
+    ArraySpec("status/state", (), "uint8", checksummed=False),
+    ArraySpec("status/checksum", (), "uint32", checksummed=False),  # shape set from the checksummed count
+)
+
+# Flat ragged arrays: name -> (row shape, dtype, chunk rows).
+FLAT_ARRAYS: dict[str, tuple[tuple[int, ...], str, int]] = {
+    "images/jpeg": ((), "uint8", 1 << 20),
+    "depth/uvd": ((3,), "float32", 1 << 16),
+}
+
+# Which offsets array indexes which flat array.
+FLAT_OF_OFFSETS = {"images/offsets": "images/jpeg", "depth/offsets": "depth/uvd"}
+
+
+def spec(name: str) -> ArraySpec:
+    return next(s for s in PER_SAMPLE if s.name == name)
+
+
+def checksummed_names() -> tuple[str, ...]:
+    """Arrays covered by the per-sample checksum, in checksum-column order (flat ones last)."""
+    return tuple(s.name for s in PER_SAMPLE if s.checksummed) + tuple(FLAT_ARRAYS)
+
+
+def token_bytes(token: str) -> np.ndarray:
+    """A 32-char token as `(32,) uint8` ASCII (zero padded)."""
+    raw = token.encode("ascii")[:32]
+    out = np.zeros(32, dtype=np.uint8)
+    out[: len(raw)] = np.frombuffer(raw, dtype=np.uint8)
+    return out
+
+
+def token_str(arr: np.ndarray) -> str:
+    return bytes(np.asarray(arr, dtype=np.uint8)).rstrip(b"\0").decode("ascii")

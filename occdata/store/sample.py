@@ -1,0 +1,199 @@
+"""Everything one sample contributes to the store, computed from its raw files (runs in workers).
+
+Pure with respect to the store: reads the sample's files, returns arrays. Bad input raises
+`SampleError` with the file and the reason; the builder records or re-raises it.
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from occdata.bev import bev_bits
+from occdata.constants import FREE_LABEL, GRID
+from occdata.errors import OccDataError
+from occdata.nuscenes import SampleRecord, load_lidar_points, validate_sample
+from occdata.projection import project_to_cameras
+from occdata.store.layout import N_PREV, token_bytes
+
+__all__ = ["SampleError", "SampleOptions", "SampleResult", "jpeg_size", "load_occ3d_labels", "process_sample"]
+
+LABEL_KEYS = ("semantics", "mask_lidar", "mask_camera")
+
+
+class SampleError(OccDataError):
+    """A problem with one sample's input; the message names the file and the reason."""
+
+
+@dataclass(frozen=True)
+class SampleOptions:
+    image_scale: float = 1.0  # 1.0 keeps the original JPEG bytes untouched
+    jpeg_quality: int = 90  # only used when re-encoding (image_scale != 1)
+    min_depth: float = 0.0  # LiDAR depth targets keep depth > min_depth
+
+
+@dataclass(frozen=True, eq=False)
+class SampleResult:
+    """Per-sample arrays (no sample axis) plus ragged payloads; `error` set when the sample failed."""
+
+    index: int
+    token: str
+    arrays: dict[str, np.ndarray]
+    jpeg: tuple[bytes, ...]
+    uvd: tuple[np.ndarray, ...]  # per camera (M_c, 3) float32
+    error: str | None = None
+
+
+def jpeg_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a JPEG's SOF marker, or None if the stream is not a well-formed JPEG."""
+    if len(data) < 4 or data[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        seg_len = int.from_bytes(data[i + 2 : i + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            if i + 9 > len(data):
+                return None
+            return int.from_bytes(data[i + 7 : i + 9], "big"), int.from_bytes(data[i + 5 : i + 7], "big")
+        i += 2 + seg_len
+    return None
+
+
+def _read_jpeg(path: Path, width: int, height: int, options: SampleOptions) -> bytes:
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise SampleError(f"missing image file: {path}") from None
+    size = jpeg_size(data)
+    if size is None or not data.rstrip(b"\0").endswith(b"\xff\xd9"):
+        raise SampleError(f"corrupt JPEG {path}: not a complete JPEG stream")
+    if size != (width, height):
+        raise SampleError(f"corrupt JPEG {path}: {size[0]}x{size[1]} but sample_data says {width}x{height}")
+    buf = np.frombuffer(data, dtype=np.uint8)
+    if options.image_scale == 1.0:
+        # A 1/8-scale decode still walks the whole entropy-coded stream: cheap full validation.
+        if cv2.imdecode(buf, cv2.IMREAD_REDUCED_GRAYSCALE_8) is None:
+            raise SampleError(f"corrupt JPEG {path}: decoder rejected the data")
+        return data
+    img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    if img is None:
+        raise SampleError(f"corrupt JPEG {path}: decoder rejected the data")
+    new_size = (round(width * options.image_scale), round(height * options.image_scale))
+    img = cv2.resize(img, new_size, interpolation=cv2.INTER_AREA)
+    ok, enc = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, options.jpeg_quality])
+    if not ok:
+        raise SampleError(f"cannot re-encode {path}")
+    return enc.tobytes()
+
+
+def load_occ3d_labels(path: Path) -> dict[str, np.ndarray]:
+    """An Occ3D `labels.npz`: semantics / mask_lidar / mask_camera, each `(200, 200, 16) uint8`.
+
+    Raises `SampleError` naming the file for unreadable files, missing keys, wrong shapes or
+    out-of-range values. Never unpickles.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            missing = [k for k in LABEL_KEYS if k not in npz.files]
+            if missing:
+                raise SampleError(f"bad labels {path}: missing keys {missing} (has {sorted(npz.files)})")
+            out = {k: np.asarray(npz[k]) for k in LABEL_KEYS}
+    except SampleError:
+        raise
+    except (OSError, ValueError, zlib.error, EOFError) as exc:
+        raise SampleError(f"bad labels {path}: unreadable ({exc})") from None
+    for k, v in out.items():
+        if v.shape != GRID.shape:
+            raise SampleError(f"bad labels {path}: {k} has shape {v.shape}, expected {GRID.shape}")
+        if v.dtype.kind not in "biu":
+            raise SampleError(f"bad labels {path}: {k} has dtype {v.dtype}, expected uint8")
+    if out["semantics"].max() > FREE_LABEL or out["semantics"].min() < 0:
+        raise SampleError(f"bad labels {path}: semantics outside 0..{FREE_LABEL}")
+    for k in ("mask_lidar", "mask_camera"):
+        if out[k].max() > 1 or out[k].min() < 0:
+            raise SampleError(f"bad labels {path}: {k} is not 0/1")
+    return {k: v.astype(np.uint8, copy=False) for k, v in out.items()}
+
+
+def static_arrays(
+    sample: SampleRecord, scene_index: int, split_code: int, prev_index: np.ndarray, prev_valid: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Tokens, calibration, poses and temporal indices: cheap, valid even for failed samples."""
+    cams = sample.cameras
+    return {
+        "sample/token": token_bytes(sample.token),
+        "sample/scene_index": np.int32(scene_index),
+        "sample/split": np.uint8(split_code),
+        "sample/index_in_scene": np.int32(sample.index_in_scene),
+        "sample/timestamp": np.int64(sample.timestamp),
+        "sample/lidar_token": token_bytes(sample.lidar.token),
+        "cam/token": np.stack([token_bytes(c.token) for c in cams]),
+        "cam/timestamp": np.array([c.timestamp for c in cams], dtype=np.int64),
+        "cam/image_size": np.array([[c.width, c.height] for c in cams], dtype=np.int32),
+        "calib/K": np.stack([c.K for c in cams]),
+        "calib/T_ego_from_cam": np.stack([c.T_ego_from_cam for c in cams]),
+        "calib/T_keyego_from_cam": np.stack([sample.T_keyego_from_cam(i) for i in range(len(cams))]),
+        "calib/T_ego_from_lidar": sample.lidar.T_ego_from_lidar,
+        "pose/T_global_from_keyego": sample.T_global_from_keyego,
+        "pose/T_global_from_ego_cam": np.stack([c.T_global_from_ego for c in cams]),
+        "temporal/prev_index": prev_index.astype(np.int32),
+        "temporal/prev_valid": prev_valid.astype(bool),
+    }
+
+
+def process_sample(
+    index: int,
+    sample: SampleRecord,
+    static: dict[str, np.ndarray],
+    label_path: Path | None,
+    options: SampleOptions,
+) -> SampleResult:
+    """Read and convert one sample. Bad input gives a result with `error` set (never raises it)."""
+    try:
+        validate_sample(sample)
+        jpeg = tuple(_read_jpeg(c.path, c.width, c.height, options) for c in sample.cameras)
+        points = load_lidar_points(sample.lidar.path)
+        T_cam_from_lidar = np.stack([sample.T_cam_from_lidar(i) for i in range(len(sample.cameras))])
+        K = static["calib/K"]
+        sizes = static["cam/image_size"].astype(np.int64)
+        uvd_all, counts = project_to_cameras(points, T_cam_from_lidar, K, sizes, options.min_depth)
+        uvd = tuple(uvd_all[c, : counts[c]].copy() for c in range(len(counts)))
+        arrays = dict(static)
+        if label_path is not None and label_path.is_file():
+            labels = load_occ3d_labels(label_path)
+            arrays["labels/present"] = np.bool_(True)
+            arrays["labels/semantics"] = labels["semantics"]
+            arrays["labels/mask_lidar"] = labels["mask_lidar"]
+            arrays["labels/mask_camera"] = labels["mask_camera"]
+            arrays["labels/bev"] = bev_bits(labels["semantics"])
+        else:
+            arrays["labels/present"] = np.bool_(False)
+        return SampleResult(index=index, token=sample.token, arrays=arrays, jpeg=jpeg, uvd=uvd)
+    except OccDataError as exc:  # SampleError, or a calibration rejected by validate_sample
+        return SampleResult(index=index, token=sample.token, arrays=dict(static), jpeg=(), uvd=(), error=str(exc))
+
+
+def temporal_indices(scene_index: np.ndarray, index_in_scene: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Store indices of the previous `N_PREV` keyframes, nearest first, and their validity.
+
+    Samples are in scene order then time order, so the j-th previous frame of sample i is i - j
+    when it is in the same scene; otherwise pad with the scene's first frame, invalid (DESIGN §5.4).
+    Returns `(N, N_PREV) int32` and `(N, N_PREV) bool`.
+    """
+    n = len(scene_index)
+    i = np.arange(n)[:, None]
+    j = np.arange(1, N_PREV + 1)[None, :]
+    valid = index_in_scene[:, None] - j >= 0
+    first = (i - index_in_scene[:, None]).astype(np.int64)
+    prev = np.where(valid, i - j, first)
+    return prev.astype(np.int32), valid

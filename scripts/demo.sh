@@ -1,0 +1,15 @@
+#!/usr/bin/env bash
+# Set up, then run the main job on the embedded default: a small synthetic nuScenes-format world.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+export PATH="$PWD/.venv/bin:$PATH"
+OUT=${DEMO_DIR:-demo}
+rm -rf "$OUT" && mkdir -p "$OUT"
+occdata synth --out "$OUT/world" --scenes 2 --samples 6 --seed 0 --width 800 --height 450
+occdata scan --root "$OUT/world"
+occdata build --root "$OUT/world" --gts "$OUT/world/gts" --out "$OUT/data.zarr" --workers 2
+occdata verify --store "$OUT/data.zarr"
+occdata info --store "$OUT/data.zarr" | head -5
+occdata check-projection --store "$OUT/data.zarr" --index 0 --out "$OUT/check_projection.png"
+echo "demo done: store at $OUT/data.zarr, picture at $OUT/check_projection.png"
