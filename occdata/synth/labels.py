@@ -111,7 +111,8 @@ def voxelize_primitives_reference(
     X, Y, Z = semantics.shape
     h = 0.5 * voxel_size
     e = _OVERLAP_EPS
-    qx, qy, qz0 = np.meshgrid(lower[0] + (np.arange(X) + 0.5) * voxel_size, lower[1] + (np.arange(Y) + 0.5) * voxel_size,
+    qx, qy, qz0 = np.meshgrid(lower[0] + (np.arange(X) + 0.5) * voxel_size,
+                              lower[1] + (np.arange(Y) + 0.5) * voxel_size,
                               lower[2] + np.arange(Z) * voxel_size, indexing="ij")
     for p, c in zip(params, cls, strict=True):
         zok = (p[8] >= qz0 - e) & (p[7] <= qz0 + 2 * h + e)

@@ -83,7 +83,8 @@ class WorldGrid:
 
     def cast(self, origin: np.ndarray, dirs: np.ndarray, t_max: float) -> tuple[np.ndarray, np.ndarray]:
         return render.cast_rays(np.ascontiguousarray(origin, np.float64), np.ascontiguousarray(dirs, np.float64),
-                                t_max, self.prims.params, self.cell_start, self.items, self.cell_ztop, self.x0, self.y0, self.cell,
+                                t_max, self.prims.params, self.cell_start, self.items, self.cell_ztop, self.x0,
+                                self.y0, self.cell,
                                 self.nx, self.ny, self.z_top)
 
 

@@ -309,7 +309,8 @@ def make_world(rng: np.random.Generator, origin_xy: tuple[float, float], t0_us: 
                 if fp.free(corners, SIDEWALK_OUT + 1.5):
                     fp.add(corners)
                     v = int(rng.integers(0, 8))
-                    add_static(np.array([_box(0, 0, 0, hx, hy, 0.0, rng.uniform(6.0, 26.0))]), [MANMADE], [v], x, y, yaw)
+                    body = np.array([_box(0, 0, 0, hx, hy, 0.0, rng.uniform(6.0, 26.0))])
+                    add_static(body, [MANMADE], [v], x, y, yaw)
                 s += 2 * hx + float(rng.uniform(*gap))
         s = float(rng.uniform(0, 30))
         while s < L:
@@ -351,7 +352,8 @@ def make_world(rng: np.random.Generator, origin_xy: tuple[float, float], t0_us: 
                 parts, cl, st = _template("barrier" if rng.random() < 0.7 else "cone", rng)
                 add_static(parts, cl, st, float(x), float(y), float(yaw))
         s += float(rng.uniform(8.0, 12.0))
-    static = Primitives(np.asarray(rows, np.float64).reshape(-1, 9), np.asarray(cls, np.int32), np.asarray(sty, np.int32))
+    static = Primitives(np.asarray(rows, np.float64).reshape(-1, 9), np.asarray(cls, np.int32),
+                        np.asarray(sty, np.int32))
 
     # Actors: an oncoming traffic stream (one shared speed, so it never collides with itself),
     # cyclists at the left kerb, pedestrians on both sidewalks.
