@@ -213,6 +213,11 @@ def test_rig_matches_real_nuscenes_calibration(real_nuscenes_root: Path) -> None
             assert np.allclose(rig.intrinsic, [K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
 
 
+def test_reader_assigns_split_from_description(ds) -> None:
+    assert [(s.name, s.split) for s in ds.scenes] == [("synth-0000", "train"), ("synth-0001", "val")]
+    assert len(ds.samples) == 6
+
+
 def test_ego_motion_is_realistic(ds) -> None:
     for scene in ds.scenes:
         samples = [s for s in ds.samples if s.scene_name == scene.name]
