@@ -99,6 +99,8 @@ def test_labels_format_and_content(ds, synth_root: Path) -> None:
         assert (lab["semantics"][:, :, 2] != FREE_LABEL).all()
         assert (lab["semantics"][:, :, :2] == FREE_LABEL).all()
         assert 0.01 < lab["mask_camera"].mean() < 0.9
+        # Nothing ever overlaps the ego car (x -1..4 m, y -1..1 m around the rear axle).
+        assert (lab["semantics"][97:110, 97:102, 3:6] == FREE_LABEL).all()
     for c in (4, 11, 13, 15, 16, 7):  # car, driveable, sidewalk, manmade, vegetation, pedestrian
         assert seen[c], f"class {c} never labelled"
 

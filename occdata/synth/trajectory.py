@@ -61,6 +61,8 @@ def make_path(rng: np.random.Generator, origin_xy: tuple[float, float], length: 
     extra: list[np.ndarray] = []
     total = 0.0
     first = True
+    # Net turn in quarter turns; kept within [-1, 1] so the path never loops back onto itself.
+    heading_q = 0
     while total < length:
         seg = float(rng.uniform(90.0, 130.0)) if first else float(rng.uniform(35.0, 80.0))
         first = False
@@ -72,8 +74,12 @@ def make_path(rng: np.random.Generator, origin_xy: tuple[float, float], length: 
         total += n * PATH_STEP
         if total >= length:
             break
-        if rng.random() < 0.6:  # turn at an intersection
-            sign = 1.0 if rng.random() < 0.5 else -1.0
+        want_turn = rng.random() < 0.6
+        sign = 1.0 if rng.random() < 0.5 else -1.0
+        if abs(heading_q + sign) > 1:
+            sign = -sign
+        if want_turn:  # turn at an intersection
+            heading_q += int(sign)
             radius = float(rng.uniform(15.0, 25.0))
             # The road we leave continues straight through the intersection.
             ahead = np.array([[x, y], [x + (radius + 45.0) * np.cos(yaw), y + (radius + 45.0) * np.sin(yaw)]])

@@ -112,8 +112,11 @@ class Actor:
     direction: float  # +1 with the path, -1 against it
     t_ref_us: int
 
+    def s_at(self, t_us: int) -> float:
+        return self.s0 + self.direction * self.speed * (t_us - self.t_ref_us) * 1e-6
+
     def pose_at(self, path: Path2D, t_us: int) -> tuple[float, float, float]:
-        s = self.s0 + self.direction * self.speed * (t_us - self.t_ref_us) * 1e-6
+        s = self.s_at(t_us)
         xy, yaw = path.pose_at(s, self.offset)
         if self.direction < 0:
             yaw = yaw + np.pi
@@ -181,9 +184,13 @@ class SceneWorld:
     actors: tuple[Actor, ...]
 
     def primitives_at(self, t_us: int) -> Primitives:
-        """All primitives (static first, then actors placed at time `t_us`) in the global frame."""
+        """All primitives (static first, then actors placed at time `t_us`) in the global frame.
+
+        Actors whose arc length has left the road path at that time are not in the world."""
         items = [self.static]
         for a in self.actors:
+            if not 0.0 <= a.s_at(t_us) <= self.path.length:
+                continue
             x, y, yaw = a.pose_at(self.path, t_us)
             items.append(Primitives(_place(a.parts, x, y, yaw), a.cls, a.style))
         return Primitives.concat(items)
