@@ -46,7 +46,9 @@ def _bilinear_inverse_depth(depth: np.ndarray, uv: np.ndarray) -> tuple[np.ndarr
     return 1.0 / np.maximum(interp, 1e-12), smooth
 
 
-def test_lidar_projects_onto_rendered_depth(ds, synth_root: Path) -> None:
+def _depth_errors(ds, root: Path) -> np.ndarray:
+    """|rendered depth - LiDAR point depth| for points projected through the stored tables (devkit chain
+    lidar -> ego(t_lidar) -> global -> ego(t_cam) -> camera -> K), away from depth edges."""
     errors = []
     for sample in ds.samples:
         pts = load_lidar_points(sample.lidar.path)
@@ -57,11 +59,32 @@ def test_lidar_projects_onto_rendered_depth(ds, synth_root: Path) -> None:
             keep = z > 1.0
             uv = p_cam[keep, :2] / z[keep, None] @ cam.K[:2, :2].T + cam.K[:2, 2]
             inside = (uv[:, 0] > 1) & (uv[:, 0] < cam.width - 2) & (uv[:, 1] > 1) & (uv[:, 1] < cam.height - 2)
-            depth = _depth_of(synth_root, cam.token)
+            depth = _depth_of(root, cam.token)
             assert depth.shape == (cam.height, cam.width) and depth.dtype == np.float32
             d_img, smooth = _bilinear_inverse_depth(depth, uv[inside])
             errors.append(np.abs(d_img - z[keep][inside])[smooth])
-    err = np.concatenate(errors)
+    return np.concatenate(errors)
+
+
+def _occupied_fraction(ds, root: Path) -> tuple[float, int]:
+    """Fraction of in-grid LiDAR returns (key ego) that fall in occupied voxels; also checks mask_lidar."""
+    inside_total = occupied_total = 0
+    for sample in ds.samples:
+        pts = load_lidar_points(sample.lidar.path)
+        p_keyego = transform_points(sample.lidar.T_ego_from_lidar, pts[:, :3])
+        idx = GRID.index_of(p_keyego)
+        ok = ((idx >= 0) & (idx < np.array(GRID.shape))).all(axis=1)
+        lab = _labels(root, sample)
+        labels = lab["semantics"][idx[ok, 0], idx[ok, 1], idx[ok, 2]]
+        inside_total += int(ok.sum())
+        occupied_total += int((labels != FREE_LABEL).sum())
+        # The LiDAR mask covers every voxel a return ends in.
+        assert lab["mask_lidar"][idx[ok, 0], idx[ok, 1], idx[ok, 2]].all()
+    return occupied_total / inside_total, inside_total
+
+
+def test_lidar_projects_onto_rendered_depth(ds, synth_root: Path) -> None:
+    err = _depth_errors(ds, synth_root)
     print(f"\nLiDAR vs rendered depth: {len(err)} points away from edges, median |err| = {np.median(err) * 100:.2f} cm,"
           f" 90% = {np.percentile(err, 90) * 100:.2f} cm")
     assert len(err) > 1000
@@ -69,21 +92,24 @@ def test_lidar_projects_onto_rendered_depth(ds, synth_root: Path) -> None:
 
 
 def test_lidar_points_fall_in_occupied_voxels(ds, synth_root: Path) -> None:
-    inside_total = occupied_total = 0
-    for sample in ds.samples:
-        pts = load_lidar_points(sample.lidar.path)
-        p_keyego = transform_points(sample.lidar.T_ego_from_lidar, pts[:, :3])
-        idx = GRID.index_of(p_keyego)
-        ok = ((idx >= 0) & (idx < np.array(GRID.shape))).all(axis=1)
-        sem = _labels(synth_root, sample)["semantics"]
-        labels = sem[idx[ok, 0], idx[ok, 1], idx[ok, 2]]
-        inside_total += int(ok.sum())
-        occupied_total += int((labels != FREE_LABEL).sum())
-        # The LiDAR mask covers every voxel a return ends in.
-        assert _labels(synth_root, sample)["mask_lidar"][idx[ok, 0], idx[ok, 1], idx[ok, 2]].all()
-    frac = occupied_total / inside_total
-    print(f"\nLiDAR points in occupied voxels: {frac * 100:.2f}% of {inside_total}")
+    frac, n = _occupied_fraction(ds, synth_root)
+    print(f"\nLiDAR points in occupied voxels: {frac * 100:.2f}% of {n}")
     assert frac >= 0.99
+
+
+@pytest.mark.slow
+def test_full_resolution_world_is_consistent(tmp_path: Path) -> None:
+    """The same checks on a 1600x900 world (the default resolution)."""
+    from occdata.synth import SynthConfig, synthesize
+
+    root = synthesize(SynthConfig(out=tmp_path / "full", scenes=1, samples=2, seed=5, progress=False))
+    full = load_nuscenes(root, version="v1.0-mini")
+    assert full.samples[0].cameras[0].width == 1600 and full.samples[0].cameras[0].height == 900
+    err = _depth_errors(full, root)
+    frac, _ = _occupied_fraction(full, root)
+    print(f"\n1600x900: median depth error {np.median(err) * 100:.2f} cm over {len(err)} points; "
+          f"occupied {frac * 100:.2f}%")
+    assert np.median(err) < 0.05 and frac >= 0.99
 
 
 def test_labels_format_and_content(ds, synth_root: Path) -> None:
