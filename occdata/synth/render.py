@@ -25,7 +25,6 @@ __all__ = [
     "palette_tables",
     "render_camera_kernel",
     "render_camera_reference",
-    "shade",
     "shade_reference",
 ]
 
@@ -498,46 +497,13 @@ def _shade_one(
     return (r * k * fog + 205.0 * (1.0 - fog), g * k * fog + 215.0 * (1.0 - fog), b * k * fog + 230.0 * (1.0 - fog))
 
 
-@njit(cache=True, parallel=True)
-def shade(
-    origin: np.ndarray, dirs: np.ndarray, t: np.ndarray, hit: np.ndarray, normals: np.ndarray,
-    prim_cls: np.ndarray, prim_style: np.ndarray, gcodes: np.ndarray, gx0: float, gy0: float, gcell: float,
-    variants: np.ndarray, sun: np.ndarray,
-) -> np.ndarray:
-    """RGB `(N, 3) uint8` of the hits: class colour x procedural texture x Lambert (sun) x haze; sky
-    gradient where nothing is hit. Ground classes come from `gcodes (NY, NX) uint8` (terrain outside)."""
-    n = dirs.shape[0]
-    out = np.zeros((n, 3), np.uint8)
-    gny, gnx = gcodes.shape
-    for i in prange(n):
-        h = hit[i]
-        c = 0
-        st = 0
-        gc = 0
-        if h >= 0:
-            c = prim_cls[h]
-            st = prim_style[h]
-        elif h == -2:
-            ix = int(np.floor((origin[0] + t[i] * dirs[i, 0] - gx0) / gcell))
-            iy = int(np.floor((origin[1] + t[i] * dirs[i, 1] - gy0) / gcell))
-            gc = 14
-            if 0 <= ix < gnx and 0 <= iy < gny:
-                gc = gcodes[iy, ix]
-            c = gc & 31
-        r, g, b = _shade_one(origin[0], origin[1], origin[2], dirs[i, 0], dirs[i, 1], dirs[i, 2], t[i], h,
-                             normals[i, 0], normals[i, 1], normals[i, 2], c, st, gc, variants, sun)
-        out[i, 0] = min(max(int(r + 0.5), 0), 255)
-        out[i, 1] = min(max(int(g + 0.5), 0), 255)
-        out[i, 2] = min(max(int(b + 0.5), 0), 255)
-    return out
-
-
 def shade_reference(
     origin: np.ndarray, dirs: np.ndarray, t: np.ndarray, hit: np.ndarray, normals: np.ndarray,
     prim_cls: np.ndarray, prim_style: np.ndarray, gcodes: np.ndarray, gx0: float, gy0: float, gcell: float,
     variants: np.ndarray, sun: np.ndarray,
 ) -> np.ndarray:
-    """Numpy twin of `shade` (vectorised over pixels; may differ by 1 in rounding)."""
+    """Numpy twin of the shading in `render_camera_kernel` (`_shade_one`), vectorised over pixels:
+    RGB `(N, 3) uint8`; may differ by 1 in rounding."""
     d = np.asarray(dirs, np.float64)
     n = len(d)
     dn = np.linalg.norm(d, axis=1)
@@ -642,7 +608,7 @@ def render_camera_kernel(
     direction `K_inv @ (u, v, 1)` (z = 1, so the ray parameter is the depth), rotated to global.
 
     Returns `rgb (H, W, 3) uint8` and `depth (H, W) float32` (camera z, 0 where nothing is hit).
-    Same per-pixel maths as `cast_rays` + `hit_normals` + `shade`, without the large temporaries.
+    Same per-pixel maths as `cast_rays` + `hit_normals` + shading, without the large temporaries.
     """
     rgb = np.zeros((height, width, 3), np.uint8)
     depth = np.zeros((height, width), np.float32)
