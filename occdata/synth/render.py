@@ -120,7 +120,7 @@ def _slab(o: float, d: float, lo: float, hi: float, tn: float, tf: float) -> tup
     return max(tn, a), min(tf, b)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _hit_primitive(p: np.ndarray, ox: float, oy: float, oz: float, dx: float, dy: float, dz: float) -> float:
     """Entry distance of the ray into primitive `p (9,)`, or +inf (rays starting inside miss)."""
     rx = ox - p[1]
