@@ -2,9 +2,16 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import click
 
+from cli._common import friendly_errors
+
 __all__ = ["main"]
+
+HEAD_CHOICES = ("fastocc", "3dfcn", "deconv", "all")
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -14,6 +21,68 @@ def main() -> None:
 
     Reads stores written by `occdata build`. Every sub-command has its own --help.
     """
+
+
+@main.command()
+@click.option("--preset", "preset_name", type=click.Choice(["nano", "tiny", "small", "base"]), default="nano")
+@click.option("--head", type=click.Choice(HEAD_CHOICES), default="fastocc", help="'all' compares the heads in one run.")
+@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu")
+@click.option("--batch", type=click.IntRange(min=1), default=1)
+@click.option("--repeats", type=click.IntRange(min=1), default=5, help="Timed runs; the median is reported.")
+@click.option("--warmup", type=click.IntRange(min=0), default=1, help="Untimed runs first.")
+@click.option("--mode", type=click.Choice(["infer", "train"]), default="infer", help="train = forward + backward.")
+@click.option("--threads", type=click.IntRange(min=1), default=None, help="torch CPU threads (default: torch's).")
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
+def bench(
+    preset_name: str,
+    head: str,
+    device: str,
+    batch: int,
+    repeats: int,
+    warmup: int,
+    mode: str,
+    threads: int | None,
+    as_json: bool,
+) -> None:
+    """Per-stage latency, analytic FLOPs (MACs), parameters and peak memory on synthetic inputs."""
+    from fastocc.bench import BenchConfig, format_report, run_benchmark  # torch import only when used
+    from fastocc.model import HeadKind
+
+    heads = tuple(HeadKind) if head == "all" else (HeadKind(head),)
+    cfg = BenchConfig(
+        preset=preset_name,
+        heads=heads,
+        device=device,
+        batch=batch,
+        repeats=repeats,
+        warmup=warmup,
+        mode=mode,  # type: ignore[arg-type]
+        threads=threads,
+    )
+    try:
+        result = run_benchmark(cfg)
+    except ValueError as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(json.dumps(result, indent=2) if as_json else format_report(result))
+
+
+@main.command("show-batch")
+@click.option("--store", required=True, help="Store path or fsspec URL.")
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="PNG to write.")
+@click.option("--index", "-i", type=click.IntRange(min=0), default=0, help="Store index of the sample.")
+@click.option("--train", is_flag=True, help="Random training augmentation (default: the test transform).")
+@click.option("--seed", type=int, default=0, help="Augmentation seed (with --train).")
+@click.option("--height", type=click.IntRange(min=16), default=256)
+@click.option("--width", type=click.IntRange(min=16), default=704)
+@friendly_errors
+def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height: int, width: int) -> None:
+    """Draw one sample as the loader delivers it: augmented images with depth targets, BEV labels and GT."""
+    from fastocc.data import BevAugConfig, ImageAugConfig, SampleConfig
+    from fastocc.data.show import ShowConfig, show_batch
+
+    sample = SampleConfig(image=ImageAugConfig(height=height, width=width, train=train), bev=BevAugConfig(train=train))
+    path = show_batch(ShowConfig(store=store, out=out, index=index, seed=seed, sample=sample))
+    click.echo(f"wrote {path}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,63 @@
+"""Model benchmark behind docs/benchmarks.md (model section).
+
+Runs, in one process: (1) inference per stage for the tiny preset with all three heads (FastOcc head vs
+3D FCN vs deconv on the same image features and V_B); (2) nano forward + backward per sample.
+
+    PYTHONPATH=. python benchmarks/bench_model.py --json summary.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+from pathlib import Path
+
+import torch
+
+from fastocc.bench import BenchConfig, format_report, run_benchmark
+from fastocc.model import HeadKind
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--head-preset", default="tiny", help="preset for the head comparison")
+    parser.add_argument("--train-preset", default="nano", help="preset for the forward+backward timing")
+    parser.add_argument("--json", type=Path, default=None, help="write the summary (and raw results) here")
+    args = parser.parse_args()
+
+    heads = run_benchmark(
+        BenchConfig(preset=args.head_preset, heads=tuple(HeadKind), device=args.device, repeats=args.repeats)
+    )
+    print(format_report(heads))
+    train = run_benchmark(
+        BenchConfig(
+            preset=args.train_preset, heads=tuple(HeadKind), device=args.device, repeats=args.repeats, mode="train"
+        )
+    )
+    print(format_report(train))
+    summary = {
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor(),
+            "cpus": torch.get_num_threads(),
+        },
+        "head_preset": args.head_preset,
+        "fastocc_head_ms": heads["heads"]["fastocc"]["ms"],
+        "fcn3d_head_ms": heads["heads"]["3dfcn"]["ms"],
+        "deconv_head_ms": heads["heads"]["deconv"]["ms"],
+        "fastocc_over_3dfcn_head_time": heads["fastocc_over_3dfcn_head_time"],
+        "train_preset": args.train_preset,
+        "fwd_bwd_s_per_sample": train["heads"]["fastocc"]["fwd_bwd_s_per_sample"],
+        "fwd_loss_bwd_s_per_sample": train["heads"]["fastocc"]["fwd_loss_bwd_s_per_sample"],
+        "raw": {"heads": heads, "train": train},
+    }
+    print(json.dumps({k: v for k, v in summary.items() if k != "raw"}, indent=2))
+    if args.json is not None:
+        args.json.write_text(json.dumps(summary, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,265 @@
+"""Per-stage latency, analytic FLOPs, parameters and peak memory of the network (the paper's table layout).
+
+Stages: image (ResNet + FPN) / view transform (depth net + LSS pooling + temporal fusion) / head (3D side:
+FastOcc's BEV decoder + interpolation + fusion + classifier, or a baseline). FLOPs are multiply-accumulates
+from the shapes seen in one pass: k^2 C_in C_out H W per 2D conv, k^3 C_in C_out H W Z per 3D conv,
+in x out per row for linear layers, plus analytic terms for LSS pooling (N D C2 h w) and interpolation
+(4 N C H W Z). Timing: warm-up runs, then the median of `repeats` runs, CUDA synchronised.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import resource
+import statistics
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .losses import LossConfig, LossTargets, occupancy_loss
+from .model import FastOcc, HeadKind, ModelConfig, preset, synthetic_inputs
+
+__all__ = ["BenchConfig", "format_report", "run_benchmark"]
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """What to measure. mode "infer": eval + no_grad per stage, geometry caches warm (fixed rig);
+    mode "train": forward + combined loss + backward of the whole network, caches cleared every run
+    (augmentation changes every batch in training)."""
+
+    preset: str = "nano"
+    heads: tuple[HeadKind, ...] = (HeadKind.FASTOCC,)
+    device: str = "cpu"
+    batch: int = 1
+    repeats: int = 5
+    warmup: int = 1
+    mode: Literal["infer", "train"] = "infer"
+    threads: int | None = None
+    seed: int = 0
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _median_seconds(fn: Callable[[], Any], cfg: BenchConfig, device: torch.device) -> float:
+    for _ in range(cfg.warmup):
+        fn()
+    _sync(device)
+    times = []
+    for _ in range(cfg.repeats):
+        t0 = time.perf_counter()
+        fn()
+        _sync(device)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def _macs(module: nn.Module, inputs: tuple[Any, ...], output: Any) -> int:
+    if isinstance(module, nn.Conv2d | nn.Conv3d):
+        k = math.prod(module.kernel_size)
+        return k * module.in_channels // module.groups * module.out_channels * output[0, 0].numel() * output.shape[0]
+    if isinstance(module, nn.ConvTranspose3d | nn.ConvTranspose2d):
+        x = inputs[0]
+        k = math.prod(module.kernel_size)
+        return k * module.in_channels * module.out_channels // module.groups * x[0, 0].numel() * x.shape[0]
+    if isinstance(module, nn.Linear):
+        return module.in_features * module.out_features * output.numel() // module.out_features
+    return 0
+
+
+@contextlib.contextmanager
+def _count_macs() -> Iterator[list[int]]:
+    total = [0]
+
+    def hook(module: nn.Module, inputs: tuple[Any, ...], output: Any) -> None:
+        total[0] += _macs(module, inputs, output)
+
+    handle = nn.modules.module.register_module_forward_hook(hook)
+    try:
+        yield total
+    finally:
+        handle.remove()
+
+
+def _params(*modules: nn.Module | None) -> int:
+    return sum(p.numel() for m in modules if m is not None for p in m.parameters())
+
+
+def _peak_mib(device: torch.device) -> float:
+    if device.type == "cuda":
+        return torch.cuda.max_memory_allocated(device) / 2**20
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux: process peak RSS
+
+
+def _reset_peak(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+
+
+def _build(model_cfg: ModelConfig, device: torch.device, seed: int) -> FastOcc:
+    torch.manual_seed(seed)
+    return FastOcc(model_cfg).to(device)
+
+
+def _bench_infer(cfg: BenchConfig, device: torch.device) -> dict[str, Any]:
+    base_cfg = preset(cfg.preset, head=cfg.heads[0])
+    inputs = synthetic_inputs(cfg.batch, base_cfg.input_hw, base_cfg.num_cams, cfg.seed, str(device))
+    net = _build(base_cfg, device, cfg.seed).eval()
+    h, w = base_cfg.feat_hw
+    N, B = base_cfg.num_cams, cfg.batch
+    X, Y, Z = base_cfg.fine_grid.shape
+    result: dict[str, Any] = {"stages": {}, "heads": {}}
+    with torch.no_grad():
+        _reset_peak(device)
+        with _count_macs() as macs:
+            feat = net.image_stage(inputs.images)
+        t_img = _median_seconds(lambda: net.image_stage(inputs.images), cfg, device)
+        result["stages"]["image"] = {
+            "ms": 1e3 * t_img,
+            "gmacs": macs[0] / 1e9,
+            "params": _params(net.backbone, net.neck) - _params(net.backbone.fc),
+            "peak_mib": _peak_mib(device),
+        }
+        _reset_peak(device)
+        with _count_macs() as macs:
+            _, bev = net.view_stage(feat, inputs)
+        if net.temporal is not None:
+            net.temporal.reset()
+        t_view = _median_seconds(lambda: net.view_stage(feat, inputs), cfg, device)
+        pool_macs = N * B * base_cfg.depth_bins.count * base_cfg.context_channels * h * w
+        result["stages"]["view"] = {
+            "ms": 1e3 * t_view,
+            "gmacs": (macs[0] + pool_macs) / 1e9,
+            "params": _params(net.depth_net, net.temporal),
+            "peak_mib": _peak_mib(device),
+        }
+        for head in cfg.heads:
+            head_net = net if head is cfg.heads[0] else _build(base_cfg.replace(head=head), device, cfg.seed).eval()
+            _reset_peak(device)
+            with _count_macs() as macs:
+                logits, _ = head_net.head_stage(feat, bev, inputs)
+            assert logits.shape == (B, base_cfg.num_classes, X, Y, Z)
+            t_head = _median_seconds(lambda hn=head_net: hn.head_stage(feat, bev, inputs), cfg, device)
+            interp = 4 * N * B * base_cfg.fuse_channels * X * Y * Z if head is HeadKind.FASTOCC else 0
+            result["heads"][head.value] = {
+                "ms": 1e3 * t_head,
+                "gmacs": (macs[0] + interp) / 1e9,
+                "params": _params(head_net.head),
+                "peak_mib": _peak_mib(device),
+                "total_ms": 1e3 * (t_img + t_view + t_head),
+            }
+            del head_net
+    return result
+
+
+def _random_targets(model_cfg: ModelConfig, batch: int, device: torch.device) -> LossTargets:
+    g = torch.Generator().manual_seed(1)
+    X, Y, Z = model_cfg.fine_grid.shape
+    h, w = model_cfg.feat_hw
+    bins = torch.randint(0, model_cfg.depth_bins.count, (batch * model_cfg.num_cams, h, w), generator=g)
+    return LossTargets(
+        voxel_labels=torch.randint(0, model_cfg.num_classes, (batch, X, Y, Z), generator=g).to(device),
+        mask_camera=(torch.rand(batch, X, Y, Z, generator=g) > 0.5).to(device),
+        depth_onehot=F.one_hot(bins, model_cfg.depth_bins.count).permute(0, 3, 1, 2).float().to(device),
+        bev_multihot=(torch.rand(batch, model_cfg.num_classes, X, Y, generator=g) > 0.8).float().to(device),
+    )
+
+
+def _train_one(cfg: BenchConfig, head: HeadKind, device: torch.device) -> dict[str, Any]:
+    model_cfg = preset(cfg.preset, head=head)
+    inputs = synthetic_inputs(cfg.batch, model_cfg.input_hw, model_cfg.num_cams, cfg.seed, str(device))
+    targets = _random_targets(model_cfg, cfg.batch, device)
+    net = _build(model_cfg, device, cfg.seed).train()
+
+    def step_net_only() -> None:
+        net.clear_caches()
+        out = net(inputs)
+        extra = out.bev_logits.mean() if out.bev_logits is not None else 0.0
+        (out.voxel_logits.mean() + out.depth_probs.mean() + extra).backward()
+        net.zero_grad(set_to_none=True)
+
+    def step() -> None:
+        net.clear_caches()
+        out = net(inputs)
+        total, _ = occupancy_loss(out.voxel_logits, targets, LossConfig(), out.depth_probs, out.bev_logits)
+        total.backward()
+        net.zero_grad(set_to_none=True)
+
+    _reset_peak(device)
+    t_net = _median_seconds(step_net_only, cfg, device)
+    t_all = _median_seconds(step, cfg, device)
+    return {
+        "fwd_bwd_s_per_sample": t_net / cfg.batch,
+        "fwd_loss_bwd_s_per_sample": t_all / cfg.batch,
+        "params": _params(net) - _params(net.backbone.fc),
+        "peak_mib": _peak_mib(device),
+    }
+
+
+def _bench_train(cfg: BenchConfig, device: torch.device) -> dict[str, Any]:
+    return {"heads": {head.value: _train_one(cfg, head, device) for head in cfg.heads}}
+
+
+def run_benchmark(cfg: BenchConfig) -> dict[str, Any]:
+    """Run the benchmark described by `cfg`; returns a JSON-ready dict (times in ms or s as named)."""
+    device = torch.device(cfg.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda requested but CUDA is not available")
+    if cfg.threads is not None:
+        torch.set_num_threads(cfg.threads)
+    run = _bench_infer if cfg.mode == "infer" else _bench_train
+    result = run(cfg, device)
+    model_cfg = preset(cfg.preset)
+    result["config"] = {
+        "preset": cfg.preset,
+        "input_hw": list(model_cfg.input_hw),
+        "mode": cfg.mode,
+        "device": cfg.device,
+        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+        "threads": torch.get_num_threads(),
+        "batch": cfg.batch,
+        "repeats": cfg.repeats,
+        "warmup": cfg.warmup,
+        "torch": torch.__version__,
+        "peak_memory_note": "CUDA: max_memory_allocated per stage; CPU: process peak RSS so far (monotonic)",
+    }
+    heads = result["heads"]
+    if cfg.mode == "infer" and "fastocc" in heads and "3dfcn" in heads:
+        result["fastocc_over_3dfcn_head_time"] = heads["fastocc"]["ms"] / heads["3dfcn"]["ms"]
+    return result
+
+
+def format_report(result: dict[str, Any]) -> str:
+    """Human-readable table of `run_benchmark`'s result."""
+    c = result["config"]
+    lines = [f"preset {c['preset']} {c['input_hw']} mode {c['mode']} on {c['device_name']} ({c['threads']} threads)"]
+    if c["mode"] == "infer":
+        for name, s in result["stages"].items():
+            lines.append(
+                f"  {name:<8} {s['ms']:9.1f} ms {s['gmacs']:8.2f} GMAC {s['params'] / 1e6:7.2f} M params"
+                f"  peak {s['peak_mib']:8.0f} MiB"
+            )
+        for name, s in result["heads"].items():
+            lines.append(
+                f"  head {name:<7}{s['ms']:8.1f} ms {s['gmacs']:8.2f} GMAC {s['params'] / 1e6:7.2f} M params"
+                f"  peak {s['peak_mib']:8.0f} MiB  total {s['total_ms']:8.1f} ms"
+            )
+        if "fastocc_over_3dfcn_head_time" in result:
+            lines.append(f"  FastOcc head / 3D FCN head time: {result['fastocc_over_3dfcn_head_time']:.3f}")
+    else:
+        for name, s in result["heads"].items():
+            lines.append(
+                f"  {name:<8} fwd+bwd {s['fwd_bwd_s_per_sample']:.3f} s/sample, with all losses "
+                f"{s['fwd_loss_bwd_s_per_sample']:.3f} s/sample, {s['params'] / 1e6:.2f} M params, "
+                f"peak {s['peak_mib']:.0f} MiB"
+            )
+    return "\n".join(lines)

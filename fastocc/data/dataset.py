@@ -1,0 +1,189 @@
+"""`StoreDataset`: a torch IterableDataset streaming Batches from an occdata store.
+
+Use with `DataLoader(ds, batch_size=None, num_workers=W, pin_memory=...)`: the dataset batches
+itself (inside the workers), so that scene-sequential order can lay samples out in batch slots.
+Call `ds.set_epoch(e)` before each epoch (with persistent_workers=False, so workers see it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch.utils.data import IterableDataset, get_worker_info
+
+from fastocc.data.batch import Batch, collate
+from fastocc.data.order import Slot, sequential_batches, shuffle_units
+from fastocc.data.sample import SampleConfig, SampleMaker, StoreSamples
+from occdata.errors import OccDataError
+from occdata.store.layout import STATE_DONE
+from occdata.store.reader import open_store
+
+__all__ = ["LoaderConfig", "StoreDataset", "load_batch", "make_loader"]
+
+
+@dataclass(frozen=True)
+class LoaderConfig:
+    """What to stream and how.
+
+    store: local path or fsspec URL. sequential: scene-sequential order (temporal training) instead of
+    shuffled. splits: split names to keep (empty = all). rank/world_size: None = from
+    torch.distributed when initialised, else 0/1. pad: top up shuffled slots to equal counts
+    (order.py). sample: image/BEV augmentation (train flags there) and depth-target settings.
+    """
+
+    store: str | Path
+    batch_size: int = 1
+    sequential: bool = False
+    sample: SampleConfig = field(default_factory=SampleConfig)
+    splits: tuple[str, ...] = ()
+    seed: int = 0
+    shuffle_buffer: int = 64
+    segment_len: int | None = None
+    rank: int | None = None
+    world_size: int | None = None
+    pad: bool = False
+    drop_last: bool = False
+
+
+class StoreDataset(IterableDataset):
+    def __init__(self, config: LoaderConfig) -> None:
+        super().__init__()
+        self.config = config
+        self.epoch = 0
+        self._samples: StoreSamples | None = None
+        reader = open_store(config.store)  # fail fast in the main process on a bad path
+        self.indices = self._select(reader)
+
+    def _select(self, reader) -> np.ndarray:
+        state = reader.small("status/state")
+        keep = state == STATE_DONE  # pending / failed samples are never yielded
+        if self.config.splits:
+            names = list(reader.attrs["splits"])
+            unknown = set(self.config.splits) - set(names)
+            if unknown:
+                raise OccDataError(f"unknown split(s) {sorted(unknown)}; the store has {names}")
+            wanted = [names.index(s) for s in self.config.splits]
+            keep &= np.isin(reader.small("sample/split"), wanted)
+        return np.flatnonzero(keep)
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_samples"] = None  # each worker opens its own store handle
+        return state
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def _slot(self) -> Slot:
+        c = self.config
+        rank, world = c.rank, c.world_size
+        if rank is None or world is None:
+            dist = torch.distributed
+            if dist.is_available() and dist.is_initialized():
+                rank, world = dist.get_rank(), dist.get_world_size()
+            else:
+                rank, world = 0, 1
+        info = get_worker_info()
+        worker, n_workers = (info.id, info.num_workers) if info is not None else (0, 1)
+        return Slot(rank, world, worker, n_workers)
+
+    def samples(self) -> StoreSamples:
+        if self._samples is None:  # opened lazily: once per worker process
+            self._samples = StoreSamples(open_store(self.config.store))
+        return self._samples
+
+    def __len__(self) -> int:
+        """Samples per epoch over all ranks (exactly-once; padding excluded)."""
+        return len(self.indices)
+
+    def __iter__(self) -> Iterator[Batch]:
+        if get_worker_info() is not None:
+            cv2.setNumThreads(1)  # one core per worker; OpenCV's own pool would oversubscribe
+        slot = self._slot()
+        if self.config.sequential:
+            yield from self._iter_sequential(slot)
+        else:
+            yield from self._iter_shuffled(slot)
+
+    def _rng(self, index: int) -> np.random.Generator | None:
+        # Keyed by the sample, not the worker: augmentation is the same whatever the sharding.
+        return np.random.default_rng([self.config.seed, self.epoch, index])
+
+    def _iter_shuffled(self, slot: Slot) -> Iterator[Batch]:
+        c, s = self.config, self.samples()
+        make = SampleMaker(s, c.sample)
+        units = shuffle_units(self.indices, s.block, slot, c.seed, self.epoch, pad=c.pad)
+        rng = np.random.default_rng([c.seed, self.epoch, slot.rank, slot.worker, 2])
+        buffer: list = []
+        batch: list[dict] = []
+
+        def emit(raw) -> Iterator[Batch]:
+            batch.append(make(raw, self._rng(raw.index)))
+            if len(batch) == c.batch_size:
+                yield collate(batch)
+                batch.clear()
+
+        for unit in units:
+            # Padding repeats may repeat an index inside a unit: read each once, yield each occurrence.
+            uniq = np.unique(unit)
+            by_index = {r.index: r for r in s.read_run(int(uniq[0]), int(uniq[-1]) + 1, set(uniq.tolist()))}
+            buffer.extend(by_index[int(i)] for i in unit)
+            while len(buffer) > c.shuffle_buffer:
+                k = int(rng.integers(len(buffer)))
+                buffer[k], buffer[-1] = buffer[-1], buffer[k]
+                yield from emit(buffer.pop())
+        order = rng.permutation(len(buffer))
+        for k in order:
+            yield from emit(buffer[k])
+        if batch and not c.drop_last:
+            yield collate(batch)
+
+    def _iter_sequential(self, slot: Slot) -> Iterator[Batch]:
+        c, s = self.config, self.samples()
+        make = SampleMaker(s, c.sample)
+        plan = sequential_batches(self.indices, s.scene_index, slot, c.batch_size, c.seed, self.epoch,
+                                  c.segment_len)
+        for entries in plan:
+            if c.drop_last and len(entries) < c.batch_size:
+                continue
+            out = []
+            for idx, start in entries:
+                (raw,) = s.read_run(idx, idx + 1)
+                out.append(make(raw, self._rng(idx), seq_start=start))
+            yield collate(out)
+
+
+def make_loader(config: LoaderConfig, num_workers: int = 0, pin_memory: bool = False,
+                **kwargs) -> torch.utils.data.DataLoader:
+    """A DataLoader over `StoreDataset(config)` (batching happens in the dataset).
+
+    Workers start from a forkserver, not a plain fork: zarr reads run on an asyncio IO thread and
+    a thread pool, and a fork taken while one of them holds a lock (e.g. right after a failed read
+    in the parent) can leave the child blocked forever. Pass multiprocessing_context to override.
+    """
+    if num_workers > 0 and "multiprocessing_context" not in kwargs:
+        ctx = torch.multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(["torch", "zarr", "cv2", "fastocc.data"])  # cheap worker starts
+        kwargs["multiprocessing_context"] = ctx
+    ds = StoreDataset(config)
+    return torch.utils.data.DataLoader(ds, batch_size=None, num_workers=num_workers, pin_memory=pin_memory,
+                                       **kwargs)
+
+
+def load_batch(store: str | Path, indices: list[int], sample: SampleConfig, seed: int = 0, epoch: int = 0) -> Batch:
+    """A Batch of the given store indices (random access; the same augmentation as the loader draws)."""
+    samples = StoreSamples(open_store(store))
+    make = SampleMaker(samples, sample)
+    out = []
+    for i in indices:
+        samples.reader._check_index(i)
+        if not samples.loadable(i):
+            raise OccDataError(f"sample {i} ({samples.reader.token(i)}) did not build (status != done)")
+        (raw,) = samples.read_run(i, i + 1)
+        out.append(make(raw, np.random.default_rng([seed, epoch, i])))
+    return collate(out)

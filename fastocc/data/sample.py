@@ -1,0 +1,206 @@
+"""Read samples from a store in chunk-aligned runs and turn them into per-sample training arrays."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from fastocc.data.augment import (
+    BevAugConfig,
+    ImageAugConfig,
+    T_decoded_from_original,
+    apply_bev_aug,
+    choose_reduce,
+    sample_bev_aug,
+    sample_image_aug,
+)
+from fastocc.data.batch import IGNORE_LABEL
+from occdata.bev import unpack_bev
+from occdata.constants import GRID, NUM_CLASSES
+from occdata.depth_targets import DEPTH_MAX, DEPTH_MIN, depth_target
+from occdata.errors import OccDataError
+from occdata.image_ops import normalise_chw, normalise_lut
+from occdata.store.layout import N_CAM, STATE_DONE
+from occdata.store.reader import StoreReader
+
+__all__ = ["RawSample", "SampleConfig", "SampleMaker", "StoreSamples", "decode_augmented"]
+
+_REDUCE_FLAG = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
+                8: cv2.IMREAD_REDUCED_COLOR_8}
+_LABELS = ("labels/semantics", "labels/mask_camera", "labels/mask_lidar", "labels/bev")
+
+
+@dataclass(frozen=True)
+class SampleConfig:
+    image: ImageAugConfig = field(default_factory=ImageAugConfig)
+    bev: BevAugConfig = field(default_factory=BevAugConfig)
+    depth_stride: int = 16
+    depth_range: tuple[float, float] = (DEPTH_MIN, DEPTH_MAX)
+
+
+@dataclass
+class RawSample:
+    """Undecoded payload of one sample: JPEG streams, LiDAR (u, v, d) per camera, labels or None."""
+
+    index: int
+    jpegs: list[np.ndarray]  # 6 x (bytes,) uint8
+    uvd: list[np.ndarray]  # 6 x (M_c, 3) float32, original-image pixels
+    labels: dict[str, np.ndarray] | None  # _LABELS -> per-sample arrays
+
+
+class StoreSamples:
+    """Store access for the loader: small arrays cached once, big ones read per contiguous run."""
+
+    def __init__(self, reader: StoreReader) -> None:
+        self.reader = reader
+        r = reader
+        self.state = r.small("status/state")
+        self.present = r.small("labels/present")
+        self.K = r.small("calib/K").astype(np.float32)
+        self.T_keyego_from_cam = r.small("calib/T_keyego_from_cam").astype(np.float32)
+        self.T_global_from_keyego = r.small("pose/T_global_from_keyego")  # float64: relative poses need it
+        self.prev_index = r.small("temporal/prev_index").astype(np.int64)
+        self.prev_valid = r.small("temporal/prev_valid")
+        self.image_size = r.small("cam/image_size")
+        self.scene_index = r.small("sample/scene_index")
+        self.split = r.small("sample/split")
+        self.img_off = r.small("images/offsets")
+        self.uvd_off = r.small("depth/offsets")
+        self.stored_scale = float(r.attrs.get("images", {}).get("scale", 1.0))
+        self.block = int(r.array("status/state").chunks[0])
+
+    def read_run(self, lo: int, hi: int, wanted: set[int] | None = None) -> list[RawSample]:
+        """Samples `lo <= i < hi` (only `wanted` ones if given) with one read per array.
+
+        A read error is traced to the sample it belongs to and raised as OccDataError naming it.
+        """
+        idx = [i for i in range(lo, hi) if wanted is None or i in wanted]
+        if not idx:
+            return []
+        try:
+            return self._read(lo, hi, idx)
+        except OccDataError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - codec / IO errors surface as many types
+            for i in idx:  # find the culprit with per-sample reads (they raise OccDataError naming it)
+                self._read(i, i + 1, [i], per_sample_errors=True)
+            raise OccDataError(f"corrupt store data for samples {lo}..{hi - 1}: {exc}") from None
+
+    def _read(self, lo: int, hi: int, idx: list[int], per_sample_errors: bool = False) -> list[RawSample]:
+        g = self.reader.group
+
+        def flat(name: str, off: np.ndarray) -> tuple[np.ndarray, int]:
+            sel = off[[i - lo for i in idx]]
+            start = int(sel[..., 0].min())
+            stop = int((sel[..., 0] + sel[..., 1]).max())
+            try:
+                return np.asarray(g[name][start:stop]), start
+            except Exception as exc:  # noqa: BLE001
+                if per_sample_errors:
+                    raise OccDataError(
+                        f"corrupt store data in {name} for sample {lo} ({self.reader.token(lo)}): {exc}"
+                    ) from None
+                raise
+
+        img_off, uvd_off = self.img_off[lo:hi], self.uvd_off[lo:hi]
+        jpeg, j0 = flat("images/jpeg", img_off)
+        uvd, u0 = flat("depth/uvd", uvd_off)
+        labelled = [i for i in idx if self.present[i]]
+        labels: dict[str, np.ndarray] = {}
+        if labelled:
+            a, b = min(labelled), max(labelled) + 1
+            for name in _LABELS:
+                try:
+                    labels[name] = np.asarray(g[name][a:b])
+                except Exception as exc:  # noqa: BLE001
+                    if per_sample_errors:
+                        raise OccDataError(
+                            f"corrupt store data in {name} for sample {lo} ({self.reader.token(lo)}): {exc}"
+                        ) from None
+                    raise
+        out = []
+        for i in idx:
+            jo, uo = self.img_off[i], self.uvd_off[i]
+            lab = {k: v[i - min(labelled)] for k, v in labels.items()} if self.present[i] else None
+            out.append(RawSample(
+                index=i,
+                jpegs=[jpeg[int(s) - j0: int(s) - j0 + int(n)] for s, n in jo],
+                uvd=[uvd[int(s) - u0: int(s) - u0 + int(n)] for s, n in uo],
+                labels=lab,
+            ))
+        return out
+
+    def loadable(self, i: int) -> bool:
+        return bool(self.state[i] == STATE_DONE)
+
+
+def decode_augmented(jpeg: np.ndarray, A: np.ndarray, scale: float, orig_w: int, orig_h: int, width: int,
+                     height: int, stored_scale: float = 1.0, max_upsample: float = 1.1) -> np.ndarray | None:
+    """JPEG bytes -> augmented RGB input `(height, width, 3) uint8`, or None if the JPEG is unreadable.
+
+    Decodes at 1/r straight from the DCT where that is cheap (`choose_reduce`), then ONE warpAffine
+    with A @ inv(T_decoded_from_original): the decode scale is folded into the warp, not into A.
+    """
+    r = choose_reduce(scale, stored_scale, max_upsample)
+    img = cv2.imdecode(jpeg, _REDUCE_FLAG[r])
+    if img is None:
+        return None
+    dh, dw = img.shape[:2]
+    warp = A @ np.linalg.inv(T_decoded_from_original(orig_w, orig_h, dw, dh))
+    out = cv2.warpAffine(img, warp[:2], (width, height), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    return cv2.cvtColor(out, cv2.COLOR_BGR2RGB)
+
+
+class SampleMaker:
+    """RawSample -> per-sample dict of numpy arrays keyed like `Batch` fields (see batch.py)."""
+
+    def __init__(self, samples: StoreSamples, cfg: SampleConfig) -> None:
+        self.s = samples
+        self.cfg = cfg
+        self.lut = normalise_lut()
+
+    def __call__(self, raw: RawSample, rng: np.random.Generator | None, seq_start: bool = True) -> dict:
+        cfg, s, i = self.cfg, self.s, raw.index
+        H, W = cfg.image.height, cfg.image.width
+        if H % cfg.depth_stride or W % cfg.depth_stride:
+            raise ValueError(f"input size {H}x{W} must be a multiple of the depth stride {cfg.depth_stride}")
+        images = np.empty((N_CAM, 3, H, W), dtype=np.float32)
+        img_aug = np.empty((N_CAM, 3, 3), dtype=np.float64)
+        depth = np.empty((N_CAM, H // cfg.depth_stride, W // cfg.depth_stride), dtype=np.float32)
+        for c in range(N_CAM):
+            ow, oh = (int(x) for x in s.image_size[i, c])
+            aug = sample_image_aug(cfg.image, ow, oh, rng)
+            A = aug.matrix
+            out = decode_augmented(raw.jpegs[c], A, aug.scale, ow, oh, W, H, s.stored_scale,
+                                   cfg.image.max_upsample)
+            if out is None:
+                raise OccDataError(f"corrupt image data for sample {i} ({s.reader.token(i)}), camera {c}")
+            normalise_chw(out, self.lut, images[c])
+            img_aug[c] = A
+            depth[c] = depth_target(raw.uvd[c], A, H, W, cfg.depth_stride, *cfg.depth_range)
+        bev = sample_bev_aug(cfg.bev, rng)
+        if raw.labels is not None:
+            lab = raw.labels
+            semantics = apply_bev_aug(lab["labels/semantics"], bev, IGNORE_LABEL)
+            mask_camera = apply_bev_aug(lab["labels/mask_camera"], bev, 0)
+            mask_lidar = apply_bev_aug(lab["labels/mask_lidar"], bev, 0)
+            bev_target = apply_bev_aug(unpack_bev(lab["labels/bev"], NUM_CLASSES), bev, 0, xy_axes=(1, 2))
+        else:
+            semantics = np.full(GRID.shape, IGNORE_LABEL, dtype=np.uint8)
+            mask_camera = np.zeros(GRID.shape, dtype=np.uint8)
+            mask_lidar = mask_camera
+            bev_target = np.zeros((NUM_CLASSES, *GRID.shape[:2]), dtype=np.uint8)
+        prev = s.prev_index[i]
+        # A previous frame that failed to build cannot be loaded: treat it as padding.
+        prev_valid = s.prev_valid[i] & (s.state[prev] == STATE_DONE)
+        T_cur = s.T_global_from_keyego[i]
+        T_cur_from_prev = np.linalg.inv(T_cur)[None] @ s.T_global_from_keyego[prev]
+        return {
+            "images": images, "K": s.K[i], "T_keyego_from_cam": s.T_keyego_from_cam[i], "img_aug": img_aug,
+            "bev_aug": bev.matrix, "T_global_from_keyego": T_cur, "seq_start": seq_start,
+            "semantics": semantics, "mask_camera": mask_camera, "mask_lidar": mask_lidar,
+            "bev_target": bev_target, "depth_target": depth, "has_labels": raw.labels is not None,
+            "sample_index": i, "prev_index": prev, "prev_valid": prev_valid, "T_cur_from_prev": T_cur_from_prev,
+        }

@@ -1,0 +1,111 @@
+"""Frozen network configs and the four presets (DESIGN §7)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any, Literal
+
+from occdata.constants import GRID, NUM_CLASSES, OccGrid
+
+__all__ = [
+    "COARSE_GRID",
+    "DEPTH_BINS",
+    "BackboneConfig",
+    "HeadKind",
+    "ModelConfig",
+    "PRESETS",
+    "preset",
+]
+
+COARSE_GRID = OccGrid(voxel_size=0.8)  # 100 x 100 x 8, the LSS target grid V_B
+
+
+@dataclass(frozen=True)
+class DepthBins:
+    """Depth bins [lower, upper) with `step` metres: bin k covers [lower + k step, lower + (k+1) step)."""
+
+    lower: float = 1.0
+    upper: float = 45.0
+    step: float = 0.5
+
+    @property
+    def count(self) -> int:
+        return round((self.upper - self.lower) / self.step)
+
+    def centres(self) -> list[float]:
+        """Bin centres in metres; frustum points are lifted at the centre (not the lower edge) of a bin."""
+        return [self.lower + self.step * (k + 0.5) for k in range(self.count)]
+
+
+DEPTH_BINS = DepthBins()  # 88 bins
+
+
+class HeadKind(StrEnum):
+    """Which 3D-side head decodes V_B (the paper's ablation): a plain field, not a registry."""
+
+    FASTOCC = "fastocc"  # 2D BEV FCN + interpolated image features (FastOcc)
+    FCN3D = "3dfcn"  # 3D FCN on V_B ("Baseline+")
+    DECONV = "deconv"  # 3D deconvolution on V_B ("Baseline")
+
+
+@dataclass(frozen=True)
+class BackboneConfig:
+    """torchvision-layout ResNet; `base_width` 64 is torchvision's, smaller values give narrow nets."""
+
+    depth: Literal[18, 34, 50, 101] = 50
+    base_width: int = 64
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Everything that sizes the network. Channel names follow DESIGN §7 (C1, C2, C3)."""
+
+    name: str = "tiny"
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    input_hw: tuple[int, int] = (320, 800)
+    num_cams: int = 6
+    neck_channels: int = 256  # C1: image feature map F at stride 16
+    context_channels: int = 64  # C2: LSS context per voxel of V_B; also C of the BEV encoder (2C/4C/8C)
+    bev_channels: int = 128  # C3: decoded BEV map B at 100 x 100
+    fuse_channels: int = 64  # C_f: fused voxel feature V at 200 x 200 x 16
+    head: HeadKind = HeadKind.FASTOCC
+    num_history: int = 0  # previous frames in the temporal queue (0 = single frame; paper's base: 16)
+    bev_head: bool = True  # auxiliary multi-hot BEV head (training only; FastOcc head only)
+    num_classes: int = NUM_CLASSES
+    stride: int = 16
+    fine_grid: OccGrid = GRID
+    coarse_grid: OccGrid = COARSE_GRID
+    depth_bins: DepthBins = DEPTH_BINS
+
+    @property
+    def feat_hw(self) -> tuple[int, int]:
+        """Image feature map size (h, w) = input / 16 (inputs must be multiples of 16)."""
+        return self.input_hw[0] // self.stride, self.input_hw[1] // self.stride
+
+    def replace(self, **changes: Any) -> ModelConfig:
+        return dataclasses.replace(self, **changes)
+
+
+PRESETS: dict[str, ModelConfig] = {
+    "nano": ModelConfig(
+        name="nano",
+        backbone=BackboneConfig(depth=18, base_width=16),
+        input_hw=(128, 352),
+        neck_channels=32,
+        context_channels=16,
+        bev_channels=32,
+        fuse_channels=16,
+    ),
+    "tiny": ModelConfig(name="tiny", backbone=BackboneConfig(depth=50), input_hw=(320, 800)),
+    "small": ModelConfig(name="small", backbone=BackboneConfig(depth=101), input_hw=(320, 800)),
+    "base": ModelConfig(name="base", backbone=BackboneConfig(depth=101), input_hw=(640, 1600), num_history=16),
+}
+
+
+def preset(name: str, **overrides: Any) -> ModelConfig:
+    """A preset by name with optional field overrides, e.g. `preset("tiny", head=HeadKind.FCN3D)`."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
+    return dataclasses.replace(PRESETS[name], **overrides)

@@ -1,0 +1,87 @@
+"""Temporal fusion: a queue of previous BEV features warped by ego motion (DESIGN §7.7)."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from occdata.constants import OccGrid
+
+from .geometry import voxel_centres
+from .inputs import SceneInputs
+
+__all__ = ["TemporalFusion", "warp_bev"]
+
+
+def warp_bev(feat_prev: Tensor, T_curaug_from_prevaug: Tensor, grid: OccGrid) -> Tensor:
+    """Resample previous BEV features into the current frame.
+
+    feat_prev `(B, C, X, Y)` in the previous augmented key ego; T_curaug_from_prevaug `(B, 4, 4)`.
+    Each current cell centre (z = 0 plane) is mapped back into the previous frame and sampled
+    bilinearly (zeros outside). Returns `(B, C, X, Y)`.
+    """
+    centres = voxel_centres(grid, feat_prev.device)[:, :, 0, :2]
+    pts = torch.cat([centres, torch.zeros_like(centres[..., :1]), torch.ones_like(centres[..., :1])], dim=-1)
+    T_prev_from_cur = torch.linalg.inv(T_curaug_from_prevaug)
+    prev = torch.einsum("bij,xyj->bxyi", T_prev_from_cur, pts)[..., :2]  # (B, X, Y, 2) metres
+    lo = torch.tensor(grid.lower[:2], device=prev.device)
+    hi = torch.tensor(grid.upper[:2], device=prev.device)
+    norm = (prev - lo) / (hi - lo) * 2 - 1  # align_corners=False: cell centres at their normalised spots
+    # grid_sample indexes (W, H) = (Y, X) of a (B, C, X, Y) tensor: swap to (y, x)
+    return F.grid_sample(feat_prev, norm.flip(-1), mode="bilinear", padding_mode="zeros", align_corners=False)
+
+
+class TemporalFusion(nn.Module):
+    """Concatenate the current BEV feature with `num_history` warped previous ones, reduce with a 1x1 conv.
+
+    The queue holds detached per-frame features (nearest first) with their T_global_from_keyego and
+    BEV augmentation M. Where `seq_start` is True (or on the first call) the queue of that sample is
+    filled with the current frame, so the channel count never changes. Per-frame cost is one warp of
+    `num_history` maps, whatever the length of the stream.
+    """
+
+    def __init__(self, channels: int, num_history: int, grid: OccGrid) -> None:
+        super().__init__()
+        self.num_history = num_history
+        self.grid = grid
+        self.reduce = nn.Sequential(
+            nn.Conv2d(channels * (num_history + 1), channels, 1, bias=False),
+            nn.BatchNorm2d(channels),
+            nn.ReLU(inplace=True),
+        )
+        self._feats: Tensor | None = None  # (B, T, C, X, Y)
+        self._poses: Tensor | None = None  # (B, T, 4, 4) T_global_from_keyego
+        self._bev_aug: Tensor | None = None  # (B, T, 4, 4) M
+
+    def reset(self) -> None:
+        self._feats = self._poses = self._bev_aug = None
+
+    def forward(self, bev: Tensor, inputs: SceneInputs) -> Tensor:
+        """bev `(B, C, X, Y)` in the current augmented frame -> fused `(B, C, X, Y)`."""
+        B, C = bev.shape[:2]
+        T = self.num_history
+        pose = inputs.T_global_from_keyego
+        if pose is None:
+            pose = torch.eye(4, device=bev.device).expand(B, 4, 4)
+        start = inputs.seq_start
+        if start is None or self._feats is None or self._feats.shape[0] != B or self._feats.shape[2:] != bev.shape[1:]:
+            start = torch.ones(B, dtype=torch.bool, device=bev.device)
+            self._feats = bev.new_zeros(B, T, *bev.shape[1:])
+            self._poses = pose.new_zeros(B, T, 4, 4)
+            self._bev_aug = pose.new_zeros(B, T, 4, 4)
+        cur = bev.detach()
+        s = start.view(B, 1)
+        feats = torch.where(s.view(B, 1, 1, 1, 1), cur[:, None].expand_as(self._feats), self._feats)
+        poses = torch.where(s.view(B, 1, 1, 1), pose[:, None].expand(B, T, 4, 4), self._poses)
+        augs = torch.where(s.view(B, 1, 1, 1), inputs.bev_aug[:, None].expand(B, T, 4, 4), self._bev_aug)
+        # T_curaug_from_prevaug = M_cur inv(T_g_from_cur) T_g_from_prev inv(M_prev), per queued frame
+        T_rel = (inputs.bev_aug[:, None] @ torch.linalg.inv(pose)[:, None] @ poses @ torch.linalg.inv(augs)).reshape(
+            B * T, 4, 4
+        )
+        warped = warp_bev(feats.reshape(B * T, C, *bev.shape[2:]), T_rel, self.grid).view(B, T * C, *bev.shape[2:])
+        fused = self.reduce(torch.cat([bev, warped], dim=1))
+        self._feats = torch.cat([cur[:, None], feats[:, :-1]], dim=1)
+        self._poses = torch.cat([pose[:, None], poses[:, :-1]], dim=1)
+        self._bev_aug = torch.cat([inputs.bev_aug[:, None], augs[:, :-1]], dim=1)
+        return fused
