@@ -248,6 +248,12 @@ class _Footprints:
         cv2.fillConvexPoly(poly, self._px(corners).reshape(-1, 1, 2), 1)
         return not bool((poly & self.mask).any())
 
+    def free_of_objects(self, corners: np.ndarray) -> bool:
+        """Whether a convex footprint `(4, 2)` overlaps no object footprint (roads allowed)."""
+        poly = np.zeros_like(self.mask)
+        cv2.fillConvexPoly(poly, self._px(corners).reshape(-1, 1, 2), 1)
+        return not bool((poly & self.mask).any())
+
     def add(self, corners: np.ndarray) -> None:
         cv2.fillConvexPoly(self.mask, self._px(corners).reshape(-1, 1, 2), 1)
 
@@ -295,9 +301,10 @@ def make_world(rng: np.random.Generator, origin_xy: tuple[float, float], t0_us: 
         while s < L:
             (x, y), _ = path.pose_at(s, side * rng.uniform(9.8, 12.5))
             rc = float(rng.uniform(1.3, 2.6))
-            corners = _rect(x, y, 0.0, 0.5, 0.5)
-            if rng.random() < 0.65 and fp.free(_rect(x, y, 0.0, rc * 0.6, rc * 0.6), SIDEWALK_OUT + 0.3):
-                fp.add(corners)
+            crown = _rect(x, y, 0.0, rc, rc)  # the crown's square hull: nothing else may grow into it
+            if rng.random() < 0.65 and fp.free(_rect(x, y, 0.0, rc * 0.6, rc * 0.6), SIDEWALK_OUT + 0.3) \
+                    and fp.free_of_objects(crown):
+                fp.add(crown)
                 v = int(rng.integers(0, 8))
                 z_c = float(rng.uniform(1.8, 3.0))
                 parts = np.array([_cyl(0, 0, 0.2, 0.0, z_c + 0.3), _cyl(0, 0, rc, z_c, z_c + rng.uniform(2.5, 5.0))])
