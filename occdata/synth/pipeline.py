@@ -13,7 +13,7 @@ from tqdm import tqdm
 
 from occdata.constants import CAMERA_ORDER, FREE_LABEL, GRID, LIDAR_CHANNEL
 from occdata.errors import OccDataError
-from occdata.geometry import invert_rigid, quaternion_wxyz_from_matrix
+from occdata.geometry import invert_rigid, quaternion_wxyz_from_matrix, transform_points
 from occdata.synth import render
 from occdata.synth.labels import world_semantics
 from occdata.synth.rig import CAMERA_TIME_OFFSETS_US, RIG, camera_K
@@ -132,19 +132,19 @@ def lidar_directions() -> tuple[np.ndarray, np.ndarray]:
 def render_lidar(world: SceneWorld, wg: WorldGrid, T_global_from_lidar: np.ndarray) -> np.ndarray:
     """Spin the LiDAR once at one instant; returns the returns `(N, 5) float32`: x, y, z (lidar frame),
     intensity (0-255, class reflectivity x incidence cosine), ring index."""
-    dirs_l, ring = lidar_directions()
-    dirs_g = dirs_l @ T_global_from_lidar[:3, :3].T
-    origin = T_global_from_lidar[:3, 3].copy()
-    t, hit = wg.cast(origin, dirs_g, LIDAR_MAX_RANGE)
+    dirs_lidar, ring = lidar_directions()
+    dirs_global = dirs_lidar @ T_global_from_lidar[:3, :3].T
+    origin_global = T_global_from_lidar[:3, 3].copy()
+    t, hit = wg.cast(origin_global, dirs_global, LIDAR_MAX_RANGE)
     ok = hit != render.HIT_NONE
-    t, hit, dirs_l, dirs_g, ring = t[ok], hit[ok], dirs_l[ok], dirs_g[ok], ring[ok]
-    normals = render.hit_normals(origin, dirs_g, t, hit, wg.prims.params).astype(np.float64)
-    pts_g = origin + t[:, None] * dirs_g
-    cls = np.where(hit >= 0, wg.prims.cls[np.maximum(hit, 0)], world.ground.lookup(pts_g[:, :2]))
-    cos_inc = np.abs((normals * dirs_g).sum(axis=1))
+    t, hit, dirs_lidar, dirs_global, ring = t[ok], hit[ok], dirs_lidar[ok], dirs_global[ok], ring[ok]
+    normals_global = render.hit_normals(origin_global, dirs_global, t, hit, wg.prims.params).astype(np.float64)
+    points_global = origin_global + t[:, None] * dirs_global
+    cls = np.where(hit >= 0, wg.prims.cls[np.maximum(hit, 0)], world.ground.lookup(points_global[:, :2]))
+    cos_inc = np.abs((normals_global * dirs_global).sum(axis=1))
     intensity = 255.0 * _REFLECTIVITY[cls] * (0.3 + 0.7 * cos_inc)
-    pts_l = t[:, None] * dirs_l
-    return np.concatenate([pts_l, intensity[:, None], ring[:, None]], axis=1).astype(np.float32)
+    points_lidar = t[:, None] * dirs_lidar  # unit directions: t is the range
+    return np.concatenate([points_lidar, intensity[:, None], ring[:, None]], axis=1).astype(np.float32)
 
 
 def _pose_row(token: str, T: np.ndarray, t_us: int) -> dict[str, Any]:
@@ -237,10 +237,10 @@ def synthesize(config: SynthConfig) -> Path:
                     points = render_lidar(world, wg, T_global_from_sensor)
                     write_atomic(out / rel, points.tobytes())
                     T_keyego_from_lidar = T_keyego_from_global @ T_global_from_sensor
-                    origins = np.broadcast_to(T_keyego_from_lidar[:3, 3], (len(points), 3))
-                    ends = points[:, :3].astype(np.float64) @ T_keyego_from_lidar[:3, :3].T + T_keyego_from_lidar[:3, 3]
-                    lidar_mask = lidar_ray_mask(np.ascontiguousarray(origins), ends, lower, GRID.voxel_size,
-                                                np.asarray(GRID.shape, np.int64))
+                    origins_keyego = np.broadcast_to(T_keyego_from_lidar[:3, 3], (len(points), 3))
+                    points_keyego = transform_points(T_keyego_from_lidar, points[:, :3])
+                    lidar_mask = lidar_ray_mask(np.ascontiguousarray(origins_keyego), points_keyego, lower,
+                                                GRID.voxel_size, np.asarray(GRID.shape, np.int64))
                 ep_tok = tok  # one ego pose per sample_data, as in nuScenes
                 tables["ego_pose"].append(_pose_row(ep_tok, T_global_from_ego, ts))
                 tables["sample_data"].append({
