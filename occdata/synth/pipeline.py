@@ -25,6 +25,7 @@ __all__ = [
     "LIDAR_AZIMUTH_STEP_DEG",
     "LIDAR_ELEVATIONS_DEG",
     "LIDAR_MAX_RANGE",
+    "SensorFrame",
     "SynthConfig",
     "WorldGrid",
     "render_camera",
@@ -156,6 +157,60 @@ def _n_val(n_scenes: int) -> int:
     return max(1, round(0.2 * n_scenes)) if n_scenes >= 2 else 0
 
 
+@dataclass(frozen=True, eq=False)
+class SensorFrame:
+    """One written sensor file of a keyframe: channel, timestamp (us), filename (relative to the root),
+    `T_global_from_ego (4, 4) float64` at that timestamp."""
+
+    channel: str
+    timestamp: int
+    filename: str
+    T_global_from_ego: np.ndarray
+
+
+def _render_keyframe(
+    out: Path, world: SceneWorld, scene_name: str, t_lidar: int, sd_tokens: dict[str, str], width: int, height: int
+) -> tuple[list[SensorFrame], dict[str, np.ndarray]]:
+    """Render and write the 6 camera images (+ depth maps) and the LiDAR sweep of the keyframe at
+    `t_lidar`; returns the written frames and the Occ3D labels (key ego = ego at `t_lidar`)."""
+    lower = np.asarray(GRID.lower, np.float64)
+    T_global_from_keyego = ego_transform(world, t_lidar)
+    T_keyego_from_global = invert_rigid(T_global_from_keyego)
+    wg_lidar = WorldGrid.build(world, t_lidar)
+    semantics = world_semantics(world.ground, wg_lidar.prims, T_global_from_keyego)
+    occupied = (semantics != FREE_LABEL).astype(np.uint8)
+    mask_camera = np.zeros(GRID.shape, np.uint8)
+    mask_lidar = np.zeros(GRID.shape, np.uint8)
+    frames = []
+    for ch in (*CAMERA_ORDER, LIDAR_CHANNEL):
+        is_cam = ch != LIDAR_CHANNEL
+        ts = t_lidar + (CAMERA_TIME_OFFSETS_US[ch] if is_cam else 0)
+        T_global_from_ego = ego_transform(world, ts)
+        T_global_from_sensor = T_global_from_ego @ RIG[ch].T_ego_from_sensor
+        rel = f"samples/{ch}/{scene_name}__{ch}__{ts}.{'jpg' if is_cam else 'pcd.bin'}"
+        if is_cam:
+            K = camera_K(ch, width, height)
+            # Actors are placed at the camera's own timestamp.
+            rgb, depth = render_camera(world, WorldGrid.build(world, ts), T_global_from_sensor, K, width, height)
+            ok, jpg = cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+            if not ok:
+                raise OccDataError(f"JPEG encoding failed for {rel}")
+            write_atomic(out / rel, jpg.tobytes())
+            write_atomic(out / "depth" / f"{sd_tokens[ch]}.npy", _npy_bytes(depth))
+            T_cam_from_keyego = invert_rigid(T_keyego_from_global @ T_global_from_sensor)
+            mask_camera |= camera_visible_mask(occupied, T_cam_from_keyego, K, width, height, lower, GRID.voxel_size)
+        else:
+            points = render_lidar(world, wg_lidar, T_global_from_sensor)
+            write_atomic(out / rel, points.tobytes())
+            T_keyego_from_lidar = T_keyego_from_global @ T_global_from_sensor
+            origins_keyego = np.broadcast_to(T_keyego_from_lidar[:3, 3], (len(points), 3))
+            points_keyego = transform_points(T_keyego_from_lidar, points[:, :3])
+            mask_lidar = lidar_ray_mask(np.ascontiguousarray(origins_keyego), points_keyego, lower, GRID.voxel_size,
+                                        np.asarray(GRID.shape, np.int64))
+        frames.append(SensorFrame(ch, int(ts), rel, T_global_from_ego))
+    return frames, {"semantics": semantics, "mask_lidar": mask_lidar, "mask_camera": mask_camera}
+
+
 def synthesize(config: SynthConfig) -> Path:
     """Generate the world and write the tree under `config.out`; returns the output directory.
 
@@ -176,7 +231,6 @@ def synthesize(config: SynthConfig) -> Path:
     channels = (*CAMERA_ORDER, LIDAR_CHANNEL)
     map_name = "synth-town"
     n_val = _n_val(config.scenes)
-    lower = np.asarray(GRID.lower, np.float64)
     bar = tqdm(total=config.scenes * config.samples, desc="synth", unit="sample", disable=not config.progress)
     for si in range(config.scenes):
         scene_name = f"synth-{si:04d}"
@@ -209,50 +263,22 @@ def synthesize(config: SynthConfig) -> Path:
             tables["sample"].append({"token": s_tok, "timestamp": t_lidar, "scene_token": scene_tok,
                                      "prev": sample_toks[k - 1] if k > 0 else "",
                                      "next": sample_toks[k + 1] if k + 1 < config.samples else ""})
-            T_global_from_keyego = ego_transform(world, t_lidar)
-            T_keyego_from_global = invert_rigid(T_global_from_keyego)
-            wg_lidar = WorldGrid.build(world, t_lidar)
-            cam_masks = np.zeros(GRID.shape, np.uint8)
-            sem = world_semantics(world.ground, wg_lidar.prims, T_global_from_keyego)
-            occupied = (sem != FREE_LABEL).astype(np.uint8)
-            for ch in channels:
-                is_cam = ch != LIDAR_CHANNEL
-                ts = t_lidar + (CAMERA_TIME_OFFSETS_US[ch] if is_cam else 0)
-                tok = sd_toks[ch][k]
-                T_global_from_ego = ego_transform(world, ts)
-                T_global_from_sensor = T_global_from_ego @ RIG[ch].T_ego_from_sensor
-                wg = WorldGrid.build(world, ts) if is_cam else wg_lidar
-                rel = f"samples/{ch}/{scene_name}__{ch}__{ts}.{'jpg' if is_cam else 'pcd.bin'}"
-                if is_cam:
-                    K = camera_K(ch, W, H)
-                    rgb, depth = render_camera(world, wg, T_global_from_sensor, K, W, H)
-                    ok, jpg = cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-                    if not ok:
-                        raise OccDataError(f"JPEG encoding failed for {rel}")
-                    write_atomic(out / rel, jpg.tobytes())
-                    write_atomic(out / "depth" / f"{tok}.npy", _npy_bytes(depth))
-                    T_cam_from_keyego = invert_rigid(T_keyego_from_global @ T_global_from_sensor)
-                    cam_masks |= camera_visible_mask(occupied, T_cam_from_keyego, K, W, H, lower, GRID.voxel_size)
-                else:
-                    points = render_lidar(world, wg, T_global_from_sensor)
-                    write_atomic(out / rel, points.tobytes())
-                    T_keyego_from_lidar = T_keyego_from_global @ T_global_from_sensor
-                    origins_keyego = np.broadcast_to(T_keyego_from_lidar[:3, 3], (len(points), 3))
-                    points_keyego = transform_points(T_keyego_from_lidar, points[:, :3])
-                    lidar_mask = lidar_ray_mask(np.ascontiguousarray(origins_keyego), points_keyego, lower,
-                                                GRID.voxel_size, np.asarray(GRID.shape, np.int64))
-                ep_tok = tok  # one ego pose per sample_data, as in nuScenes
-                tables["ego_pose"].append(_pose_row(ep_tok, T_global_from_ego, ts))
+            frames, labels = _render_keyframe(out, world, scene_name, t_lidar, {ch: sd_toks[ch][k] for ch in channels},
+                                              W, H)
+            for f in frames:
+                tok = sd_toks[f.channel][k]
+                is_cam = f.channel != LIDAR_CHANNEL
+                tables["ego_pose"].append(_pose_row(tok, f.T_global_from_ego, f.timestamp))
                 tables["sample_data"].append({
-                    "token": tok, "sample_token": s_tok, "ego_pose_token": ep_tok,
-                    "calibrated_sensor_token": cs_tok[ch], "timestamp": int(ts),
+                    "token": tok, "sample_token": s_tok,
+                    "ego_pose_token": tok,  # one ego pose per sample_data, as in nuScenes
+                    "calibrated_sensor_token": cs_tok[f.channel], "timestamp": f.timestamp,
                     "fileformat": "jpg" if is_cam else "pcd", "is_key_frame": True,
-                    "height": H if is_cam else 0, "width": W if is_cam else 0, "filename": rel,
-                    "prev": sd_toks[ch][k - 1] if k > 0 else "",
-                    "next": sd_toks[ch][k + 1] if k + 1 < config.samples else "",
+                    "height": H if is_cam else 0, "width": W if is_cam else 0, "filename": f.filename,
+                    "prev": sd_toks[f.channel][k - 1] if k > 0 else "",
+                    "next": sd_toks[f.channel][k + 1] if k + 1 < config.samples else "",
                 })
-            write_atomic(out / "gts" / scene_name / s_tok / "labels.npz",
-                         npz_bytes({"semantics": sem, "mask_lidar": lidar_mask, "mask_camera": cam_masks}))
+            write_atomic(out / "gts" / scene_name / s_tok / "labels.npz", npz_bytes(labels))
             bar.update(1)
     bar.close()
     log_tokens = [r["token"] for r in tables["log"]]
