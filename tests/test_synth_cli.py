@@ -90,3 +90,18 @@ def test_official_devkit_loads_synthetic_tree(synth_root: Path, tmp_path: Path) 
     assert out["scenes"] == 2 and out["samples"] == 6
     assert all(n > 1000 for n in out["counts"].values())
     assert out["median_err"] < 0.1  # nearest-pixel depth vs the devkit's projected LiDAR depth
+
+
+def test_write_atomic_never_leaves_a_half_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from occdata.synth import tables
+
+    target = tmp_path / "d" / "x.bin"
+    tables.write_atomic(target, b"old")
+
+    def crash(src: object, dst: object) -> None:
+        raise OSError("simulated crash before the rename")
+
+    monkeypatch.setattr(tables.os, "replace", crash)
+    with pytest.raises(OSError):
+        tables.write_atomic(target, b"new content")
+    assert target.read_bytes() == b"old"  # readers see the old file or the new one, never a mix
