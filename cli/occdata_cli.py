@@ -23,6 +23,29 @@ def main() -> None:
 
 
 @main.command()
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Output directory (nuScenes-format root).")
+@click.option("--scenes", default=2, show_default=True, type=click.IntRange(min=1), help="Number of scenes.")
+@click.option("--samples", default=10, show_default=True, type=click.IntRange(min=1),
+              help="Keyframes (2 Hz) per scene.")
+@click.option("--seed", default=0, show_default=True, type=int, help="World seed (same seed, same bytes).")
+@click.option("--width", default=1600, show_default=True, type=click.IntRange(min=16), help="Image width.")
+@click.option("--height", default=900, show_default=True, type=click.IntRange(min=16), help="Image height.")
+@click.option("--no-progress", is_flag=True, help="Hide the progress bar.")
+@friendly_errors
+def synth(out: Path, scenes: int, samples: int, seed: int, width: int, height: int, no_progress: bool) -> None:
+    """Write a synthetic nuScenes-format world with Occ3D labels and exact depth maps.
+
+    Tables (v1.0-mini), 6 ray-cast camera images, a 32-beam LiDAR sweep per keyframe,
+    gts/<scene>/<sample>/labels.npz and depth/<sample_data_token>.npy. See docs/synth.md.
+    """
+    from occdata.synth import SynthConfig, synthesize
+
+    root = synthesize(SynthConfig(out=out, scenes=scenes, samples=samples, seed=seed, width=width, height=height,
+                                  progress=not no_progress))
+    click.echo(f"wrote {scenes} scenes x {samples} samples to {root}")
+
+
+@main.command()
 @click.option("--root", required=True, type=click.Path(path_type=Path), help="nuScenes-format dataset root.")
 @click.option("--version", default=None, help="Version folder (v1.0-trainval, v1.0-mini, ...); auto if only one.")
 @click.option("--check-files/--no-check-files", default=True, show_default=True,

@@ -24,3 +24,16 @@ def real_occ3d_label() -> Path:
     if not REAL_OCC3D_LABEL.is_file():
         pytest.fail(f"real Occ3D label missing at {REAL_OCC3D_LABEL}")
     return REAL_OCC3D_LABEL
+
+
+# --- synthetic world (occdata synth): one small world per test session ----------------------------
+SYNTH_SMALL = {"scenes": 2, "samples": 3, "seed": 7, "width": 400, "height": 225}
+
+
+@pytest.fixture(scope="session")
+def synth_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 2-scene x 3-sample synthetic nuScenes tree at 400x225 (built once per session)."""
+    from occdata.synth import SynthConfig, synthesize
+
+    out = tmp_path_factory.mktemp("synth") / "world"
+    return synthesize(SynthConfig(out=out, progress=False, **SYNTH_SMALL))

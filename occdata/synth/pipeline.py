@@ -1,0 +1,298 @@
+"""`synthesize(config)`: write a complete nuScenes-format tree of a synthetic world with Occ3D labels."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from occdata.constants import CAMERA_ORDER, FREE_LABEL, GRID, LIDAR_CHANNEL
+from occdata.errors import OccDataError
+from occdata.geometry import invert_rigid, quaternion_wxyz_from_matrix, transform_points
+from occdata.synth import render
+from occdata.synth.labels import world_semantics
+from occdata.synth.rig import CAMERA_TIME_OFFSETS_US, RIG, camera_K
+from occdata.synth.tables import make_token, npz_bytes, static_tables, write_atomic, write_tables
+from occdata.synth.world import Primitives, SceneWorld, make_world
+from occdata.visibility import camera_visible_mask, lidar_ray_mask
+
+__all__ = [
+    "LIDAR_AZIMUTH_STEP_DEG",
+    "LIDAR_ELEVATIONS_DEG",
+    "LIDAR_MAX_RANGE",
+    "SensorFrame",
+    "SynthConfig",
+    "WorldGrid",
+    "render_camera",
+    "render_lidar",
+    "synthesize",
+]
+
+KEYFRAME_PERIOD_US = 500_000  # 2 Hz
+CAMERA_MAX_DEPTH = 150.0  # m along the optical axis; beyond is drawn as sky (depth 0)
+LIDAR_MAX_RANGE = 80.0  # m
+LIDAR_ELEVATIONS_DEG = np.linspace(-30.67, 10.67, 32)  # HDL-32E-like, ring 0 = lowest beam
+LIDAR_AZIMUTH_STEP_DEG = 0.33
+CELL = 4.0  # m, 2D acceleration grid cell
+JPEG_QUALITY = 92
+SCENE_SPACING = 3000.0  # m between scene worlds in the global frame
+BASE_TIMESTAMP_US = 1_600_000_000_000_000
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """Options of `occdata synth`."""
+
+    out: Path
+    scenes: int = 2
+    samples: int = 10
+    seed: int = 0
+    width: int = 1600
+    height: int = 900
+    progress: bool = True
+
+
+@dataclass(frozen=True, eq=False)
+class WorldGrid:
+    """The world's primitives at one timestamp, binned into the 2D acceleration grid."""
+
+    prims: Primitives
+    cell_start: np.ndarray
+    items: np.ndarray
+    cell_ztop: np.ndarray
+    x0: float
+    y0: float
+    cell: float
+    nx: int
+    ny: int
+    z_top: float
+
+    @staticmethod
+    def build(world: SceneWorld, t_us: int) -> WorldGrid:
+        prims = world.primitives_at(t_us)
+        g = world.ground
+        nx = int(math.ceil(g.codes.shape[1] * g.cell / CELL))
+        ny = int(math.ceil(g.codes.shape[0] * g.cell / CELL))
+        cs, items, cell_ztop = render.build_cell_grid(prims.params, g.x0, g.y0, CELL, nx, ny)
+        z_top = float(max(prims.params[:, 8].max(initial=0.0), 1.0)) + 0.01
+        return WorldGrid(prims, cs, items, cell_ztop, g.x0, g.y0, CELL, nx, ny, z_top)
+
+    def cast(self, origin: np.ndarray, dirs: np.ndarray, t_max: float) -> tuple[np.ndarray, np.ndarray]:
+        return render.cast_rays(np.ascontiguousarray(origin, np.float64), np.ascontiguousarray(dirs, np.float64),
+                                t_max, self.prims.params, self.cell_start, self.items, self.cell_ztop, self.x0,
+                                self.y0, self.cell,
+                                self.nx, self.ny, self.z_top)
+
+
+def ego_transform(world: SceneWorld, t_us: int) -> np.ndarray:
+    """`T_global_from_ego (4, 4) float64` at a timestamp (z = 0, yaw only, like nuScenes)."""
+    xy, yaw = world.ego.pose_at(t_us)
+    c, s = math.cos(float(yaw)), math.sin(float(yaw))
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:2, 3] = xy
+    return T
+
+
+def render_camera(
+    world: SceneWorld, wg: WorldGrid, T_global_from_cam: np.ndarray, K: np.ndarray, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ray cast one camera through pixel centres (integer pixel coordinates).
+
+    Returns `rgb (H, W, 3) uint8` and `depth (H, W) float32` (metres along the camera z axis, 0 = sky).
+    """
+    _, variants = render.palette_tables()
+    g = world.ground
+    origin = np.ascontiguousarray(T_global_from_cam[:3, 3])
+    rgb, depth = render.render_camera_kernel(
+        np.linalg.inv(K), np.ascontiguousarray(T_global_from_cam[:3, :3]), origin, width, height, CAMERA_MAX_DEPTH,
+        wg.prims.params, wg.cell_start, wg.items, wg.cell_ztop, wg.x0, wg.y0, wg.cell, wg.nx, wg.ny, wg.z_top,
+        wg.prims.cls, wg.prims.style, g.codes, g.x0, g.y0, g.cell, variants, render.SUN_DIR)
+    return rgb, depth
+
+
+_REFLECTIVITY = np.array([0.3, 0.8, 0.5, 0.6, 0.6, 0.5, 0.5, 0.35, 0.9, 0.5, 0.55, 0.12, 0.2, 0.25, 0.3, 0.4, 0.28,
+                          0.0])
+
+
+def lidar_directions() -> tuple[np.ndarray, np.ndarray]:
+    """Unit ray directions in the lidar frame `(N, 3) float64` (azimuth-major) and ring index `(N,)`."""
+    az = np.deg2rad(np.arange(0.0, 360.0, LIDAR_AZIMUTH_STEP_DEG))
+    el = np.deg2rad(LIDAR_ELEVATIONS_DEG)
+    A, E = np.meshgrid(az, el, indexing="ij")
+    dirs = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
+    ring = np.broadcast_to(np.arange(len(el)), A.shape).reshape(-1)
+    return dirs, ring
+
+
+def render_lidar(world: SceneWorld, wg: WorldGrid, T_global_from_lidar: np.ndarray) -> np.ndarray:
+    """Spin the LiDAR once at one instant; returns the returns `(N, 5) float32`: x, y, z (lidar frame),
+    intensity (0-255, class reflectivity x incidence cosine), ring index."""
+    dirs_lidar, ring = lidar_directions()
+    dirs_global = dirs_lidar @ T_global_from_lidar[:3, :3].T
+    origin_global = T_global_from_lidar[:3, 3].copy()
+    t, hit = wg.cast(origin_global, dirs_global, LIDAR_MAX_RANGE)
+    ok = hit != render.HIT_NONE
+    t, hit, dirs_lidar, dirs_global, ring = t[ok], hit[ok], dirs_lidar[ok], dirs_global[ok], ring[ok]
+    normals_global = render.hit_normals(origin_global, dirs_global, t, hit, wg.prims.params).astype(np.float64)
+    points_global = origin_global + t[:, None] * dirs_global
+    cls = np.where(hit >= 0, wg.prims.cls[np.maximum(hit, 0)], world.ground.lookup(points_global[:, :2]))
+    cos_inc = np.abs((normals_global * dirs_global).sum(axis=1))
+    intensity = 255.0 * _REFLECTIVITY[cls] * (0.3 + 0.7 * cos_inc)
+    points_lidar = t[:, None] * dirs_lidar  # unit directions: t is the range
+    return np.concatenate([points_lidar, intensity[:, None], ring[:, None]], axis=1).astype(np.float32)
+
+
+def _pose_row(token: str, T: np.ndarray, t_us: int) -> dict[str, Any]:
+    return {"token": token, "timestamp": int(t_us), "rotation": quaternion_wxyz_from_matrix(T[:3, :3]),
+            "translation": [float(T[0, 3]), float(T[1, 3]), 0.0]}
+
+
+def _n_val(n_scenes: int) -> int:
+    return max(1, round(0.2 * n_scenes)) if n_scenes >= 2 else 0
+
+
+@dataclass(frozen=True, eq=False)
+class SensorFrame:
+    """One written sensor file of a keyframe: channel, timestamp (us), filename (relative to the root),
+    `T_global_from_ego (4, 4) float64` at that timestamp."""
+
+    channel: str
+    timestamp: int
+    filename: str
+    T_global_from_ego: np.ndarray
+
+
+def _render_keyframe(
+    out: Path, world: SceneWorld, scene_name: str, t_lidar: int, sd_tokens: dict[str, str], width: int, height: int
+) -> tuple[list[SensorFrame], dict[str, np.ndarray]]:
+    """Render and write the 6 camera images (+ depth maps) and the LiDAR sweep of the keyframe at
+    `t_lidar`; returns the written frames and the Occ3D labels (key ego = ego at `t_lidar`)."""
+    lower = np.asarray(GRID.lower, np.float64)
+    T_global_from_keyego = ego_transform(world, t_lidar)
+    T_keyego_from_global = invert_rigid(T_global_from_keyego)
+    wg_lidar = WorldGrid.build(world, t_lidar)
+    semantics = world_semantics(world.ground, wg_lidar.prims, T_global_from_keyego)
+    occupied = (semantics != FREE_LABEL).astype(np.uint8)
+    mask_camera = np.zeros(GRID.shape, np.uint8)
+    mask_lidar = np.zeros(GRID.shape, np.uint8)
+    frames = []
+    for ch in (*CAMERA_ORDER, LIDAR_CHANNEL):
+        is_cam = ch != LIDAR_CHANNEL
+        ts = t_lidar + (CAMERA_TIME_OFFSETS_US[ch] if is_cam else 0)
+        T_global_from_ego = ego_transform(world, ts)
+        T_global_from_sensor = T_global_from_ego @ RIG[ch].T_ego_from_sensor
+        rel = f"samples/{ch}/{scene_name}__{ch}__{ts}.{'jpg' if is_cam else 'pcd.bin'}"
+        if is_cam:
+            K = camera_K(ch, width, height)
+            # Actors are placed at the camera's own timestamp.
+            rgb, depth = render_camera(world, WorldGrid.build(world, ts), T_global_from_sensor, K, width, height)
+            ok, jpg = cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+            if not ok:
+                raise OccDataError(f"JPEG encoding failed for {rel}")
+            write_atomic(out / rel, jpg.tobytes())
+            write_atomic(out / "depth" / f"{sd_tokens[ch]}.npy", _npy_bytes(depth))
+            T_cam_from_keyego = invert_rigid(T_keyego_from_global @ T_global_from_sensor)
+            mask_camera |= camera_visible_mask(occupied, T_cam_from_keyego, K, width, height, lower, GRID.voxel_size)
+        else:
+            points = render_lidar(world, wg_lidar, T_global_from_sensor)
+            write_atomic(out / rel, points.tobytes())
+            T_keyego_from_lidar = T_keyego_from_global @ T_global_from_sensor
+            origins_keyego = np.broadcast_to(T_keyego_from_lidar[:3, 3], (len(points), 3))
+            points_keyego = transform_points(T_keyego_from_lidar, points[:, :3])
+            mask_lidar = lidar_ray_mask(np.ascontiguousarray(origins_keyego), points_keyego, lower, GRID.voxel_size,
+                                        np.asarray(GRID.shape, np.int64))
+        frames.append(SensorFrame(ch, int(ts), rel, T_global_from_ego))
+    return frames, {"semantics": semantics, "mask_lidar": mask_lidar, "mask_camera": mask_camera}
+
+
+def synthesize(config: SynthConfig) -> Path:
+    """Generate the world and write the tree under `config.out`; returns the output directory.
+
+    Layout: `v1.0-mini/*.json` (13 tables), `samples/CAM_*/*.jpg`, `samples/LIDAR_TOP/*.pcd.bin`,
+    `gts/<scene>/<sample_token>/labels.npz` (Occ3D), `depth/<sample_data_token>.npy`, `maps/`.
+    """
+    if config.scenes < 1 or config.samples < 1:
+        raise OccDataError("--scenes and --samples must be >= 1")
+    if config.width < 16 or config.height < 16:
+        raise OccDataError("--width and --height must be >= 16")
+    out = Path(config.out)
+    seed = config.seed
+    W, H = config.width, config.height
+    tables = static_tables(seed)
+    sensor_tok = {r["channel"]: r["token"] for r in tables["sensor"]}
+    for name in ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "log"):
+        tables[name] = []
+    channels = (*CAMERA_ORDER, LIDAR_CHANNEL)
+    map_name = "synth-town"
+    n_val = _n_val(config.scenes)
+    bar = tqdm(total=config.scenes * config.samples, desc="synth", unit="sample", disable=not config.progress)
+    for si in range(config.scenes):
+        scene_name = f"synth-{si:04d}"
+        rng = np.random.default_rng([seed, si])
+        t0 = BASE_TIMESTAMP_US + si * 3_600_000_000
+        world = make_world(rng, (1000.0 + SCENE_SPACING * si, 1000.0), t0, config.samples)
+        log_tok = make_token(seed, "log", si)
+        tables["log"].append({"token": log_tok, "logfile": f"synth-s{seed}-{si:04d}", "vehicle": "synth",
+                              "date_captured": "2020-09-13", "location": map_name})
+        cs_tok: dict[str, str] = {}
+        for ch in channels:
+            cal = RIG[ch]
+            cs_tok[ch] = make_token(seed, "calibrated_sensor", si, ch)
+            K = camera_K(ch, W, H).tolist() if cal.intrinsic is not None else []
+            tables["calibrated_sensor"].append({"token": cs_tok[ch], "sensor_token": sensor_tok[ch],
+                                                "translation": list(cal.translation),
+                                                "rotation": list(cal.rotation_wxyz), "camera_intrinsic": K})
+        scene_tok = make_token(seed, "scene", si)
+        sample_toks = [make_token(seed, "sample", si, k) for k in range(config.samples)]
+        sd_toks = {ch: [make_token(seed, "sample_data", si, k, ch) for k in range(config.samples)] for ch in channels}
+        split = "val" if si >= config.scenes - n_val else "train"
+        tables["scene"].append({
+            "token": scene_tok, "log_token": log_tok, "nbr_samples": config.samples, "name": scene_name,
+            "description": f"Synthetic town drive, seed {seed}; split={split}",
+            "first_sample_token": sample_toks[0], "last_sample_token": sample_toks[-1],
+        })
+        for k in range(config.samples):
+            t_lidar = t0 + 100_000 + k * KEYFRAME_PERIOD_US
+            s_tok = sample_toks[k]
+            tables["sample"].append({"token": s_tok, "timestamp": t_lidar, "scene_token": scene_tok,
+                                     "prev": sample_toks[k - 1] if k > 0 else "",
+                                     "next": sample_toks[k + 1] if k + 1 < config.samples else ""})
+            frames, labels = _render_keyframe(out, world, scene_name, t_lidar, {ch: sd_toks[ch][k] for ch in channels},
+                                              W, H)
+            for f in frames:
+                tok = sd_toks[f.channel][k]
+                is_cam = f.channel != LIDAR_CHANNEL
+                tables["ego_pose"].append(_pose_row(tok, f.T_global_from_ego, f.timestamp))
+                tables["sample_data"].append({
+                    "token": tok, "sample_token": s_tok,
+                    "ego_pose_token": tok,  # one ego pose per sample_data, as in nuScenes
+                    "calibrated_sensor_token": cs_tok[f.channel], "timestamp": f.timestamp,
+                    "fileformat": "jpg" if is_cam else "pcd", "is_key_frame": True,
+                    "height": H if is_cam else 0, "width": W if is_cam else 0, "filename": f.filename,
+                    "prev": sd_toks[f.channel][k - 1] if k > 0 else "",
+                    "next": sd_toks[f.channel][k + 1] if k + 1 < config.samples else "",
+                })
+            write_atomic(out / "gts" / scene_name / s_tok / "labels.npz", npz_bytes(labels))
+            bar.update(1)
+    bar.close()
+    log_tokens = [r["token"] for r in tables["log"]]
+    tables["map"] = [{"token": make_token(seed, "map", map_name), "log_tokens": log_tokens,
+                      "category": "semantic_prior", "filename": f"maps/{map_name}.png"}]
+    ok, png = cv2.imencode(".png", np.zeros((8, 8), np.uint8))
+    write_atomic(out / "maps" / f"{map_name}.png", png.tobytes())
+    write_tables(out / "v1.0-mini", tables)
+    return out
+
+
+def _npy_bytes(arr: np.ndarray) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    np.lib.format.write_array(buf, np.ascontiguousarray(arr), allow_pickle=False)
+    return buf.getvalue()
