@@ -10,6 +10,9 @@ occdata synth --out "$OUT/world" --scenes 2 --samples 6 --seed 0 --width 800 --h
 occdata scan --root "$OUT/world"
 occdata build --root "$OUT/world" --gts "$OUT/world/gts" --out "$OUT/data.zarr" --workers 2
 occdata verify --store "$OUT/data.zarr"
-occdata info --store "$OUT/data.zarr" | head -5
+occdata info --store "$OUT/data.zarr"
+occdata visibility --store "$OUT/data.zarr" --recompute
 occdata check-projection --store "$OUT/data.zarr" --index 0 --out "$OUT/check_projection.png"
-echo "demo done: store at $OUT/data.zarr, picture at $OUT/check_projection.png"
+fastocc show-batch --store "$OUT/data.zarr" --index 3 --train --out "$OUT/batch.png"
+fastocc bench --preset nano --head all --repeats 2
+echo "demo done: store $OUT/data.zarr; pictures $OUT/check_projection.png, $OUT/batch.png"
