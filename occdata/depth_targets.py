@@ -32,6 +32,16 @@ __all__ = [
 DEPTH_MIN, DEPTH_MAX = 1.0, 45.0  # the depth-bin range [1, 45) m of DESIGN §5.1
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _augmented_pixel(A: np.ndarray, u: float, v: float) -> tuple[float, float]:
+    """Original pixel (u, v) -> nearest augmented pixel (floor(x + 0.5)) through the 3x3 matrix A."""
+    w = A[2, 0] * u + A[2, 1] * v + A[2, 2]
+    x = np.floor((A[0, 0] * u + A[0, 1] * v + A[0, 2]) / w + 0.5)
+    y = np.floor((A[1, 0] * u + A[1, 1] * v + A[1, 2]) / w + 0.5)
+    return x, y
+
+
+
 @numba.njit(cache=True, nogil=True)
 def rasterise_depth(
     uvd: np.ndarray, A: np.ndarray, height: int, width: int, d_min: float, d_max: float
@@ -46,10 +56,7 @@ def rasterise_depth(
         d = uvd[i, 2]
         if not (d >= d_min and d < d_max):
             continue
-        u, v = np.float64(uvd[i, 0]), np.float64(uvd[i, 1])
-        w = A[2, 0] * u + A[2, 1] * v + A[2, 2]
-        x = np.floor((A[0, 0] * u + A[0, 1] * v + A[0, 2]) / w + 0.5)
-        y = np.floor((A[1, 0] * u + A[1, 1] * v + A[1, 2]) / w + 0.5)
+        x, y = _augmented_pixel(A, np.float64(uvd[i, 0]), np.float64(uvd[i, 1]))
         if x < 0 or x >= width or y < 0 or y >= height:
             continue
         xi, yi = int(x), int(y)
@@ -117,10 +124,7 @@ def depth_target(
         d = uvd[i, 2]
         if not (d >= d_min and d < d_max):
             continue
-        u, v = np.float64(uvd[i, 0]), np.float64(uvd[i, 1])
-        s = A[2, 0] * u + A[2, 1] * v + A[2, 2]
-        x = np.floor((A[0, 0] * u + A[0, 1] * v + A[0, 2]) / s + 0.5)
-        y = np.floor((A[1, 0] * u + A[1, 1] * v + A[1, 2]) / s + 0.5)
+        x, y = _augmented_pixel(A, np.float64(uvd[i, 0]), np.float64(uvd[i, 1]))
         if x < 0 or x >= width or y < 0 or y >= height:
             continue
         yi, xi = int(y) // stride, int(x) // stride

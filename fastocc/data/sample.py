@@ -91,18 +91,21 @@ class StoreSamples:
     def _read(self, lo: int, hi: int, idx: list[int], per_sample_errors: bool = False) -> list[RawSample]:
         g = self.reader.group
 
-        def flat(name: str, off: np.ndarray) -> tuple[np.ndarray, int]:
-            sel = off[[i - lo for i in idx]]
-            start = int(sel[..., 0].min())
-            stop = int((sel[..., 0] + sel[..., 1]).max())
+        def read(name: str, start: int, stop: int) -> np.ndarray:
             try:
-                return np.asarray(g[name][start:stop]), start
+                return np.asarray(g[name][start:stop])
             except Exception as exc:  # noqa: BLE001
                 if per_sample_errors:
                     raise OccDataError(
                         f"corrupt store data in {name} for sample {lo} ({self.reader.token(lo)}): {exc}"
                     ) from None
                 raise
+
+        def flat(name: str, off: np.ndarray) -> tuple[np.ndarray, int]:
+            sel = off[[i - lo for i in idx]]
+            start = int(sel[..., 0].min())
+            stop = int((sel[..., 0] + sel[..., 1]).max())
+            return read(name, start, stop), start
 
         img_off, uvd_off = self.img_off[lo:hi], self.uvd_off[lo:hi]
         jpeg, j0 = flat("images/jpeg", img_off)
@@ -112,14 +115,7 @@ class StoreSamples:
         if labelled:
             a, b = min(labelled), max(labelled) + 1
             for name in _LABELS:
-                try:
-                    labels[name] = np.asarray(g[name][a:b])
-                except Exception as exc:  # noqa: BLE001
-                    if per_sample_errors:
-                        raise OccDataError(
-                            f"corrupt store data in {name} for sample {lo} ({self.reader.token(lo)}): {exc}"
-                        ) from None
-                    raise
+                labels[name] = read(name, a, b)
         out = []
         for i in idx:
             jo, uo = self.img_off[i], self.uvd_off[i]
