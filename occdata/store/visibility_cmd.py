@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 import zarr
-from occdata.visibility import camera_visible_mask, lidar_ray_mask
 
 from occdata.constants import FREE_LABEL, GRID
 from occdata.errors import OccDataError
@@ -21,6 +20,7 @@ from occdata.geometry import invert_rigid
 from occdata.store.layout import STATE_DONE
 from occdata.store.reader import open_store
 from occdata.store.update import update_samples
+from occdata.visibility import camera_visible_mask, lidar_ray_mask
 
 __all__ = ["VisibilityReport", "compute_visibility", "sample_visibility"]
 
