@@ -130,6 +130,13 @@ def run(root: Path, gts: Path | None, work: Path, repeats: int) -> dict:
     source += sum(label_path(s).stat().st_size for s in samples if label_path(s) and label_path(s).is_file())
     store_bytes = _dir_bytes(work / "bench0.zarr")
 
+    # Visibility recompute (camera + LiDAR masks by ray casting), on the first store.
+    from occdata.store.visibility_cmd import compute_visibility
+
+    vis = compute_visibility(work / "bench0.zarr", recompute=True, progress=False)  # includes numba compile
+    vis = compute_visibility(work / "bench0.zarr", recompute=True, progress=False)
+    ious = list(vis.agreement_iou.values())
+
     # Image encoding: bytes and load-time decode cost per camera image.
     raw = [c.path.read_bytes() for c in samples[0].cameras]
     half = [_read_jpeg(c.path, c.width, c.height, SampleOptions(image_scale=0.5)) for c in samples[0].cameras]
@@ -156,6 +163,9 @@ def run(root: Path, gts: Path | None, work: Path, repeats: int) -> dict:
         "projection": {"kernel_ms": 1e3 * t_kernel, "peer_numpy_ms": 1e3 * t_peer,
                        "speedup": t_peer / t_kernel, "same_point_counts": all(same_counts),
                        "max_pixel_diff_vs_float32_peer": max_px},
+        "visibility": {"s_per_sample": vis.seconds_per_sample, "samples": vis.computed,
+                       "mean_iou_vs_shipped_mask_camera": float(np.mean(ious)) if ious else None,
+                       "min_iou": float(np.min(ious)) if ious else None},
         "bytes": {"source_per_sample": source / n, "store_per_sample": store_bytes / n,
                   "store_over_source": store_bytes / source},
         "image_encodings_bytes_and_decode_s": {k: {"bytes": b, "decode_s": t} for k, (b, t) in enc.items()},

@@ -45,6 +45,20 @@ def project_lidar_to_image(
 
 
 @numba.njit(cache=True, nogil=True)
+def _camera_matrices(T_cam_from_lidar: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """`(C, 3, 4) float64` P = K @ T[:3, :] per camera, by explicit sums (same order as the twin)."""
+    n_cam = K.shape[0]
+    P = np.empty((n_cam, 3, 4))
+    for c in range(n_cam):
+        for r in range(3):
+            for j in range(4):
+                P[c, r, j] = K[c, r, 0] * T_cam_from_lidar[c, 0, j] + K[c, r, 1] * T_cam_from_lidar[c, 1, j] + (
+                    K[c, r, 2] * T_cam_from_lidar[c, 2, j]
+                )
+    return P
+
+
+@numba.njit(cache=True, nogil=True)
 def project_to_cameras(
     points_lidar: np.ndarray,
     T_cam_from_lidar: np.ndarray,
@@ -56,35 +70,36 @@ def project_to_cameras(
 
     points_lidar `(N, >=3) float32`; T_cam_from_lidar `(C, 4, 4) float64`; K `(C, 3, 3) float64`;
     sizes `(C, 2) int64` (W, H). Returns `uvd (C, N, 3) float32` (first counts[c] rows valid,
-    in point order) and `counts (C,) int64`.
+    in point order) and `counts (C,) int64`. Depth is camera z; u, v use P = K @ T and one
+    reciprocal per point (float64 throughout).
     """
     n = points_lidar.shape[0]
     n_cam = K.shape[0]
+    P = _camera_matrices(T_cam_from_lidar, K)
     uvd = np.empty((n_cam, n, 3), dtype=np.float32)
     counts = np.zeros(n_cam, dtype=np.int64)
-    for c in range(n_cam):
-        T = T_cam_from_lidar[c]
-        k = K[c]
-        w = sizes[c, 0]
-        h = sizes[c, 1]
-        m = 0
-        for i in range(n):
-            x = np.float64(points_lidar[i, 0])
-            y = np.float64(points_lidar[i, 1])
-            z = np.float64(points_lidar[i, 2])
-            xc = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
-            yc = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
+    # Points outer, cameras inner: each point is loaded once and most cameras reject it on depth.
+    for i in range(n):
+        x = np.float64(points_lidar[i, 0])
+        y = np.float64(points_lidar[i, 1])
+        z = np.float64(points_lidar[i, 2])
+        for c in range(n_cam):
+            T = T_cam_from_lidar[c]
             zc = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
             if not zc > min_depth:
                 continue
-            u = (k[0, 0] * xc + k[0, 1] * yc + k[0, 2] * zc) / zc
-            v = (k[1, 0] * xc + k[1, 1] * yc + k[1, 2] * zc) / zc
-            if u >= 0.0 and u < w and v >= 0.0 and v < h:
+            p = P[c]
+            inv = 1.0 / (p[2, 0] * x + p[2, 1] * y + p[2, 2] * z + p[2, 3])
+            u = (p[0, 0] * x + p[0, 1] * y + p[0, 2] * z + p[0, 3]) * inv
+            if not (u >= 0.0 and u < sizes[c, 0]):
+                continue
+            v = (p[1, 0] * x + p[1, 1] * y + p[1, 2] * z + p[1, 3]) * inv
+            if v >= 0.0 and v < sizes[c, 1]:
+                m = counts[c]
                 uvd[c, m, 0] = u
                 uvd[c, m, 1] = v
                 uvd[c, m, 2] = zc
-                m += 1
-        counts[c] = m
+                counts[c] = m + 1
     return uvd, counts
 
 
@@ -96,19 +111,21 @@ def project_to_cameras_reference(
     min_depth: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Numpy twin of `project_to_cameras` (same arithmetic order, same outputs)."""
-    p = np.asarray(points_lidar[:, :3], dtype=np.float64)
-    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    p3 = np.asarray(points_lidar[:, :3], dtype=np.float64)
+    x, y, z = p3[:, 0], p3[:, 1], p3[:, 2]
     n_cam = K.shape[0]
-    uvd = np.zeros((n_cam, len(p), 3), dtype=np.float32)
+    uvd = np.zeros((n_cam, len(p3), 3), dtype=np.float32)
     counts = np.zeros(n_cam, dtype=np.int64)
     for c in range(n_cam):
         T, k = T_cam_from_lidar[c], K[c]
-        xc = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
-        yc = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
+        p = np.empty((3, 4))
+        for r in range(3):
+            p[r] = k[r, 0] * T[0] + k[r, 1] * T[1] + k[r, 2] * T[2]
         zc = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
         with np.errstate(divide="ignore", invalid="ignore"):
-            u = (k[0, 0] * xc + k[0, 1] * yc + k[0, 2] * zc) / zc
-            v = (k[1, 0] * xc + k[1, 1] * yc + k[1, 2] * zc) / zc
+            inv = 1.0 / (p[2, 0] * x + p[2, 1] * y + p[2, 2] * z + p[2, 3])
+            u = (p[0, 0] * x + p[0, 1] * y + p[0, 2] * z + p[0, 3]) * inv
+            v = (p[1, 0] * x + p[1, 1] * y + p[1, 2] * z + p[1, 3]) * inv
             keep = (zc > min_depth) & (u >= 0) & (u < sizes[c, 0]) & (v >= 0) & (v < sizes[c, 1])
         m = int(keep.sum())
         uvd[c, :m] = np.stack([u[keep], v[keep], zc[keep]], axis=1)
