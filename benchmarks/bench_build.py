@@ -64,6 +64,21 @@ def time_it(fn, repeats: int) -> float:
     return float(np.median(best))
 
 
+def time_pair(fa, fb, repeats: int) -> tuple[float, float]:
+    """Interleaved min-of-N times of two functions: noise from other processes only adds time, and
+    interleaving exposes both to the same machine state."""
+    fa(), fb()
+    ta, tb = [], []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fa()
+        ta.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        fb()
+        tb.append(time.perf_counter() - t)
+    return min(ta), min(tb)
+
+
 def run(root: Path, gts: Path | None, work: Path, repeats: int) -> dict:
     cv2.setNumThreads(1)
     ds = load_nuscenes(root)
@@ -121,8 +136,8 @@ def run(root: Path, gts: Path | None, work: Path, repeats: int) -> dict:
     same_counts = [int(counts[c]) == len(peer[c]) for c in range(6)]
     max_px = max(float(np.abs(uvd[c, : counts[c], :2] - peer[c][:, :2]).max()) for c in range(6)
                  if counts[c] == len(peer[c]) and counts[c])
-    t_kernel = time_it(lambda: project_to_cameras(pts, T, K, sizes, 0.0), 20 * repeats)
-    t_peer = time_it(lambda: peer_projection(pts, s), 20 * repeats)
+    t_kernel, t_peer = time_pair(lambda: project_to_cameras(pts, T, K, sizes, 0.0),
+                                 lambda: peer_projection(pts, s), 50 * repeats)
 
     # Bytes: store vs source (images + LiDAR + labels of the same samples).
     source = sum(c.path.stat().st_size for s in samples for c in s.cameras)
@@ -173,6 +188,34 @@ def run(root: Path, gts: Path | None, work: Path, repeats: int) -> dict:
     }
 
 
+def rss_scaling(work: Path, sizes: tuple[int, ...], workers: int) -> dict:
+    """Peak RSS of `occdata build` (main process, and the largest worker) for stores of growing size,
+    each a replayed tree of the real keyframe with labels, in a fresh process."""
+    sys.path.insert(0, str(REPO / "tests"))
+    from replicated_tree import make_replicated_tree
+
+    shared = REPO.parent / "shared" / "data"
+    label = next((shared / "occ3d-label").glob("*/labels.npz"))
+    out = {}
+    for n in sizes:
+        tree = make_replicated_tree(shared / "nuscenes-real", label, work / f"rss{n}", 2, n // 2)
+        code = (
+            "import resource, sys; from pathlib import Path; "
+            "from occdata.store.build import BuildConfig, build_store; "
+            f"build_store(BuildConfig(root=Path('{tree}'), out=Path('{work}/rss{n}.zarr'), gts=Path('{tree}/gts'), "
+            f"workers={workers}, progress=False)); "
+            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, "
+            "resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)"
+        )
+        t = time.perf_counter()
+        res = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
+        main_kb, child_kb = map(int, res.stdout.split()[-2:])
+        out[str(n)] = {"main_peak_rss_mb": main_kb / 1024, "largest_worker_peak_rss_mb": child_kb / 1024,
+                       "samples_per_s": n / (time.perf_counter() - t), "workers": workers}
+        shutil.rmtree(work / f"rss{n}.zarr")
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--root", type=Path)
@@ -180,6 +223,9 @@ def main() -> None:
     ap.add_argument("--synth", action="store_true", help="generate a 2 x 10 synthetic world at 1600x900")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", type=Path, help="write the summary here")
+    ap.add_argument("--rss-samples", type=int, nargs="*", default=[],
+                    help="also measure build peak RSS on replayed trees of these sizes (e.g. 100 1000)")
+    ap.add_argument("--workers", type=int, default=2, help="workers for the RSS measurement")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
@@ -192,6 +238,8 @@ def main() -> None:
         if root is None:
             ap.error("give --root (and --gts) or --synth")
         summary = run(root, gts, work, args.repeats)
+        if args.rss_samples:
+            summary["rss_scaling"] = rss_scaling(work, tuple(args.rss_samples), args.workers)
     text = json.dumps(summary, indent=2)
     print(text)
     if args.json:

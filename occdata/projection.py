@@ -58,7 +58,7 @@ def _camera_matrices(T_cam_from_lidar: np.ndarray, K: np.ndarray) -> np.ndarray:
     return P
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")  # IEEE division: no zero-check branch
 def project_to_cameras(
     points_lidar: np.ndarray,
     T_cam_from_lidar: np.ndarray,
@@ -79,22 +79,24 @@ def project_to_cameras(
     uvd = np.empty((n_cam, n, 3), dtype=np.float32)
     counts = np.zeros(n_cam, dtype=np.int64)
     # Points outer, cameras inner: each point is loaded once and most cameras reject it on depth.
+    # Coefficients live in flat 2D arrays indexed directly (no per-camera views in the hot loop).
+    Tz = np.ascontiguousarray(T_cam_from_lidar[:, 2, :])
+    Pf = np.ascontiguousarray(P.reshape(n_cam, 12))
+    wh = sizes.astype(np.float64)
     for i in range(n):
         x = np.float64(points_lidar[i, 0])
         y = np.float64(points_lidar[i, 1])
         z = np.float64(points_lidar[i, 2])
         for c in range(n_cam):
-            T = T_cam_from_lidar[c]
-            zc = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+            zc = Tz[c, 0] * x + Tz[c, 1] * y + Tz[c, 2] * z + Tz[c, 3]
             if not zc > min_depth:
                 continue
-            p = P[c]
-            inv = 1.0 / (p[2, 0] * x + p[2, 1] * y + p[2, 2] * z + p[2, 3])
-            u = (p[0, 0] * x + p[0, 1] * y + p[0, 2] * z + p[0, 3]) * inv
-            if not (u >= 0.0 and u < sizes[c, 0]):
+            inv = 1.0 / (Pf[c, 8] * x + Pf[c, 9] * y + Pf[c, 10] * z + Pf[c, 11])
+            u = (Pf[c, 0] * x + Pf[c, 1] * y + Pf[c, 2] * z + Pf[c, 3]) * inv
+            if not (u >= 0.0 and u < wh[c, 0]):
                 continue
-            v = (p[1, 0] * x + p[1, 1] * y + p[1, 2] * z + p[1, 3]) * inv
-            if v >= 0.0 and v < sizes[c, 1]:
+            v = (Pf[c, 4] * x + Pf[c, 5] * y + Pf[c, 6] * z + Pf[c, 7]) * inv
+            if v >= 0.0 and v < wh[c, 1]:
                 m = counts[c]
                 uvd[c, m, 0] = u
                 uvd[c, m, 1] = v
