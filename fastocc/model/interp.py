@@ -12,7 +12,7 @@ from occdata.constants import OccGrid
 
 from .geometry import project_points_to_feature, voxel_centres
 from .inputs import SceneInputs
-from .view_transform import calibration_key
+from .view_transform import CalibrationCache
 
 __all__ = ["InterpolationSampler", "SamplingIndex"]
 
@@ -45,19 +45,13 @@ class InterpolationSampler(nn.Module):
         self.grid = grid
         self.input_hw = input_hw
         self.stride = stride
-        self._cache: tuple[Tensor, SamplingIndex] | None = None
+        self._cache: CalibrationCache[SamplingIndex] = CalibrationCache()
 
     def clear_cache(self) -> None:
-        self._cache = None
+        self._cache.clear()
 
     def index(self, inputs: SceneInputs, feat_hw: tuple[int, int]) -> SamplingIndex:
-        key = calibration_key(inputs)
-        if self._cache is not None and self._cache[0].shape == key.shape and torch.equal(self._cache[0], key):
-            return self._cache[1]
-        with torch.no_grad():
-            index = self._build(inputs, feat_hw, key.device)
-        self._cache = (key, index)
-        return index
+        return self._cache.get(inputs, lambda device: self._build(inputs, feat_hw, device))
 
     def _build(self, inputs: SceneInputs, feat_hw: tuple[int, int], device: torch.device) -> SamplingIndex:
         h, w = feat_hw

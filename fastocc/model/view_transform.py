@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 import torch
 from torch import Tensor, nn
@@ -11,6 +13,8 @@ from occdata.constants import OccGrid
 
 from .geometry import feature_cell_centres_uv, flat_voxel_index, frustum_points_aug
 from .inputs import SceneInputs
+
+T = TypeVar("T")
 
 __all__ = ["DepthNet", "LSSPooling", "PoolingIndex", "lss_pool"]
 
@@ -70,6 +74,26 @@ def calibration_key(inputs: SceneInputs) -> Tensor:
     return torch.cat([p.reshape(-1).float() for p in parts])
 
 
+class CalibrationCache(Generic[T]):
+    """One value (e.g. a geometry index) kept while the calibration / augmentation matrices stay equal."""
+
+    def __init__(self) -> None:
+        self._entry: tuple[Tensor, T] | None = None
+
+    def clear(self) -> None:
+        self._entry = None
+
+    def get(self, inputs: SceneInputs, build: Callable[[torch.device], T]) -> T:
+        """The cached value for these inputs, or `build(device)` (run without autograd) on a change."""
+        key = calibration_key(inputs)
+        if self._entry is not None and self._entry[0].shape == key.shape and torch.equal(self._entry[0], key):
+            return self._entry[1]
+        with torch.no_grad():
+            value = build(key.device)
+        self._entry = (key, value)
+        return value
+
+
 class LSSPooling(nn.Module):
     """Voxel pooling into the coarse grid with cached indices.
 
@@ -83,17 +107,14 @@ class LSSPooling(nn.Module):
         self.input_hw = input_hw
         self.stride = stride
         self.register_buffer("depth_centres", torch.tensor(depth_centres, dtype=torch.float32), persistent=False)
-        self._cache: tuple[Tensor, PoolingIndex] | None = None
+        self._cache: CalibrationCache[PoolingIndex] = CalibrationCache()
 
     def clear_cache(self) -> None:
-        self._cache = None
+        self._cache.clear()
 
     def index(self, inputs: SceneInputs, feat_hw: tuple[int, int]) -> PoolingIndex:
-        key = calibration_key(inputs)
-        if self._cache is not None and self._cache[0].shape == key.shape and torch.equal(self._cache[0], key):
-            return self._cache[1]
-        with torch.no_grad():
-            uv_img = feature_cell_centres_uv(feat_hw, self.stride, key.device)
+        def build(device: torch.device) -> PoolingIndex:
+            uv_img = feature_cell_centres_uv(feat_hw, self.stride, device)
             points_aug = frustum_points_aug(
                 inputs.K, inputs.T_keyego_from_cam, inputs.img_aug, inputs.bev_aug, uv_img, self.depth_centres
             )  # (B, N, D, h, w, 3)
@@ -103,9 +124,9 @@ class LSSPooling(nn.Module):
                 self.grid.shape[1] * self.grid.shape[2]
             )
             point_idx = torch.nonzero(inside.reshape(-1)).squeeze(1)
-            index = PoolingIndex(point_idx=point_idx, voxel_idx=flat.reshape(-1)[point_idx])
-        self._cache = (key, index)
-        return index
+            return PoolingIndex(point_idx=point_idx, voxel_idx=flat.reshape(-1)[point_idx])
+
+        return self._cache.get(inputs, build)
 
     def forward(self, depth: Tensor, context: Tensor, inputs: SceneInputs) -> Tensor:
         """depth `(B*N, D, h, w)`, context `(B*N, C2, h, w)` -> V_B `(B, C2, 100, 100, 8)`."""
