@@ -3,4 +3,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
+# The official nuscenes-devkit in a throwaway venv (not a project dependency), so the test that
+# `occdata synth` output loads in the devkit runs for real.
+if [ -z "${OCCDATA_DEVKIT_PYTHON:-}" ]; then
+    OCCDATA_DEVKIT_PYTHON=$(bash scripts/devkit_env.sh)
+    export OCCDATA_DEVKIT_PYTHON
+fi
 exec .venv/bin/python -m pytest "$@"
