@@ -159,13 +159,13 @@ def sample_checksums(arrays: dict[str, np.ndarray], flat: dict[str, bytes]) -> n
 class _Writer:
     """Commits runs of consecutive sample results to the store (the single writer)."""
 
-    def __init__(self, root: zarr.Group, n: int) -> None:
+    def __init__(self, root: zarr.Group) -> None:
         self.root = root
         self.arrays = {s.name: root[s.name] for s in PER_SAMPLE}
         self.flat = {name: root[name] for name in FLAT_ARRAYS}
-        state = self.arrays["status/state"][:]
+        self.initial_state = self.arrays["status/state"][:]  # what an earlier (killed) run committed
         self.cursor = {name: 0 for name in FLAT_ARRAYS}
-        committed = state != STATE_PENDING
+        committed = self.initial_state != STATE_PENDING
         for off_name, flat_name in FLAT_OF_OFFSETS.items():
             if committed.any():
                 off = self.arrays[off_name][:][committed]
@@ -293,9 +293,8 @@ def build_store(config: BuildConfig) -> BuildReport:
     split_code = {name: i for i, name in enumerate(split_names)}
 
     root = _open_or_create(config, ds, split_names)
-    writer = _Writer(root, len(ds.samples))
-    state = root["status/state"][:]
-    pending = np.flatnonzero(state == STATE_PENDING)
+    writer = _Writer(root)
+    pending = np.flatnonzero(writer.initial_state == STATE_PENDING)
 
     def label_path(i: int) -> Path | None:
         if config.gts is None:

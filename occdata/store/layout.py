@@ -19,7 +19,6 @@ __all__ = [
     "FLAT_OF_OFFSETS",
     "N_CAM",
     "checksummed_names",
-    "spec",
     "token_bytes",
     "token_str",
     "PER_SAMPLE",
@@ -93,10 +92,6 @@ FLAT_ARRAYS: dict[str, tuple[tuple[int, ...], str, int]] = {
 
 # Which offsets array indexes which flat array.
 FLAT_OF_OFFSETS = {"images/offsets": "images/jpeg", "depth/offsets": "depth/uvd"}
-
-
-def spec(name: str) -> ArraySpec:
-    return next(s for s in PER_SAMPLE if s.name == name)
 
 
 def checksummed_names() -> tuple[str, ...]:

@@ -10,7 +10,7 @@ import numpy as np
 import zarr
 
 from occdata.errors import OccDataError
-from occdata.store.layout import FLAT_ARRAYS, PER_SAMPLE, SCHEMA_NAME, SCHEMA_VERSION, STATE_DONE, token_str
+from occdata.store.layout import PER_SAMPLE, SCHEMA_NAME, SCHEMA_VERSION, STATE_DONE, token_str
 
 __all__ = ["StoreReader", "open_store"]
 
@@ -105,9 +105,6 @@ class StoreReader:
     def _check_index(self, index: int) -> None:
         if not 0 <= index < self.n_samples:
             raise OccDataError(f"sample index {index} out of range (store has {self.n_samples} samples)")
-
-    def flat_names(self) -> tuple[str, ...]:
-        return tuple(FLAT_ARRAYS)
 
 
 def open_store(path: str | Path) -> StoreReader:
