@@ -37,3 +37,13 @@ def synth_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
     out = tmp_path_factory.mktemp("synth") / "world"
     return synthesize(SynthConfig(out=out, progress=False, **SYNTH_SMALL))
+
+
+@pytest.fixture(scope="session")
+def synth_store(synth_root: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The small synthetic world built into a store once per session (treat as read-only)."""
+    from occdata.store.build import BuildConfig, build_store
+
+    out = tmp_path_factory.mktemp("store") / "data.zarr"
+    build_store(BuildConfig(root=synth_root, out=out, gts=synth_root / "gts", progress=False))
+    return out
