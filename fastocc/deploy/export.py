@@ -24,7 +24,7 @@ from fastocc.model import FastOcc
 from occdata.constants import CLASS_COLORS, CLASS_NAMES
 from occdata.image_ops import IMAGENET_MEAN, IMAGENET_STD
 
-from .rig import DeployError, Rig, load_rig
+from .rig import DeployError, Rig, load_rig, require_onnx
 from .static import StaticFastOcc
 
 __all__ = [
@@ -179,6 +179,7 @@ def _sidecar(static: StaticFastOcc, rig: Rig, parity: ParityReport, opset: int, 
 
 def export_model(model: FastOcc, rig: Rig, cfg: ExportConfig) -> ExportReport:
     """Export a built network (eval mode) for `rig` to `cfg.out` (+ sidecar), parity-checked."""
+    require_onnx()
     import onnxruntime as ort
 
     if cfg.opset < MIN_OPSET:

@@ -25,7 +25,7 @@ from fastocc.data.sample import warp_normalise
 from fastocc.model.inputs import SceneInputs
 from occdata.image_ops import IMAGENET_MEAN, IMAGENET_STD, normalise_lut
 
-from .rig import DeployError, Rig, load_rig
+from .rig import DeployError, Rig, load_rig, require_onnx
 
 __all__ = ["Predictor", "StageTimes", "TemporalState"]
 
@@ -91,8 +91,38 @@ class _TorchBackend:
         return semantics, probs
 
 
+class _StaticTorchBackend:
+    """The export wrapper (`StaticFastOcc`) run by PyTorch, optionally through `torch.compile`; the queue is
+    kept outside the network exactly as for ONNX Runtime."""
+
+    def __init__(self, model: torch.nn.Module, rig: Rig, device: str, compile: bool) -> None:
+        from .static import StaticFastOcc
+
+        self.device = torch.device(device)
+        self.static = StaticFastOcc(model, rig).eval().to(self.device)
+        self.fn = torch.compile(self.static) if compile else self.static
+        self.history_shape = self.static.history_shape() if self.static.temporal else None
+        self.reset()
+
+    def reset(self) -> None:
+        self.state = TemporalState(self.history_shape) if self.history_shape is not None else None
+
+    @torch.no_grad()
+    def run(self, images: np.ndarray, pose: np.ndarray, seq_start: bool, with_probs: bool
+            ) -> tuple[np.ndarray, np.ndarray | None]:
+        args = [torch.from_numpy(images).to(self.device)]
+        if self.state is not None:
+            args += [torch.from_numpy(v).to(self.device) for v in self.state.feeds(pose, seq_start).values()]
+        outs = self.fn(*args)
+        if self.state is not None:
+            self.state.push(outs[2].cpu().numpy(), pose)
+        probs = outs[0][0].float().softmax(0).cpu().numpy() if with_probs else None
+        return outs[1][0].cpu().numpy(), probs
+
+
 class _OnnxBackend:
     def __init__(self, path: Path, meta: dict[str, Any], threads: int | None, providers: Sequence[str] | None) -> None:
+        require_onnx()
         import onnxruntime as ort
 
         opts = ort.SessionOptions()
@@ -123,6 +153,9 @@ class _OnnxBackend:
             logits = torch.from_numpy(outs["logits"][0])
             probs = logits.softmax(0).numpy()
         return outs["semantics"][0], probs
+
+
+_Backend = _TorchBackend | _StaticTorchBackend | _OnnxBackend
 
 
 def _read_sidecar(path: Path) -> dict[str, Any]:
@@ -171,7 +204,7 @@ class Predictor:
             self.num_history = int(meta["temporal"]["num_history"])
             self.class_names = tuple(meta["class_names"])
             self.runtime = "onnx"
-            self._backend: _TorchBackend | _OnnxBackend = _OnnxBackend(path, meta, threads, providers)
+            self._backend: _Backend = _OnnxBackend(path, meta, threads, providers)
         else:
             from fastocc.checkpoint import load_model
 
@@ -190,6 +223,31 @@ class Predictor:
         self.img_aug = self.rig.img_aug(self.input_hw)
         self.lut = normalise_lut()
         self._frames = 0
+
+    @classmethod
+    def from_model(cls, model: torch.nn.Module, rig: Rig | None = None, runtime: str = "torch", device: str = "cpu",
+                   bgr: bool = False) -> Predictor:
+        """A Predictor around a built `FastOcc` (eval mode). `runtime`: "torch" (the network itself, eager),
+        "static" (the export wrapper, eager) or "compile" (the export wrapper through `torch.compile`)."""
+        self = cls.__new__(cls)
+        self.bgr, self.times, self._frames = bgr, StageTimes(), 0
+        self.rig = rig if rig is not None else load_rig(None)
+        self.rig.check_cams(model.cfg.num_cams)
+        self.input_hw, self.num_history = model.cfg.input_hw, model.cfg.num_history
+        from occdata.constants import CLASS_NAMES
+
+        self.class_names = CLASS_NAMES
+        model = model.eval().to(device)
+        if runtime == "torch":
+            self._backend = _TorchBackend(model, self.rig, device)
+        elif runtime in ("static", "compile"):
+            self._backend = _StaticTorchBackend(model, self.rig, device, compile=runtime == "compile")
+        else:
+            raise DeployError(f"unknown runtime {runtime!r}; choose torch, static or compile")
+        self.runtime = runtime
+        self.img_aug = self.rig.img_aug(self.input_hw)
+        self.lut = normalise_lut()
+        return self
 
     @property
     def camera_order(self) -> tuple[str, ...]:

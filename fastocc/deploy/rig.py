@@ -19,11 +19,21 @@ from fastocc.model.inputs import SceneInputs, synthetic_inputs
 from occdata.constants import CAMERA_ORDER
 from occdata.errors import OccDataError
 
-__all__ = ["DeployError", "Rig", "load_rig", "synthetic_rig", "eval_image_aug"]
+__all__ = ["DeployError", "Rig", "eval_image_aug", "load_rig", "require_onnx", "synthetic_rig"]
 
 
 class DeployError(OccDataError):
     """A user-facing deployment problem (bad checkpoint, rig, ONNX file or input images): one line."""
+
+
+def require_onnx() -> None:
+    """ONNX export and ONNX Runtime are an optional extra: say how to get them instead of a traceback."""
+    try:
+        import onnx  # noqa: F401
+        import onnxruntime  # noqa: F401
+    except ImportError as exc:
+        raise DeployError(f"{exc.name} is not installed: pip install 'fastocc[export]' (onnx, onnxruntime, "
+                          "onnxscript)") from None
 
 
 def eval_image_aug(input_hw: tuple[int, int], orig_w: int, orig_h: int) -> np.ndarray:
