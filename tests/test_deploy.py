@@ -248,3 +248,9 @@ def test_runtime_bench_all_runtimes_nano() -> None:
     for r in res["runtimes"].values():
         assert r["ms"] > 0 and r["argmax_agreement_with_first"] >= 0.999
     assert "onnx" in format_runtime_report(res)
+
+
+def test_predictor_is_exported_from_the_package() -> None:
+    import fastocc
+
+    assert fastocc.Predictor is Predictor and "Predictor" in fastocc.__all__

@@ -9,6 +9,7 @@ reproduces the PyTorch network (the real `FastOcc`, not the export wrapper) with
 from __future__ import annotations
 
 import json
+import logging
 import os
 import time
 import warnings
@@ -191,12 +192,16 @@ def export_model(model: FastOcc, rig: Rig, cfg: ExportConfig) -> ExportReport:
     out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp.onnx")
+    onnx_log = logging.getLogger("torch.onnx")
+    level = onnx_log.level
     try:
+        onnx_log.setLevel(logging.ERROR)  # "torchvision is not installed" notices are irrelevant here
         with warnings.catch_warnings(), torch.no_grad():
             warnings.simplefilter("ignore")
             torch.onnx.export(static, static.example_inputs(cfg.seed), str(tmp), dynamo=True, external_data=False,
                               opset_version=cfg.opset, input_names=static.input_names(),
                               output_names=static.output_names(), verbose=False)
+        onnx_log.setLevel(level)
         custom = custom_domain_ops(tmp)
         if custom:
             raise DeployError(f"the exported graph uses non-standard operators {custom}; refusing to write {out}")
@@ -208,6 +213,7 @@ def export_model(model: FastOcc, rig: Rig, cfg: ExportConfig) -> ExportReport:
                 f"agreement {100 * parity.min_agreement:.3f}% < {100 * cfg.min_agreement:g}%); {out} not written")
         os.replace(tmp, out)
     finally:
+        onnx_log.setLevel(level)
         tmp.unlink(missing_ok=True)
     rig_hash = rig.hash(model.cfg.input_hw)
     side = sidecar_path(out)
