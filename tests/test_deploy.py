@@ -254,3 +254,18 @@ def test_predictor_is_exported_from_the_package() -> None:
     import fastocc
 
     assert fastocc.Predictor is Predictor and "Predictor" in fastocc.__all__
+
+
+def test_rig_from_the_real_nuscenes_sample(real_nuscenes_root: Path) -> None:
+    """K per camera against calibrated_sensor.json read directly; the real front camera looks forward."""
+    rig = load_rig(real_nuscenes_root)
+    tables = real_nuscenes_root / "v1.0-mini"
+    channel = {s["token"]: s["channel"] for s in json.loads((tables / "sensor.json").read_text())}
+    K = {channel[c["sensor_token"]]: c["camera_intrinsic"] for c in json.loads((tables / "calibrated_sensor.json")
+                                                                               .read_text())}
+    assert rig.cameras == CAMERA_ORDER
+    for n, cam in enumerate(rig.cameras):
+        np.testing.assert_allclose(rig.K[n], K[cam])
+    front = rig.T_keyego_from_cam[CAMERA_ORDER.index("CAM_FRONT")]
+    assert front[:3, 2] @ np.array([1.0, 0.0, 0.0]) > 0.99  # optical axis along ego +x
+    assert rig.image_size.tolist() == [[1600, 900]] * 6
