@@ -202,6 +202,8 @@ def test_bad_inputs_are_one_clear_error_each(tmp_path: Path, nano_export: tuple[
         Predictor.from_model(FastOcc(preset("nano")), synthetic_rig(5))
     with pytest.raises(DeployError, match="has 6 cameras but the model expects 5"):
         export_model(FastOcc(preset("nano", num_cams=5)), synthetic_rig(), ExportConfig(Path("c"), tmp_path / "y.onnx"))
+    with pytest.raises(DeployError, match="must end in .onnx"):
+        export_model(FastOcc(preset("nano")), synthetic_rig(), ExportConfig(Path("c"), tmp_path / "y.bin"))
     with pytest.raises(DeployError, match="exported for another rig"):
         Predictor(onnx_path, rig=synth_store)
     pred = Predictor(onnx_path)

@@ -183,6 +183,8 @@ def export_model(model: FastOcc, rig: Rig, cfg: ExportConfig) -> ExportReport:
     require_onnx()
     import onnxruntime as ort
 
+    if Path(cfg.out).suffix.lower() != ".onnx":
+        raise DeployError(f"--out {cfg.out} must end in .onnx (the Predictor tells ONNX files by their suffix)")
     if cfg.opset < MIN_OPSET:
         raise DeployError(f"--opset {cfg.opset} is too old: the exporter needs >= {MIN_OPSET}")
     rig.check_cams(model.cfg.num_cams)
