@@ -67,7 +67,7 @@ def test_cli_export_writes_a_parity_checked_standard_graph(nano_export: tuple[Pa
     assert "PASS" in stdout and "parity" in stdout
     assert custom_domain_ops(out) == []
     ops = {n.op_type for n in onnx.load(str(out)).graph.node}
-    assert {"ScatterND", "GridSample", "Conv"} <= ops  # LSS pooling and interpolation sampling, standard ops
+    assert {"ScatterND", "Gather", "Conv"} <= ops  # LSS pooling and interpolation sampling, standard ops
     meta = json.loads(out.with_suffix(".json").read_text())
     assert meta["inputs"] == {"images": {"shape": [1, 6, 3, 128, 352], "dtype": "float32"}}
     assert meta["outputs"]["semantics"]["shape"] == [1, 200, 200, 16]
@@ -89,13 +89,12 @@ def test_export_refuses_a_graph_that_fails_parity(tmp_path: Path, monkeypatch: p
     """Corrupt the baked interpolation weights: ONNX Runtime no longer matches PyTorch, nothing is written."""
     import fastocc.deploy.static as static
 
-    real = static._atlas_sampling
+    real = static._slot_sampling
 
     def wrong(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
-        grids, weights = real(*args, **kwargs)
-        return grids, weights * 3.0
+        return [(rows, wts * 3.0, scatter) for rows, wts, scatter in real(*args, **kwargs)]
 
-    monkeypatch.setattr(static, "_atlas_sampling", wrong)
+    monkeypatch.setattr(static, "_slot_sampling", wrong)
     torch.manual_seed(0)
     model = FastOcc(preset("nano"))
     with pytest.raises(DeployError, match="parity check failed"):

@@ -41,7 +41,7 @@ __all__ = [
 ]
 
 SIDECAR_FORMAT = "fastocc.onnx"
-MIN_OPSET = 18  # the dynamo exporter's lowest; ScatterND(add) needs >= 16, GridSample >= 16
+MIN_OPSET = 18  # the dynamo exporter's lowest; ScatterND(add) needs >= 16, GridSample (temporal warp) >= 16
 
 
 @dataclass(frozen=True)
