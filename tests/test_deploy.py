@@ -140,12 +140,16 @@ def test_temporal_stream_parity_and_fixed_state(tmp_path: Path) -> None:
     p_torch, p_onnx = Predictor(ckpt), Predictor(rep.out)
     with pytest.raises(DeployError, match="ego_pose"):
         p_onnx(_frames(synthetic_rig(), 1)[0])
+    from fastocc.checkpoint import load_model
+
+    p_static = Predictor.from_model(load_model(ckpt)[0], runtime="static")  # the export wrapper in PyTorch
     frames, poses = _frames(synthetic_rig(), 3, seed=1), _poses(8)
     sizes = []
     for t, pose in enumerate(poses):
         a = p_torch(frames[t % 3], pose)
         b = p_onnx(frames[t % 3], pose)
         assert (a == b).mean() >= 0.999, t
+        assert (a == p_static(frames[t % 3], pose)).mean() >= 0.999, t
         st = p_onnx._backend.state
         q = p_torch._backend.model.temporal._feats
         sizes.append((st.history.shape, len(st.poses), tuple(q.shape)))
