@@ -143,7 +143,7 @@ def test_temporal_stream_parity_and_fixed_state(tmp_path: Path) -> None:
     from fastocc.checkpoint import load_model
 
     p_static = Predictor.from_model(load_model(ckpt)[0], runtime="static")  # the export wrapper in PyTorch
-    frames, poses = _frames(synthetic_rig(), 3, seed=1), _poses(8)
+    frames, poses = _frames(synthetic_rig(), 3, seed=1), _poses(5)
     sizes = []
     for t, pose in enumerate(poses):
         a = p_torch(frames[t % 3], pose)
