@@ -274,3 +274,21 @@ def test_rig_from_the_real_nuscenes_sample(real_nuscenes_root: Path) -> None:
     front = rig.T_keyego_from_cam[CAMERA_ORDER.index("CAM_FRONT")]
     assert front[:3, 2] @ np.array([1.0, 0.0, 0.0]) > 0.99  # optical axis along ego +x
     assert rig.image_size.tolist() == [[1600, 900]] * 6
+
+
+def test_export_for_a_store_rig_and_stream_its_frames(tmp_path: Path, synth_store: Path) -> None:
+    """The issue's user story: export for the store's rig, then run the Predictor on the store's frames."""
+    from occdata.store.reader import open_store
+
+    ckpt = _checkpoint(tmp_path / "c.pt")
+    rep = export_onnx(ExportConfig(checkpoint=ckpt, out=tmp_path / "store.onnx", rig=synth_store, frames=1))
+    meta = json.loads(rep.sidecar.read_text())
+    assert meta["rig"]["image_size"] == [[400, 225]] * 6 and "store" in meta["rig"]["source"]
+    reader = open_store(synth_store)
+    p_onnx, p_torch = Predictor(rep.out, rig=synth_store), Predictor(ckpt, rig=synth_store)
+    poses = reader.small("pose/T_global_from_keyego")
+    for i in reader.done_indices():
+        a = p_onnx(reader.images(int(i)), poses[i])
+        assert (a == p_torch(reader.images(int(i)), poses[i])).mean() >= 0.999
+    with pytest.raises(DeployError, match=r"expected a \(225, 400, 3\) image"):
+        p_onnx(_frames(synthetic_rig(), 1)[0])
