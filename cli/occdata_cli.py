@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import click
 import numpy as np
 
-from cli._common import friendly_errors
+from cli._common import DEFAULT_STORE, friendly_errors, local_path
 
 __all__ = ["main"]
 
@@ -23,7 +22,7 @@ def main() -> None:
 
 
 @main.command()
-@click.option("--out", required=True, type=click.Path(path_type=Path), help="Output directory (nuScenes-format root).")
+@click.option("--out", required=True, help="Output directory (nuScenes-format root; a folder or a file:// URL).")
 @click.option("--scenes", default=2, show_default=True, type=click.IntRange(min=1), help="Number of scenes.")
 @click.option("--samples", default=10, show_default=True, type=click.IntRange(min=1),
               help="Keyframes (2 Hz) per scene.")
@@ -32,7 +31,7 @@ def main() -> None:
 @click.option("--height", default=900, show_default=True, type=click.IntRange(min=16), help="Image height.")
 @click.option("--no-progress", is_flag=True, help="Hide the progress bar.")
 @friendly_errors
-def synth(out: Path, scenes: int, samples: int, seed: int, width: int, height: int, no_progress: bool) -> None:
+def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: int, no_progress: bool) -> None:
     """Write a synthetic nuScenes-format world with Occ3D labels and exact depth maps.
 
     Tables (v1.0-mini), 6 ray-cast camera images, a 32-beam LiDAR sweep per keyframe,
@@ -40,26 +39,30 @@ def synth(out: Path, scenes: int, samples: int, seed: int, width: int, height: i
     """
     from occdata.synth import SynthConfig, synthesize
 
-    root = synthesize(SynthConfig(out=out, scenes=scenes, samples=samples, seed=seed, width=width, height=height,
-                                  progress=not no_progress))
+    root = synthesize(SynthConfig(out=local_path(out, "--out"), scenes=scenes, samples=samples, seed=seed,
+                                  width=width, height=height, progress=not no_progress))
     click.echo(f"wrote {scenes} scenes x {samples} samples to {root}")
 
 
 @main.command()
-@click.option("--root", required=True, type=click.Path(path_type=Path), help="nuScenes-format dataset root.")
+@click.option("--root", required=True, help="nuScenes-format dataset root (a folder or a file:// URL).")
 @click.option("--version", default=None, help="Version folder (v1.0-trainval, v1.0-mini, ...); auto if only one.")
 @click.option("--check-files/--no-check-files", default=True, show_default=True,
               help="Check that every keyframe image and LiDAR file exists.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @friendly_errors
-def scan(root: Path, version: str | None, check_files: bool, as_json: bool) -> None:
+def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> None:
     """Read and validate a nuScenes-format tree; print scenes and samples per split.
 
-    Every foreign key is resolved; a broken tree fails with one line naming the file or token.
+    Every foreign key is resolved and every sample is checked as `occdata build` checks it from
+    the tables (values, paths inside the root, calibration, intrinsics); a broken tree fails with
+    one line naming the file, row or token.
     """
     from occdata.nuscenes.summary import scan_tree
 
-    summary = scan_tree(root, version, check_files)
+    summary = scan_tree(local_path(root, "--root"), version, check_files)
+    for note in summary["warnings"]:
+        click.echo(f"warning: {note}", err=True)
     if as_json:
         click.echo(json.dumps(summary, indent=2))
         return
@@ -69,12 +72,14 @@ def scan(root: Path, version: str | None, check_files: bool, as_json: bool) -> N
 
 
 @main.command()
-@click.option("--root", required=True, type=click.Path(path_type=Path), help="nuScenes-format dataset root.")
+@click.option("--root", required=True, help="nuScenes-format dataset root (a folder or a file:// URL).")
 @click.option("--version", default=None, help="Version folder (v1.0-trainval, v1.0-mini, ...); auto if only one.")
-@click.option("--out", required=True, type=click.Path(path_type=Path), help="Output zarr store (a folder).")
-@click.option("--gts", type=click.Path(path_type=Path), default=None,
-              help="Occ3D-nuScenes labels folder (gts/<scene>/<sample_token>/labels.npz). Samples without a "
-                   "label file are stored without labels (e.g. the test split).")
+@click.option("--out", default=DEFAULT_STORE, show_default=True, help="Output zarr store (a folder).")
+@click.option("--gts", default=None,
+              help="Occ3D-nuScenes labels folder: <gts>/<scene>/<sample_token>/labels.npz or the flat "
+                   "<gts>/<sample_token>/labels.npz. Default: <root>/gts if it exists. Samples without a "
+                   "label file are stored without labels (e.g. the test split); an explicit --gts in "
+                   "which no sample finds its file is an error.")
 @click.option("--split", "splits", multiple=True,
               help="Keep only scenes of this split (repeatable): train, val, test, mini_train, mini_val, ...")
 @click.option("--workers", type=int, default=1, show_default=True, help="Worker processes converting samples.")
@@ -89,7 +94,7 @@ def scan(root: Path, version: str | None, check_files: bool, as_json: bool) -> N
 @click.option("--jpeg-quality", type=int, default=90, show_default=True, help="Quality when re-encoding.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
-def build(root: Path, version: str | None, out: Path, gts: Path | None, splits: tuple[str, ...], workers: int,
+def build(root: str, version: str | None, out: str, gts: str | None, splits: tuple[str, ...], workers: int,
           resume: bool, on_error: str, block_samples: int, image_scale: float, jpeg_quality: int,
           no_progress: bool) -> None:
     """Convert a nuScenes-format tree (+ Occ3D labels) into one chunked zarr store.
@@ -101,12 +106,24 @@ def build(root: Path, version: str | None, out: Path, gts: Path | None, splits: 
     from occdata.store.build import BuildConfig, build_store
     from occdata.store.sample import SampleOptions
 
+    root_path = local_path(root, "--root")
+    gts_path = local_path(gts, "--gts") if gts is not None else None
+    if gts_path is not None:
+        click.echo(f"labels: {gts_path} (--gts)")
+    elif (root_path / "gts").is_dir():
+        gts_path = root_path / "gts"
+        click.echo(f"labels: {gts_path} (found in the dataset root)")
+    else:
+        click.echo(f"labels: none (no --gts, and {root_path / 'gts'} does not exist): the store will be unlabelled")
     report = build_store(BuildConfig(
-        root=root, out=out, version=version, gts=gts, splits=splits, workers=workers, resume=resume,
+        root=root_path, out=local_path(out, "--out"), version=version, gts=gts_path,
+        labels_required=gts is not None, splits=splits, workers=workers, resume=resume,
         on_error=on_error,  # type: ignore[arg-type]
         block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality),
         progress=not no_progress,
     ))
+    for note in report.warnings:
+        click.echo(f"warning: {note}", err=True)
     click.echo(
         f"{report.store}: {report.n_done}/{report.n_samples} samples done, {report.n_errors} errors, "
         f"{report.n_labelled} labelled ({report.processed_now} processed in this run)"
@@ -115,14 +132,16 @@ def build(root: Path, version: str | None, out: Path, gts: Path | None, splits: 
         click.echo("errors are recorded in the store: see `occdata info --store ...`", err=True)
 
 
-_store_opt = click.option("--store", required=True, type=click.Path(path_type=Path), help="An occdata zarr store.")
+# A plain string, not click.Path: click would turn an fsspec URL such as file:///x/y.zarr into file:/x/y.zarr.
+_store_opt = click.option("--store", default=DEFAULT_STORE, show_default=True,
+                          help="An occdata zarr store: a folder or an fsspec URL (file://, s3://, ...).")
 
 
 @main.command("bev-gt")
 @_store_opt
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
-def bev_gt(store: Path, no_progress: bool) -> None:
+def bev_gt(store: str, no_progress: bool) -> None:
     """(Re)compute the BEV multi-hot ground truth from the stored voxel labels.
 
     One uint32 bit field per BEV cell (bit c: class c occurs in the column; bit 17 = free).
@@ -143,7 +162,7 @@ def bev_gt(store: Path, no_progress: bool) -> None:
                    "and report the agreement with the shipped Occ3D masks.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
-def visibility(store: Path, recompute: bool, no_progress: bool) -> None:
+def visibility(store: str, recompute: bool, no_progress: bool) -> None:
     """Camera and LiDAR visibility masks by ray casting through the voxel grid (3D DDA).
 
     A voxel is camera-visible if its centre projects inside some camera image with positive depth
@@ -166,7 +185,7 @@ def visibility(store: Path, recompute: bool, no_progress: bool) -> None:
 @_store_opt
 @click.option("--json", "as_json", is_flag=True, help="Print everything as JSON (scene table included).")
 @friendly_errors
-def info(store: Path, as_json: bool) -> None:
+def info(store: str, as_json: bool) -> None:
     """Samples, scenes, arrays (shapes, dtypes, chunks), attrs and recorded errors of a store."""
     from occdata.store.inspect import store_info
     from occdata.store.reader import open_store
@@ -198,7 +217,7 @@ def info(store: Path, as_json: bool) -> None:
 @_store_opt
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
-def verify(store: Path, no_progress: bool) -> None:
+def verify(store: str, no_progress: bool) -> None:
     """Recompute every committed sample's checksums; report corruption with the sample it hits.
 
     Exits 1 if anything is wrong.
@@ -221,9 +240,9 @@ def verify(store: Path, no_progress: bool) -> None:
 @main.command()
 @_store_opt
 @click.option("--index", "-i", type=int, required=True, help="Sample index in the store.")
-@click.option("--out", required=True, type=click.Path(path_type=Path), help="Output .npz file.")
+@click.option("--out", required=True, help="Output .npz file (a path or a file:// URL).")
 @friendly_errors
-def dump(store: Path, index: int, out: Path) -> None:
+def dump(store: str, index: int, out: str) -> None:
     """Write one sample as plain numpy arrays (.npz, no pickles).
 
     Keys: images (6,H,W,3) uint8 RGB; K; T_ego_from_cam; T_keyego_from_cam; T_ego_from_lidar;
@@ -234,21 +253,21 @@ def dump(store: Path, index: int, out: Path) -> None:
     from occdata.store.inspect import dump_sample
     from occdata.store.reader import open_store
 
-    keys = dump_sample(open_store(store), index, out)
+    keys = dump_sample(open_store(store), index, local_path(out, "--out"))
     click.echo(f"{out}: {', '.join(keys)}")
 
 
 @main.command("check-projection")
 @_store_opt
 @click.option("--index", "-i", type=int, default=0, show_default=True, help="Sample index in the store.")
-@click.option("--out", required=True, type=click.Path(path_type=Path), help="Output .png file.")
+@click.option("--out", required=True, help="Output .png file (a path or a file:// URL).")
 @friendly_errors
-def check_projection(store: Path, index: int, out: Path) -> None:
+def check_projection(store: str, index: int, out: str) -> None:
     """Draw the stored LiDAR depth targets on the 6 images (coloured by depth) into one PNG."""
     from occdata.store.draw import draw_projection
     from occdata.store.reader import open_store
 
-    click.echo(str(draw_projection(open_store(store), index, out)))
+    click.echo(str(draw_projection(open_store(store), index, local_path(out, "--out"))))
 
 
 if __name__ == "__main__":

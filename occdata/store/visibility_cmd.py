@@ -75,11 +75,11 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def compute_visibility(
-    store: Path, recompute: bool = False, block: int = 32, progress: bool = True
+    store: str | Path, recompute: bool = False, block: int = 32, progress: bool = True
 ) -> VisibilityReport:
     """Masks for labelled samples that have no shipped camera mask (all with `recompute`)."""
     reader = open_store(store)
-    group = zarr.open_group(str(store), mode="r+")
+    group = zarr.open_group(reader.path, mode="r+")
     present = group["labels/present"][:]
     done = reader.state == STATE_DONE
     if not present[done].any():
