@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from cli._common import friendly_errors
+from cli._common import DEFAULT_STORE, friendly_errors
 
 __all__ = ["main"]
 
@@ -67,7 +67,7 @@ def bench(
 
 
 @main.command("show-batch")
-@click.option("--store", required=True, help="Store path or fsspec URL.")
+@click.option("--store", default=DEFAULT_STORE, show_default=True, help="Store path or fsspec URL.")
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="PNG to write.")
 @click.option("--index", "-i", type=click.IntRange(min=0), default=0, help="Store index of the sample.")
 @click.option("--train", is_flag=True, help="Random training augmentation (default: the test transform).")
