@@ -119,6 +119,34 @@ def test_jpeg_with_decoder_warning_is_corrupt(world: Path, tmp_path: Path, kind:
     assert state[1] == STATE_ERROR and (np.delete(state, 1) == STATE_DONE).all()
 
 
+def test_jpeg_with_decoder_warning_is_corrupt_in_worker_processes(world: Path, tmp_path: Path) -> None:
+    _, row = _cam_row(world)
+    victim = world / row["filename"]
+    bad = _damage(victim.resolve().read_bytes(), "truncated_with_eoi")
+    victim.unlink()
+    victim.write_bytes(bad)
+    code, out = build(world, tmp_path / "k.zarr", "--workers", "2", "--on-error", "skip")
+    assert code == 0, out
+    reader = open_store(tmp_path / "k.zarr")
+    assert reader.state[1] == STATE_ERROR and (np.delete(reader.state, 1) == STATE_DONE).all()
+    (err,) = reader.attrs["errors"]
+    assert victim.name in err["reason"] and "Corrupt JPEG data" in err["reason"]
+
+
+def test_decoder_warning_is_captured_and_stderr_restored(synth_root: Path, capfd: pytest.CaptureFixture) -> None:
+    import cv2
+
+    from occdata.jpeg_check import decode_jpeg_checked
+
+    good = next((synth_root / "samples" / "CAM_FRONT").glob("*.jpg")).read_bytes()
+    img, warning = decode_jpeg_checked(_damage(good, "truncated_with_eoi"), cv2.IMREAD_REDUCED_GRAYSCALE_8)
+    assert img is not None and "Corrupt JPEG data" in warning  # the image comes back; the warning tells
+    img, warning = decode_jpeg_checked(good, cv2.IMREAD_COLOR)
+    assert img is not None and warning == ""
+    os.write(2, b"stderr works\n")
+    assert capfd.readouterr().err == "stderr works\n"  # nothing leaked, fd 2 restored
+
+
 # --- 2. duplicate tokens -------------------------------------------------------------------------------
 def _dup_changed(table: str) -> Callable[[list[dict]], None]:
     def fn(rows: list[dict]) -> None:
