@@ -465,3 +465,22 @@ def test_file_urls_work_in_every_command(synth_root: Path, tmp_path: Path) -> No
     assert (tmp_path / "d.npz").is_file() and (tmp_path / "p.png").is_file()
     one_error_line(*cli("info", "--store", "file:///nonexistent/x.zarr"), "/nonexistent/x.zarr")
     one_error_line(*cli("build", "--root", "s3://bucket/ns"), "--root", "local")
+
+
+def test_non_file_fsspec_url_is_read(synth_store: Path) -> None:
+    """A store behind another fsspec protocol (memory://, standing in for s3:// or gs://) is read by
+    the store-reading commands as it is by the Python API."""
+    import fsspec
+
+    fs = fsspec.filesystem("memory")
+    for f in synth_store.rglob("*"):
+        if f.is_file():
+            fs.pipe(f"/harden/s.zarr/{f.relative_to(synth_store).as_posix()}", f.read_bytes())
+    try:
+        code, out = cli("info", "--store", "memory://harden/s.zarr")
+        assert code == 0, out
+        assert "samples: 6 (done 6" in out
+        code, out = cli("verify", "--store", "memory://harden/s.zarr", "--no-progress")
+        assert code == 0, out
+    finally:
+        fs.rm("/harden", recursive=True)
