@@ -13,6 +13,7 @@ alarm on the safe side). The build calls this from its worker processes.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import tempfile
@@ -48,15 +49,21 @@ def decode_jpeg_checked(data: bytes | np.ndarray, flag: int = cv2.IMREAD_COLOR) 
         fd = scratch.fileno()
         os.ftruncate(fd, 0)
         os.lseek(fd, 0, os.SEEK_SET)
-        if sys.stderr is not None:
+        with contextlib.suppress(Exception):
             sys.stderr.flush()  # Python's own buffered text must not land in the scratch file
-        saved = os.dup(2)
+        try:
+            saved: int | None = os.dup(2)
+        except OSError:  # no stderr at all (a daemon): capture anyway, close it again afterwards
+            saved = None
         try:
             os.dup2(fd, 2)
             img = cv2.imdecode(buf, flag)
         finally:
-            os.dup2(saved, 2)
-            os.close(saved)
+            if saved is None:
+                os.close(2)
+            else:
+                os.dup2(saved, 2)
+                os.close(saved)
         size = os.fstat(fd).st_size
         text = os.pread(fd, min(size, 400), 0).decode("utf-8", "replace") if size else ""
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
