@@ -222,6 +222,14 @@ def test_tokens_are_stored_losslessly(synth_root: Path, tmp_path: Path, style: s
     assert code == 0, out
 
 
+@pytest.mark.parametrize("bad", ["", "ab\u0000cd"])
+def test_token_that_cannot_be_stored_whole_is_refused(world: Path, tmp_path: Path, bad: str) -> None:
+    old = rows_of(world, "calibrated_sensor")[0]["token"]
+    _retoken(world, lambda t: bad if t == old else t)
+    one_error_line(*cli("scan", "--root", str(world)), "calibrated_sensor.json", "empty or holds a NUL")
+    one_error_line(*build(world, tmp_path / "s.zarr"), "calibrated_sensor.json", "empty or holds a NUL")
+
+
 # --- 4. the labels folder ---------------------------------------------------------------------------------
 def test_wrong_gts_fails_showing_the_expected_layout(world: Path, tmp_path: Path) -> None:
     sample = rows_of(world, "sample")[0]["token"]
