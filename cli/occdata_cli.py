@@ -22,7 +22,8 @@ def main() -> None:
 
 
 @main.command()
-@click.option("--out", required=True, help="Output directory (nuScenes-format root; a folder or a file:// URL).")
+@click.option("--out", required=True, metavar="DIR",
+              help="Output directory (nuScenes-format root; a folder or a file:// URL).")
 @click.option("--scenes", default=2, show_default=True, type=click.IntRange(min=1), help="Number of scenes.")
 @click.option("--samples", default=10, show_default=True, type=click.IntRange(min=1),
               help="Keyframes (2 Hz) per scene.")
@@ -45,7 +46,7 @@ def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: in
 
 
 @main.command()
-@click.option("--root", required=True, help="nuScenes-format dataset root (a folder or a file:// URL).")
+@click.option("--root", required=True, metavar="DIR", help="nuScenes-format dataset root (a folder or a file:// URL).")
 @click.option("--version", default=None, help="Version folder (v1.0-trainval, v1.0-mini, ...); auto if only one.")
 @click.option("--check-files/--no-check-files", default=True, show_default=True,
               help="Check that every keyframe image and LiDAR file exists.")
@@ -72,10 +73,11 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
 
 
 @main.command()
-@click.option("--root", required=True, help="nuScenes-format dataset root (a folder or a file:// URL).")
+@click.option("--root", required=True, metavar="DIR", help="nuScenes-format dataset root (a folder or a file:// URL).")
 @click.option("--version", default=None, help="Version folder (v1.0-trainval, v1.0-mini, ...); auto if only one.")
-@click.option("--out", default=DEFAULT_STORE, show_default=True, help="Output zarr store (a folder).")
-@click.option("--gts", default=None,
+@click.option("--out", default=DEFAULT_STORE, show_default=True, metavar="DIR",
+              help="Output zarr store (a folder or a file:// URL).")
+@click.option("--gts", default=None, metavar="DIR",
               help="Occ3D-nuScenes labels folder: <gts>/<scene>/<sample_token>/labels.npz or the flat "
                    "<gts>/<sample_token>/labels.npz. Default: <root>/gts if it exists. Samples without a "
                    "label file are stored without labels (e.g. the test split); an explicit --gts in "
@@ -133,7 +135,7 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
 
 
 # A plain string, not click.Path: click would turn an fsspec URL such as file:///x/y.zarr into file:/x/y.zarr.
-_store_opt = click.option("--store", default=DEFAULT_STORE, show_default=True,
+_store_opt = click.option("--store", default=DEFAULT_STORE, show_default=True, metavar="STORE",
                           help="An occdata zarr store: a folder or an fsspec URL (file://, s3://, ...).")
 
 
@@ -240,7 +242,7 @@ def verify(store: str, no_progress: bool) -> None:
 @main.command()
 @_store_opt
 @click.option("--index", "-i", type=int, required=True, help="Sample index in the store.")
-@click.option("--out", required=True, help="Output .npz file (a path or a file:// URL).")
+@click.option("--out", required=True, metavar="FILE", help="Output .npz file (a path or a file:// URL).")
 @friendly_errors
 def dump(store: str, index: int, out: str) -> None:
     """Write one sample as plain numpy arrays (.npz, no pickles).
@@ -260,7 +262,7 @@ def dump(store: str, index: int, out: str) -> None:
 @main.command("check-projection")
 @_store_opt
 @click.option("--index", "-i", type=int, default=0, show_default=True, help="Sample index in the store.")
-@click.option("--out", required=True, help="Output .png file (a path or a file:// URL).")
+@click.option("--out", required=True, metavar="FILE", help="Output .png file (a path or a file:// URL).")
 @friendly_errors
 def check_projection(store: str, index: int, out: str) -> None:
     """Draw the stored LiDAR depth targets on the 6 images (coloured by depth) into one PNG."""
