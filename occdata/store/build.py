@@ -402,7 +402,7 @@ def find_label_files(
         raise OccDataError(
             f"no label file under {gts} matches any of the {len(ds.samples)} samples; expected "
             f"{gts}/<scene name>/<sample token>/labels.npz or {gts}/<sample token>/labels.npz, "
-            f"e.g. {gts / nested} (check --gts)"
+            f"e.g. {gts / nested} (check --gts; leave it out for samples without labels, e.g. the test split)"
         )
     if any(s.problem for s in samples):
         ds = NuScenesDataset(ds.root, ds.version, ds.scenes, tuple(samples), ds.warnings)
