@@ -9,6 +9,7 @@ import json
 import os
 import shutil
 import uuid
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -492,3 +493,34 @@ def test_non_file_fsspec_url_is_read(synth_store: Path) -> None:
         assert code == 0, out
     finally:
         fs.rm("/harden", recursive=True)
+
+
+def test_verify_images_finds_a_damaged_jpeg_that_checksums_cover(synth_store: Path, tmp_path: Path) -> None:
+    """What an older build stored: a damaged JPEG whose checksum was taken over the damaged bytes.
+    Plain verify cannot see it; `verify --images` names the sample and the camera."""
+    import zarr
+
+    from occdata.store.layout import checksummed_names
+
+    store = tmp_path / "s.zarr"
+    shutil.copytree(synth_store, store)
+    g = zarr.open_group(str(store), mode="r+")
+    i, cam = 2, 4
+    start, length = (int(v) for v in g["images/offsets"][i, cam])
+    good = g["images/jpeg"][start : start + length].tobytes()
+    bad = _damage(good, "entropy_partly_zeroed")
+    assert len(bad) == len(good)
+    g["images/jpeg"][start : start + length] = np.frombuffer(bad, np.uint8)
+    off = g["images/offsets"][i]
+    blob = b"".join(g["images/jpeg"][int(s) : int(s) + int(n)].tobytes() for s, n in off)
+    col = checksummed_names().index("images/jpeg")
+    sums = g["status/checksum"][i]
+    sums[col] = zlib.crc32(blob)
+    g["status/checksum"][i] = sums
+    code, out = cli("verify", "--store", str(store), "--no-progress")
+    assert code == 0, out  # the checksum pass is blind to it
+    code, out = cli("verify", "--store", str(store), "--no-progress", "--images")
+    assert code == 1
+    corrupt = [ln for ln in out.splitlines() if ln.startswith("CORRUPT")]
+    assert len(corrupt) == 1 and corrupt[0].startswith(f"CORRUPT sample {i} ")
+    assert "CAM_BACK" in corrupt[0] and "Corrupt JPEG data" in corrupt[0]
