@@ -16,6 +16,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -23,8 +24,11 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from fastocc.checkpoint import load_model
+from fastocc.infer.common import check_device, split_indices
 from fastocc.infer.predict import PredictConfig, predict_split
 from fastocc.model.config import ModelConfig
+from occdata.constants import FREE_LABEL
 from occdata.errors import OccDataError
 from occdata.metrics import (
     MIoUAccumulator,
@@ -33,10 +37,10 @@ from occdata.metrics import (
     RayIoUResult,
     scene_ray_origins,
 )
-from occdata.store.layout import STATE_DONE
 from occdata.store.reader import open_store
 
-__all__ = ["EvalReport", "MaskKind", "all_reduce_report", "evaluate", "reduce_reports"]
+__all__ = ["EvalReport", "EvalRun", "MaskKind", "all_reduce_report", "evaluate", "format_report", "reduce_reports",
+           "run_eval"]
 
 MaskKind = Literal["camera", "lidar", "none"]
 
@@ -116,17 +120,6 @@ def _mask_of(batch: Any, mask: MaskKind) -> np.ndarray | None:
     return t.numpy().astype(np.uint8)
 
 
-def _split_size(store: Any, split: str | None) -> int:
-    reader = open_store(store)
-    keep = reader.small("status/state") == STATE_DONE
-    if split is not None:
-        names = list(reader.attrs["splits"])
-        if split not in names:
-            raise OccDataError(f"unknown split {split!r}; the store has {names}")
-        keep &= reader.small("sample/split") == names.index(split)
-    return int(keep.sum())
-
-
 @torch.no_grad()
 def evaluate(
     model: nn.Module,
@@ -147,7 +140,7 @@ def evaluate(
     if mask not in ("camera", "lidar", "none"):
         raise OccDataError(f"unknown mask {mask!r} (camera, lidar or none)")
     t0 = time.perf_counter()
-    total = _split_size(cfg.store, cfg.split)  # also checks the split name before the loader starts
+    total = len(split_indices(cfg.store, cfg.split))  # also checks the split name before the loader starts
     if total == 0:
         raise OccDataError(f"split {cfg.split!r} of {cfg.store} has no built samples")
     reader = open_store(cfg.store) if rayiou else None
@@ -236,3 +229,49 @@ def all_reduce_report(report: EvalReport, device: torch.device | str | None = No
     seconds, infer_seconds = (float(x) for x in times.cpu())
     return _report(miou, ray, samples=int(flat_np[-2]), frames=int(flat_np[-1]), seconds=seconds,
                    infer_seconds=infer_seconds, tta=report.tta, split=report.split, mask=report.mask)
+
+
+@dataclass(frozen=True)
+class EvalRun:
+    """`fastocc eval` options: a checkpoint scored on a store split."""
+
+    checkpoint: Path
+    predict: PredictConfig
+    rayiou: bool = True
+    mask: MaskKind = "camera"
+    progress: bool = True
+    prefer_ema: bool = True
+
+
+def run_eval(run: EvalRun) -> EvalReport:
+    """`fastocc eval`: load the checkpoint (its own model config) and `evaluate` it."""
+    check_device(run.predict.device)
+    split_indices(run.predict.store, run.predict.split)  # unknown split / bad store before loading weights
+    model, ckpt = load_model(run.checkpoint, device=run.predict.device, prefer_ema=run.prefer_ema)
+    return evaluate(model, ckpt.model_config, run.predict, rayiou=run.rayiou, progress=run.progress, mask=run.mask)
+
+
+def _pct(x: float) -> str:
+    return "   -" if not np.isfinite(x) else f"{100 * x:6.2f}"
+
+
+def format_report(report: EvalReport) -> str:
+    """The per-class table and summary (percent) followed by the timing line."""
+    # TODO(metrics): the table comes from occdata's shared formatter once it lands.
+    from occdata.constants import CLASS_NAMES
+
+    lines = [f"{'class':<22}{'IoU':>8}" + ("".join(f"{'RayIoU@' + str(int(t)):>11}" for t in report.rayiou.rayiou_at)
+                                           if report.rayiou else "")]
+    for c in range(FREE_LABEL):
+        row = f"{CLASS_NAMES[c]:<22}{_pct(report.miou.per_class_iou[c]):>8}"
+        if report.rayiou:
+            row += "".join(f"{_pct(v):>11}" for v in report.rayiou.per_class[:, c])
+        lines.append(row)
+    summary = f"mIoU {_pct(report.miou.miou).strip()}  geo IoU {_pct(report.miou.geo_iou).strip()}"
+    if report.rayiou:
+        summary += f"  RayIoU {_pct(report.rayiou.rayiou).strip()}"
+    lines.append(summary)
+    tta = ", TTA" if report.tta else ""
+    lines.append(f"{report.samples} samples ({report.split or 'all'}, mask {report.mask}{tta})"
+                 f"  inference {report.frames_per_s:.2f} frames/s  total {report.seconds:.1f} s")
+    return "\n".join(lines)
