@@ -107,7 +107,7 @@ def _predict_config(store: str, split: str, batch_size: int, workers: int, tta: 
 @_CKPT
 @_STORE
 @_SPLIT
-@click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path),
+@click.option("--out", "out", required=True, type=click.Path(path_type=Path),
               help="Folder for OUT/<scene>/<token>/labels.npz (Occ3D layout, key 'semantics', uint8).")
 @_TTA
 @click.option("--png", type=click.IntRange(min=0), default=0, show_default=True,
