@@ -88,7 +88,7 @@ def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height
 _STORE = click.option("--store", default="data.zarr", show_default=True, help="Store path or fsspec URL.")
 _CKPT = click.option("--checkpoint", "checkpoint", required=True, type=click.Path(path_type=Path),
                      help="A checkpoint written by fastocc (carries its model config; no preset flags).")
-_SPLIT = click.option("--split", default="val", show_default=True, help="Split to run on ('all' = every sample).")
+_SPLIT = click.option("--split", default="val", show_default=True, help="Store split to run on.")
 _TTA = click.option("--tta", is_flag=True, help="Average the class probabilities of the 4 BEV flips (x, y, both).")
 _BATCH = click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True)
 _DEVICE = click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
@@ -99,7 +99,7 @@ _WORKERS = click.option("--workers", type=click.IntRange(min=0), default=0, show
 def _predict_config(store: str, split: str, batch_size: int, workers: int, tta: bool, device: str):  # noqa: ANN202
     from fastocc.infer import PredictConfig
 
-    return PredictConfig(store=store, split=None if split == "all" else split, batch_size=batch_size,
+    return PredictConfig(store=store, split=split, batch_size=batch_size,
                          workers=workers, tta=tta, device=device)
 
 

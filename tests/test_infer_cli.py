@@ -89,19 +89,20 @@ def test_pictures(synth_store: Path, predicted: Path) -> None:
 
 
 def test_round_trip_into_occdata_eval(synth_store: Path, nano_ckpt: Path, predicted: Path) -> None:
-    pytest.importorskip("occdata.metrics")  # TEMPORARY: until the metrics stream lands on main
     from cli.occdata_cli import main as occdata_main
 
-    res = CliRunner().invoke(occdata_main, ["eval", "--pred", str(predicted), "--store", str(synth_store), "--json"])
+    res = CliRunner().invoke(occdata_main, ["eval", "--pred", str(predicted), "--store", str(synth_store), "--json",
+                                             "--no-progress"])
     assert res.exit_code == 0, res.output
     from_files = json.loads(res.output)
     res = CliRunner().invoke(main, ["eval", "--checkpoint", str(nano_ckpt), "--store", str(synth_store), "--json",
                                     "--quiet"])
     assert res.exit_code == 0, res.output
     in_memory = json.loads(res.output)
-    assert in_memory["samples"] == 3 and in_memory["frames_per_s"] > 0
-    for key in ("miou", "rayiou", "geo_iou"):
-        assert in_memory[key] == pytest.approx(from_files[key], abs=1e-12), key
+    assert in_memory["n_samples"] == 3 and in_memory["frames_per_s"] > 0
+    assert in_memory["miou"] > 0 and in_memory["geo_iou"] > 0  # a random network still hits some voxels
+    for key in ("miou", "rayiou", "rayiou_at", "geo_iou", "per_class"):
+        assert in_memory[key] == from_files[key], key
 
 
 def _one_line_error(args: list[str], *needles: str) -> None:

@@ -10,14 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-pytest.importorskip("occdata.metrics")  # TEMPORARY: until the metrics stream lands on main
-
-from fastocc.infer import PredictConfig  # noqa: E402
-from fastocc.infer.evaluate import EvalReport, evaluate, reduce_reports  # noqa: E402
-from fastocc.model import preset  # noqa: E402
-from occdata.constants import FREE_LABEL, NUM_CLASSES  # noqa: E402
-from occdata.errors import OccDataError  # noqa: E402
-from occdata.store.reader import open_store  # noqa: E402
+from fastocc.infer import PredictConfig
+from fastocc.infer.evaluate import EvalReport, evaluate, reduce_reports
+from fastocc.model import preset
+from occdata.constants import FREE_LABEL, NUM_CLASSES
+from occdata.errors import OccDataError
+from occdata.store.reader import open_store
 
 CAR, TRUCK = 4, 10
 
@@ -28,6 +26,8 @@ class _Oracle(torch.nn.Module):
     (flipped as `bev_aug` says), exactly as a perfect FastOcc would. `relabel` maps classes (a known
     confusion)."""
 
+    seen: list[tuple[int, bool, bool]] = []
+
     def __init__(self, store: Path, relabel: dict[int, int] | None = None) -> None:
         super().__init__()
         self.reader = open_store(store)
@@ -35,7 +35,7 @@ class _Oracle(torch.nn.Module):
         self.lut = np.arange(256, dtype=np.uint8)
         for a, b in (relabel or {}).items():
             self.lut[a] = b
-        self.seen: list[int] = []
+        type(self).seen = []  # class-level: TTA runs deep copies of the module, all record here
 
     def clear_caches(self) -> None:  # the temporal-queue reset that predict_split calls
         pass
@@ -46,10 +46,10 @@ class _Oracle(torch.nn.Module):
             T = inp.T_global_from_keyego[b].double().numpy()
             idx = int(np.argmin(np.abs(self.poses - T).reshape(len(self.poses), -1).max(1)))
             assert np.abs(self.poses[idx] - T).max() < 1e-2
-            self.seen.append(idx)
             sem = self.lut[self.reader.sample_arrays(idx, ("labels/semantics",))["labels/semantics"]]
             M = inp.bev_aug[b].numpy()
             assert np.allclose(np.abs(np.diag(M)), 1) and np.allclose(M - np.diag(np.diag(M)), 0)
+            type(self).seen.append((idx, bool(M[0, 0] < 0), bool(M[1, 1] < 0)))
             if M[0, 0] < 0:
                 sem = sem[::-1]
             if M[1, 1] < 0:
@@ -87,9 +87,11 @@ def test_oracle_scores_100(synth_store: Path, tta: bool) -> None:
     assert rep.rayiou is not None and rep.rayiou.rayiou == pytest.approx(1.0)
     assert rep.frames_per_s > 0 and rep.seconds >= rep.infer_seconds > 0
     j = rep.to_json()
-    assert j["miou"] == pytest.approx(1.0) and j["samples"] == 3
-    if tta:
-        assert len(oracle.seen) == 4 * 3  # four flips per sample, each un-flipped back to the truth
+    assert j["miou"] == pytest.approx(100.0) and j["n_samples"] == 3 and j["unit"] == "percent"
+    flips = [(False, False), (True, False), (False, True), (True, True)] if tta else [(False, False)]
+    # every sample seen once per flip variant (and each variant un-flipped back to the truth: 100 above)
+    assert sorted(_Oracle.seen) == sorted((i, fx, fy) for i in {s[0] for s in _Oracle.seen} for fx, fy in flips)
+    assert len({s[0] for s in _Oracle.seen}) == 3
 
 
 def test_known_confusion(synth_store: Path) -> None:

@@ -28,7 +28,6 @@ from fastocc.checkpoint import load_model
 from fastocc.infer.common import check_device, split_indices
 from fastocc.infer.predict import PredictConfig, predict_split
 from fastocc.model.config import ModelConfig
-from occdata.constants import FREE_LABEL
 from occdata.errors import OccDataError
 from occdata.metrics import (
     MIoUAccumulator,
@@ -72,32 +71,13 @@ class EvalReport:
     rayiou_state: np.ndarray | None
 
     def to_json(self) -> dict[str, Any]:
-        """A JSON-able dict: the metric results plus timing."""
-        out = _metrics_json(self.miou, self.rayiou)
-        out.update({
-            "split": self.split, "mask": self.mask, "tta": self.tta, "samples": self.samples,
-            "frames": self.frames, "seconds": round(self.seconds, 3),
-            "infer_seconds": round(self.infer_seconds, 3), "frames_per_s": round(self.frames_per_s, 3),
-        })
-        return out
+        """`occdata eval --json`'s dict (values in percent) plus the inference timing."""
+        from occdata.evaluate import results_dict
 
-
-def _num(x: float) -> float | None:
-    return None if not np.isfinite(x) else float(x)
-
-
-def _metrics_json(miou: MIoUResult, ray: RayIoUResult | None) -> dict[str, Any]:
-    # TODO(metrics): use the shared occdata formatter once occdata.metrics provides it.
-    from occdata.constants import CLASS_NAMES
-
-    out: dict[str, Any] = {
-        "miou": _num(miou.miou), "geo_iou": _num(miou.geo_iou),
-        "per_class_iou": {n: _num(v) for n, v in zip(CLASS_NAMES, miou.per_class_iou, strict=True)},
-    }
-    if ray is not None:
-        out["rayiou"] = _num(ray.rayiou)
-        out["rayiou_at"] = {str(t): _num(v) for t, v in ray.rayiou_at.items()}
-    return out
+        return results_dict(self.miou, self.rayiou, split=self.split, mask=self.mask, n_samples=self.samples,
+                            unlabelled_skipped=self.frames - self.samples, seconds=round(self.seconds, 3),
+                            tta=self.tta, frames=self.frames, infer_seconds=round(self.infer_seconds, 3),
+                            frames_per_s=round(self.frames_per_s, 4))
 
 
 def _rate(frames: int, seconds: float) -> float:
@@ -140,10 +120,13 @@ def evaluate(
     if mask not in ("camera", "lidar", "none"):
         raise OccDataError(f"unknown mask {mask!r} (camera, lidar or none)")
     t0 = time.perf_counter()
-    total = len(split_indices(cfg.store, cfg.split))  # also checks the split name before the loader starts
-    if total == 0:
+    reader = open_store(cfg.store)
+    indices = split_indices(reader, cfg.split)  # also checks the split name before the loader starts
+    if not len(indices):
         raise OccDataError(f"split {cfg.split!r} of {cfg.store} has no built samples")
-    reader = open_store(cfg.store) if rayiou else None
+    if not reader.small("labels/present")[indices].any():
+        raise OccDataError(f"split {cfg.split!r} of {cfg.store} has no labelled samples: nothing to score")
+    total = len(indices)
     miou_acc = MIoUAccumulator()
     ray_acc = RayIoUAccumulator() if rayiou else None
     sharded = (world_size or 1) > 1 or (world_size is None and torch.distributed.is_available()
@@ -180,8 +163,6 @@ def evaluate(
     finally:
         stream.close()
         bar.close()
-    if samples == 0 and not sharded:
-        raise OccDataError(f"split {cfg.split!r} of {cfg.store} has no labelled samples: nothing to score")
     return _report(miou_acc, ray_acc, samples=samples, frames=frames, seconds=time.perf_counter() - t0,
                    infer_seconds=infer_seconds, tta=cfg.tta, split=cfg.split, mask=mask)
 
@@ -251,27 +232,18 @@ def run_eval(run: EvalRun) -> EvalReport:
     return evaluate(model, ckpt.model_config, run.predict, rayiou=run.rayiou, progress=run.progress, mask=run.mask)
 
 
-def _pct(x: float) -> str:
-    return "   -" if not np.isfinite(x) else f"{100 * x:6.2f}"
-
-
 def format_report(report: EvalReport) -> str:
-    """The per-class table and summary (percent) followed by the timing line."""
-    # TODO(metrics): the table comes from occdata's shared formatter once it lands.
-    from occdata.constants import CLASS_NAMES
+    """`occdata eval`'s per-class table and summary line, plus the inference rate."""
+    from occdata.evaluate import EvalReport as FileEvalReport
+    from occdata.evaluate import format_table, summary_line
 
-    lines = [f"{'class':<22}{'IoU':>8}" + ("".join(f"{'RayIoU@' + str(int(t)):>11}" for t in report.rayiou.rayiou_at)
-                                           if report.rayiou else "")]
-    for c in range(FREE_LABEL):
-        row = f"{CLASS_NAMES[c]:<22}{_pct(report.miou.per_class_iou[c]):>8}"
-        if report.rayiou:
-            row += "".join(f"{_pct(v):>11}" for v in report.rayiou.per_class[:, c])
-        lines.append(row)
-    summary = f"mIoU {_pct(report.miou.miou).strip()}  geo IoU {_pct(report.miou.geo_iou).strip()}"
-    if report.rayiou:
-        summary += f"  RayIoU {_pct(report.rayiou.rayiou).strip()}"
-    lines.append(summary)
-    tta = ", TTA" if report.tta else ""
-    lines.append(f"{report.samples} samples ({report.split or 'all'}, mask {report.mask}{tta})"
-                 f"  inference {report.frames_per_s:.2f} frames/s  total {report.seconds:.1f} s")
+    lines = [format_table(report.miou, report.rayiou)]
+    if report.frames > report.samples:
+        lines.append(f"({report.frames - report.samples} unlabelled '{report.split}' samples skipped)")
+    summary = summary_line(FileEvalReport(
+        split=str(report.split), mask=report.mask, n_samples=report.samples,
+        n_unlabelled_skipped=report.frames - report.samples, miou=report.miou, rayiou=report.rayiou,
+        seconds=report.seconds))
+    tta = " with TTA" if report.tta else ""
+    lines.append(f"{summary}; inference{tta} {report.frames_per_s:.2f} frames/s")
     return "\n".join(lines)
