@@ -131,3 +131,43 @@ def test_sharded_reduces_to_single(synth_store: Path) -> None:
 def test_bad_split(synth_store: Path) -> None:
     with pytest.raises(OccDataError, match="unknown split"):
         evaluate(_Oracle(synth_store), preset("nano"), PredictConfig(store=synth_store, split="nope"), progress=False)
+
+
+def _random_report(seed: int) -> EvalReport:
+    from fastocc.infer.evaluate import _report
+    from occdata.metrics import MIoUAccumulator, RayIoUAccumulator
+
+    rng = np.random.default_rng(seed)
+    miou = MIoUAccumulator.from_state(rng.integers(0, 1000, (18, 18)))
+    ray = RayIoUAccumulator.from_state(rng.integers(0, 1000, (5, 17)))
+    return _report(miou, ray, samples=3 + seed, frames=4 + seed, seconds=10.0 + seed, infer_seconds=5.0 + seed,
+                   tta=False, split="val", mask="camera")
+
+
+def _ddp_worker(rank: int, world: int, init: str, out: str) -> None:
+    import torch.distributed as dist
+
+    from fastocc.infer.evaluate import all_reduce_report
+
+    dist.init_process_group("gloo", init_method=init, rank=rank, world_size=world)
+    try:
+        rep = all_reduce_report(_random_report(rank))
+        np.savez(f"{out}_{rank}.npz", miou=rep.miou_state, ray=rep.rayiou_state,
+                 scal=np.array([rep.samples, rep.frames, rep.seconds, rep.infer_seconds, rep.miou.miou]))
+    finally:
+        dist.destroy_process_group()
+
+
+def test_all_reduce_report_matches_reduce_reports(tmp_path: Path) -> None:
+    """Two gloo processes all-reduce their reports: each gets exactly `reduce_reports` of both."""
+    import torch.multiprocessing as mp
+
+    out = str(tmp_path / "r")
+    mp.spawn(_ddp_worker, args=(2, f"file://{tmp_path / 'rdzv'}", out), nprocs=2, join=True)
+    want = reduce_reports([_random_report(0), _random_report(1)])
+    assert want.samples == 7 and want.frames == 9 and want.seconds == 11.0 and want.infer_seconds == 6.0
+    for rank in range(2):
+        with np.load(f"{out}_{rank}.npz") as z:
+            np.testing.assert_array_equal(z["miou"], want.miou_state)
+            np.testing.assert_array_equal(z["ray"], want.rayiou_state)
+            np.testing.assert_allclose(z["scal"], [7, 9, 11.0, 6.0, want.miou.miou])
