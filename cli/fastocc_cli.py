@@ -115,7 +115,7 @@ def _predict_config(store: str, split: str, batch_size: int, workers: int, tta: 
 @_BATCH
 @_DEVICE
 @_WORKERS
-@click.option("--quiet", is_flag=True, help="No progress bar.")
+@click.option("--no-progress", "quiet", is_flag=True, help="No progress bar.")
 @friendly_errors
 def predict(checkpoint: Path, store: str, split: str, out: Path, tta: bool, png: int, batch_size: int, device: str,
             workers: int, quiet: bool) -> None:
@@ -144,7 +144,7 @@ def predict(checkpoint: Path, store: str, split: str, out: Path, tta: bool, png:
 @_BATCH
 @_DEVICE
 @_WORKERS
-@click.option("--quiet", is_flag=True, help="No progress bar.")
+@click.option("--no-progress", "quiet", is_flag=True, help="No progress bar.")
 @friendly_errors
 def eval_cmd(checkpoint: Path, store: str, split: str, tta: bool, mask: str, no_rayiou: bool, as_json: bool,
              batch_size: int, device: str, workers: int, quiet: bool) -> None:

@@ -32,7 +32,7 @@ def nano_ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def predicted(synth_store: Path, nano_ckpt: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("pred") / "out"
     res = CliRunner().invoke(main, ["predict", "--checkpoint", str(nano_ckpt), "--store", str(synth_store),
-                                    "--out", str(out), "--png", "2", "--batch-size", "2", "--quiet"])
+                                    "--out", str(out), "--png", "2", "--batch-size", "2", "--no-progress"])
     assert res.exit_code == 0, res.output
     assert "wrote 3 predictions" in res.output and "2 pictures" in res.output
     return out
@@ -96,7 +96,7 @@ def test_round_trip_into_occdata_eval(synth_store: Path, nano_ckpt: Path, predic
     assert res.exit_code == 0, res.output
     from_files = json.loads(res.output)
     res = CliRunner().invoke(main, ["eval", "--checkpoint", str(nano_ckpt), "--store", str(synth_store), "--json",
-                                    "--quiet"])
+                                    "--no-progress"])
     assert res.exit_code == 0, res.output
     in_memory = json.loads(res.output)
     assert in_memory["n_samples"] == 3 and in_memory["frames_per_s"] > 0
@@ -117,7 +117,7 @@ def _one_line_error(args: list[str], *needles: str) -> None:
 @pytest.mark.parametrize("command", ["predict", "eval"])
 def test_bad_inputs(command: str, synth_store: Path, nano_ckpt: Path, tmp_path: Path) -> None:
     extra = ["--out", str(tmp_path / "o")] if command == "predict" else []
-    base = [command, "--store", str(synth_store), "--quiet", *extra]
+    base = [command, "--store", str(synth_store), "--no-progress", *extra]
     _one_line_error([*base, "--checkpoint", str(tmp_path / "missing.pt")], "no such checkpoint")
     bare = tmp_path / "bare.pt"
     torch.save(FastOcc(preset("nano")).state_dict(), bare)
