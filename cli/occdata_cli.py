@@ -248,11 +248,11 @@ def verify(store: str, no_progress: bool, images: bool) -> None:
 
 
 @main.command("eval")
-@click.option("--pred", required=True, type=click.Path(path_type=Path),
+@click.option("--pred", required=True, metavar="DIR",
               help="Predictions: <scene>/<token>/labels.npz (key 'semantics', the Occ3D layout) or <token>.npz "
                    "(key 'semantics' or 'pred'); uint8 (200, 200, 16), 17 = free.")
-@click.option("--store", default=Path("data.zarr"), show_default=True, type=click.Path(path_type=Path),
-              help="The occdata store holding the ground truth and poses.")
+@click.option("--store", default=DEFAULT_STORE, show_default=True, metavar="STORE",
+              help="The occdata store holding the ground truth and poses (a folder or an fsspec URL).")
 @click.option("--split", default="val", show_default=True, help="Split to score (every labelled sample of it).")
 @click.option("--mask", type=click.Choice(["camera", "lidar", "none"]), default="camera", show_default=True,
               help="Visibility mask for mIoU (Occ3D uses camera). RayIoU uses no mask.")
@@ -260,7 +260,7 @@ def verify(store: str, no_progress: bool, images: bool) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON (percent; null = class absent).")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
-def eval_cmd(pred: Path, store: Path, split: str, mask: str, no_rayiou: bool, as_json: bool,
+def eval_cmd(pred: str, store: str, split: str, mask: str, no_rayiou: bool, as_json: bool,
              no_progress: bool) -> None:
     """Score saved predictions: Occ3D mIoU (+ geometry IoU) and RayIoU@1/2/4 m, on the CPU.
 
@@ -271,7 +271,7 @@ def eval_cmd(pred: Path, store: Path, split: str, mask: str, no_rayiou: bool, as
     """
     from occdata.evaluate import EvalConfig, evaluate_predictions, format_table, results_dict, summary_line
 
-    report = evaluate_predictions(EvalConfig(pred=pred, store=store, split=split, mask=mask,  # type: ignore[arg-type]
+    report = evaluate_predictions(EvalConfig(pred=local_path(pred, "--pred"), store=store, split=split, mask=mask,  # type: ignore[arg-type]
                                              rayiou=not no_rayiou, progress=not no_progress))
     if as_json:
         click.echo(json.dumps(results_dict(report.miou, report.rayiou, split=report.split, mask=report.mask,

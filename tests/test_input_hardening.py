@@ -472,6 +472,14 @@ def test_file_urls_work_in_every_command(synth_root: Path, tmp_path: Path) -> No
         assert code == 0, (args, out)
         assert "file:/" + str(store) not in out.replace(url, "")  # never the mangled form
     assert (tmp_path / "d.npz").is_file() and (tmp_path / "p.png").is_file()
+    preds = tmp_path / "preds"
+    preds.mkdir()
+    reader = open_store(store)
+    for i in range(reader.n_samples):
+        sem = reader.sample_arrays(i, ("labels/semantics",))["labels/semantics"]
+        np.savez(preds / f"{reader.token(i)}.npz", semantics=sem)
+    code, out = cli("eval", "--store", url, "--pred", preds.as_uri(), "--no-rayiou", "--no-progress")
+    assert code == 0, out
     one_error_line(*cli("info", "--store", "file:///nonexistent/x.zarr"), "/nonexistent/x.zarr")
     one_error_line(*cli("build", "--root", "s3://bucket/ns"), "--root", "local")
 
