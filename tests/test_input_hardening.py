@@ -223,12 +223,15 @@ def test_tokens_are_stored_losslessly(synth_root: Path, tmp_path: Path, style: s
     assert code == 0, out
 
 
-@pytest.mark.parametrize("bad", ["", "ab\u0000cd"])
-def test_token_that_cannot_be_stored_whole_is_refused(world: Path, tmp_path: Path, bad: str) -> None:
-    old = rows_of(world, "calibrated_sensor")[0]["token"]
+@pytest.mark.parametrize("table", ["calibrated_sensor", "sample"])
+@pytest.mark.parametrize("bad", ["", "ab\u0000cd", "../../evil", "a\\b", ".."])
+def test_token_that_is_not_a_file_name_is_refused(world: Path, tmp_path: Path, bad: str, table: str) -> None:
+    """Tokens name folders (gts/<scene>/<token>/, prediction output): they must be one path component."""
+    old = rows_of(world, table)[0]["token"]
     _retoken(world, lambda t: bad if t == old else t)
-    one_error_line(*cli("scan", "--root", str(world)), "calibrated_sensor.json", "empty or holds a NUL")
-    one_error_line(*build(world, tmp_path / "s.zarr"), "calibrated_sensor.json", "empty or holds a NUL")
+    needles = (f"{table}.json", "not usable as a file name")
+    one_error_line(*cli("scan", "--root", str(world)), *needles)
+    one_error_line(*build(world, tmp_path / "s.zarr"), *needles)
 
 
 # --- 4. the labels folder ---------------------------------------------------------------------------------
@@ -365,7 +368,25 @@ def test_scene_name_escaping_the_labels_folder_is_refused(world: Path, tmp_path:
         rows[0]["name"] = "../planted"
 
     edit_table(world, "scene", fn)
-    one_error_line(*build(world, tmp_path / "s.zarr", "--gts", str(world / "gts")), "../planted", "outside")
+    one_error_line(*build(world, tmp_path / "s.zarr", "--gts", str(world / "gts")), "../planted",
+                   "not usable as a folder name")
+    one_error_line(*cli("scan", "--root", str(world)), "../planted", "not usable as a folder name")
+
+
+def test_label_paths_are_confined_even_for_records_built_in_code(world: Path, tmp_path: Path) -> None:
+    """Defence in depth: `find_label_files` refuses a path leaving gts/ for records that did not
+    come through the table reader (the sample fails, naming it)."""
+    import dataclasses
+
+    from occdata.nuscenes import load_nuscenes
+    from occdata.store.build import find_label_files
+
+    ds = load_nuscenes(world)
+    evil = dataclasses.replace(ds.samples[0], scene_name="..")
+    ds = type(ds)(ds.root, ds.version, ds.scenes, (evil, *ds.samples[1:]), ds.warnings)
+    paths, checked = find_label_files(world / "gts", ds, required=True)
+    assert paths[0] is None and "outside" in checked.samples[0].problem
+    assert all(p is not None for p in paths[1:]) and not any(s.problem for s in checked.samples[1:])
 
 
 # --- 10. table values that are not numbers, and sensor files that are not files ---------------------------

@@ -19,7 +19,7 @@ from occdata.constants import CAMERA_ORDER, LIDAR_CHANNEL
 from occdata.errors import OccDataError
 from occdata.nuscenes.records import CameraRecord, LidarRecord, NuScenesDataset, SampleRecord, SceneRecord
 from occdata.nuscenes.splits import official_split
-from occdata.nuscenes.tables import load_table
+from occdata.nuscenes.tables import load_table, usable_as_file_name
 
 __all__ = ["SPLIT_TAG", "confined_path", "find_version", "load_lidar_points", "load_nuscenes", "validate_sample"]
 
@@ -284,8 +284,11 @@ def load_nuscenes(root: Path | str, version: str | None = None, check_files: boo
     samples: list[SampleRecord] = []
     for sc_tok, sc in scenes_raw.items():
         name = _get(sc, "name", "scene")
-        if not isinstance(name, str) or not name:
-            raise OccDataError(f"scene.json: scene {sc_tok!r} has no usable name ({_short(name)})")
+        if not isinstance(name, str) or not usable_as_file_name(name):
+            # Scene names become folder names (gts/<scene>/..., prediction output): one component each.
+            raise OccDataError(
+                f"scene.json: scene {sc_tok!r} has a name that is not usable as a folder name ({_short(name)})"
+            )
         log = _ref(logs, _get(sc, "log_token", "scene"), "log", f"scene {name!r}")
         tok = _get(sc, "first_sample_token", "scene")
         chain: list[str] = []
