@@ -196,8 +196,9 @@ def load_nuscenes(root: Path | str, version: str | None = None, check_files: boo
         except OccDataError as exc:
             raise _RowProblem(str(exc)) from None
         if check_files and not path.is_file():
-            why = "is not a regular file" if os.path.lexists(path) else "is missing"
-            raise _RowProblem(f"missing sensor file: {path} {why} (sample_data {sd['token']!r})")
+            if os.path.lexists(path):  # a folder, a dangling link or a symlink loop
+                raise _RowProblem(f"sensor file {path} is not a readable regular file (sample_data {sd['token']!r})")
+            raise _RowProblem(f"missing sensor file: {path} (sample_data {sd['token']!r})")
         return path
 
     def pose_of(sd: dict[str, Any]) -> np.ndarray:
