@@ -501,6 +501,10 @@ def test_file_urls_work_in_every_command(synth_root: Path, tmp_path: Path) -> No
         np.savez(preds / f"{reader.token(i)}.npz", semantics=sem)
     code, out = cli("eval", "--store", url, "--pred", preds.as_uri(), "--no-rayiou", "--no-progress")
     assert code == 0, out
+    code, out = cli("synth", "--out", (tmp_path / "tiny").as_uri(), "--scenes", "1", "--samples", "1",
+                    "--width", "64", "--height", "36", "--no-progress")
+    assert code == 0, out
+    assert (tmp_path / "tiny" / "v1.0-mini" / "scene.json").is_file()
     one_error_line(*cli("info", "--store", "file:///nonexistent/x.zarr"), "/nonexistent/x.zarr")
     one_error_line(*cli("build", "--root", "s3://bucket/ns"), "--root", "local")
 
