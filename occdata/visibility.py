@@ -32,6 +32,7 @@ __all__ = [
     "GROUND_CLASSES",
     "MAX_OCCLUDERS",
     "camera_mask",
+    "camera_mask_reference",
     "count_occluders",
     "lidar_mask",
     "object_voxels",
@@ -208,6 +209,53 @@ def count_occluders_reference(
     return out
 
 
+def _deep_inside(objects: np.ndarray, depth: int) -> np.ndarray:
+    """`(X, Y, Z) bool`: object voxels whose L-inf distance to every non-object voxel (outside the grid
+    counts as non-object) exceeds `depth`, i.e. `objects` eroded `depth` times by the 3x3x3 cube."""
+    m = objects.copy()
+    for _ in range(depth):
+        for ax in range(3):
+            lo = [slice(None)] * 3
+            hi = [slice(None)] * 3
+            lo[ax], hi[ax] = slice(0, -1), slice(1, None)
+            nxt = m.copy()
+            nxt[tuple(hi)] &= m[tuple(lo)]
+            nxt[tuple(lo)] &= m[tuple(hi)]
+            idx = [slice(None)] * 3
+            for edge in (0, -1):
+                idx[ax] = edge
+                nxt[tuple(idx)] = False
+            m = nxt
+    return m
+
+
+def _camera_mask(
+    semantics: np.ndarray, mask_lidar: np.ndarray, K: np.ndarray, T_cam_from_grid: np.ndarray,
+    image_size: np.ndarray, lower: np.ndarray, voxel_size: float, max_occluders: int, counter, prefilter: bool,
+) -> np.ndarray:
+    observed = np.asarray(mask_lidar) != 0
+    objects = object_voxels(semantics)
+    candidates = objects & observed
+    if prefilter:
+        # A voxel at L-inf distance d from the nearest non-object voxel is reached by a 6-connected
+        # traversal only through >= d - 1 object voxels (one index moves per step): skip the hopeless.
+        candidates &= ~_deep_inside(objects, max_occluders + 1)
+    targets = np.argwhere(candidates).astype(np.int64)
+    occluders = objects.astype(np.uint8)
+    lower = np.asarray(lower, np.float64)
+    seen = np.zeros(len(targets), bool)
+    for c in range(len(K)):
+        if seen.all():
+            break
+        todo = np.flatnonzero(~seen)
+        n = counter(occluders, targets[todo], np.asarray(T_cam_from_grid[c], np.float64), np.asarray(K[c], np.float64),
+                    int(image_size[c][0]), int(image_size[c][1]), lower, float(voxel_size), int(max_occluders))
+        seen[todo[(n >= 0) & (n <= max_occluders)]] = True
+    out = (observed & ~objects).astype(np.uint8)
+    out[tuple(targets[seen].T)] = 1
+    return out
+
+
 def camera_mask(
     semantics: np.ndarray, mask_lidar: np.ndarray, K: np.ndarray, T_cam_from_grid: np.ndarray,
     image_size: np.ndarray, lower: np.ndarray, voxel_size: float, max_occluders: int = MAX_OCCLUDERS,
@@ -216,26 +264,20 @@ def camera_mask(
 
     semantics `(X, Y, Z) uint8` (FREE_LABEL = free; 255 = unknown, treated as free); mask_lidar
     `(X, Y, Z)` 0/1; K `(C, 3, 3)`; T_cam_from_grid `(C, 4, 4)`; image_size `(C, 2)` (W, H).
-    LiDAR-observed free and ground-class voxels are visible; a LiDAR-observed object voxel is visible
+    LiDAR-observed free and ground voxels are visible; a LiDAR-observed object voxel is visible
     if some camera sees its centre with at most `max_occluders` object voxels before it (0 = strict).
     """
-    observed = np.asarray(mask_lidar) != 0
-    objects = object_voxels(semantics)
-    targets = np.argwhere(objects & observed).astype(np.int64)
-    occluders = objects.astype(np.uint8)
-    lower = np.asarray(lower, np.float64)
-    seen = np.zeros(len(targets), bool)
-    for c in range(len(K)):
-        if seen.all():
-            break
-        todo = np.flatnonzero(~seen)
-        n = count_occluders(occluders, targets[todo], np.asarray(T_cam_from_grid[c], np.float64),
-                            np.asarray(K[c], np.float64), int(image_size[c][0]), int(image_size[c][1]),
-                            lower, float(voxel_size), int(max_occluders))
-        seen[todo[(n >= 0) & (n <= max_occluders)]] = True
-    out = (observed & ~objects).astype(np.uint8)
-    out[tuple(targets[seen].T)] = 1
-    return out
+    return _camera_mask(semantics, mask_lidar, K, T_cam_from_grid, image_size, lower, voxel_size, max_occluders,
+                        count_occluders, prefilter=True)
+
+
+def camera_mask_reference(
+    semantics: np.ndarray, mask_lidar: np.ndarray, K: np.ndarray, T_cam_from_grid: np.ndarray,
+    image_size: np.ndarray, lower: np.ndarray, voxel_size: float, max_occluders: int = MAX_OCCLUDERS,
+) -> np.ndarray:
+    """Numpy twin of `camera_mask`: every observed object voxel tested with `count_occluders_reference`."""
+    return _camera_mask(semantics, mask_lidar, K, T_cam_from_grid, image_size, lower, voxel_size, max_occluders,
+                        count_occluders_reference, prefilter=False)
 
 
 @njit(cache=True, parallel=True)

@@ -8,6 +8,7 @@ import pytest
 from occdata.constants import FREE_LABEL
 from occdata.visibility import (
     camera_mask,
+    camera_mask_reference,
     count_occluders,
     count_occluders_reference,
     lidar_mask,
@@ -113,3 +114,27 @@ def test_lidar_mask_adds_every_object_voxel() -> None:
     m = lidar_mask(sem, o, e, np.zeros(3), VS)
     assert m[7, 7, 1:3].all() and m[:10, 5, 1].sum() == 10 and m.sum() == 12
     assert not m[:, :, 0].any()  # ground only where a ray reached it
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_camera_mask_matches_reference(seed: int) -> None:
+    """The composed mask (6 cameras, early exits, deep-interior pre-filter) equals the brute-force twin."""
+    rng = np.random.default_rng(100 + seed)
+    sem = np.full((16, 14, 8), FREE_LABEL, np.uint8)
+    sem[:, :, 0] = rng.choice([11, 13, 14], size=(16, 14))
+    sem[rng.random(sem.shape) < 0.08] = 16
+    sem[9:16, 3:12, 1:8] = 15  # a solid block, deep enough for the pre-filter to drop its core
+    lidar = (rng.random(sem.shape) < 0.7).astype(np.uint8)
+    cams = [_camera(rng) for _ in range(3)]
+    T = np.stack([c[0] for c in cams])
+    K = np.stack([c[1] for c in cams])
+    for c in range(3):
+        cam = -T[c, :3, :3].T @ T[c, :3, 3]
+        sem[tuple(np.floor((cam - LOWER) / VS).astype(int))] = FREE_LABEL
+    size = np.array([[64, 40]] * 3)
+    for n in (0, 2):
+        got = camera_mask(sem, lidar, K, T, size, LOWER, VS, max_occluders=n)
+        ref = camera_mask_reference(sem, lidar, K, T, size, LOWER, VS, max_occluders=n)
+        np.testing.assert_array_equal(got, ref)
+        obj = (sem != FREE_LABEL) & ~np.isin(sem, (11, 13, 14))
+        assert 10 < (got.astype(bool) & obj).sum() < (obj & (lidar == 1)).sum()
