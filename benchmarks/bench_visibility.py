@@ -4,7 +4,8 @@ Inputs: the real Occ3D label + the real nuScenes keyframe (rig, 34,688-point LID
 ego) and one synthetic keyframe (`occdata synth`, 1 scene x 1 sample at 400x225: solid buildings,
 so ~10x more object voxels to test than the real label: the camera test's hard case). Numba is
 limited to ONE thread (`NUMBA_NUM_THREADS=1` is set before numba loads) so the figures are per core.
-Timings are the median of `--repeat` warm runs (JIT compile excluded).
+Timings are the median of `--repeat` warm runs (JIT compile excluded), wall-clock and CPU time
+(`time.process_time`: what the one core spent, robust to other load on a shared machine).
 
     ./.venv/bin/python benchmarks/bench_visibility.py [--repeat 5] [--json]
 """
@@ -39,23 +40,27 @@ ROOT = DATA / "nuscenes-real"
 LOWER = np.asarray(GRID.lower, np.float64)
 
 
-def _median_time(fn, repeat: int) -> float:  # noqa: ANN001
+def _median_time(fn, repeat: int) -> tuple[float, float]:  # noqa: ANN001
+    """Median wall-clock and median CPU (process) seconds of `repeat` warm calls; with one numba
+    thread the CPU time is what one core spends, whatever else loads the machine."""
     fn()  # compile / warm
-    times = []
+    wall, cpu = [], []
     for _ in range(repeat):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         fn()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
+        wall.append(time.perf_counter() - t)
+        cpu.append(time.process_time() - c)
+    return float(np.median(wall)), float(np.median(cpu))
 
 
 def _case(semantics: np.ndarray, K: np.ndarray, T: np.ndarray, size: np.ndarray, origin: np.ndarray,
           points: np.ndarray, repeat: int) -> dict[str, float]:
     origins = np.broadcast_to(origin, points.shape).copy()
     ml = lidar_mask(semantics, origins, points, LOWER, GRID.voxel_size)
-    t_lidar = _median_time(lambda: lidar_mask(semantics, origins, points, LOWER, GRID.voxel_size), repeat)
-    t_cam = _median_time(lambda: camera_mask(semantics, ml, K, T, size, LOWER, GRID.voxel_size), repeat)
-    return {"lidar_mask_s": t_lidar, "camera_mask_s": t_cam, "both_s": t_lidar + t_cam,
+    w_lidar, c_lidar = _median_time(lambda: lidar_mask(semantics, origins, points, LOWER, GRID.voxel_size), repeat)
+    w_cam, c_cam = _median_time(lambda: camera_mask(semantics, ml, K, T, size, LOWER, GRID.voxel_size), repeat)
+    return {"lidar_mask_s": w_lidar, "camera_mask_s": w_cam, "both_s": w_lidar + w_cam,
+            "lidar_mask_cpu_s": c_lidar, "camera_mask_cpu_s": c_cam, "both_cpu_s": c_lidar + c_cam,
             "lidar_points": int(len(points)), "object_voxels_tested": int((object_voxels(semantics) & (ml != 0)).sum())}
 
 
@@ -95,7 +100,7 @@ def main() -> None:
             r = out[k]
             print(f"{k:9s}: lidar_mask {r['lidar_mask_s'] * 1e3:.1f} ms ({r['lidar_points']} rays), camera_mask "
                   f"{r['camera_mask_s'] * 1e3:.1f} ms ({r['object_voxels_tested']} object voxels), "
-                  f"both {r['both_s'] * 1e3:.1f} ms per sample, 1 thread")
+                  f"both {r['both_s'] * 1e3:.1f} ms wall / {r['both_cpu_s'] * 1e3:.1f} ms CPU per sample, 1 thread")
 
 
 if __name__ == "__main__":

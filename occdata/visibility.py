@@ -33,6 +33,8 @@ __all__ = [
     "MAX_OCCLUDERS",
     "camera_mask",
     "camera_mask_reference",
+    "clearance_map",
+    "clearance_map_reference",
     "count_occluders",
     "lidar_mask",
     "object_voxels",
@@ -45,6 +47,7 @@ __all__ = [
 GROUND_CLASSES: tuple[int, ...] = (11, 12, 13, 14)
 # Object voxels a camera ray may cross before a voxel stops being visible (docs/visibility.md).
 MAX_OCCLUDERS = 7
+CLEARANCE_RADIUS = 16  # cap of the empty-space distance map the traversal uses to skip free space
 
 
 @njit(cache=True)
@@ -108,11 +111,12 @@ def _advance(idx: np.ndarray, step: np.ndarray, t_next: np.ndarray, t_delta: np.
 
 @njit(cache=True)
 def _occluders_before(
-    occluders: np.ndarray, a: np.ndarray, b: np.ndarray, target: np.ndarray, lower: np.ndarray,
-    voxel_size: float, shape: np.ndarray, cap: int,
+    occluders: np.ndarray, clearance: np.ndarray, a: np.ndarray, b: np.ndarray, target: np.ndarray,
+    lower: np.ndarray, voxel_size: float, shape: np.ndarray, cap: int,
 ) -> int:
     """Occluder voxels (other than `target (3,)`) crossed by segment a -> b (b inside `target`) before
-    the target, counting stops at `cap + 1`."""
+    the target, counting stops at `cap + 1`. In a voxel with clearance r >= 2 the cube of half-width
+    r - 1 voxels around it holds no occluder: unless the target is inside, jump to where the ray leaves it."""
     idx = np.empty(3, np.int64)
     step = np.empty(3, np.int64)
     t_next = np.empty(3)
@@ -121,6 +125,7 @@ def _occluders_before(
     count = 0
     if not ok:
         return count
+    d = b - a
     while True:
         if idx[0] == target[0] and idx[1] == target[1] and idx[2] == target[2]:
             return count
@@ -128,20 +133,112 @@ def _occluders_before(
             count += 1
             if count > cap:
                 return count
+        else:
+            r = np.int64(clearance[idx[0], idx[1], idx[2]]) - 1
+            if r >= 1 and (abs(target[0] - idx[0]) > r or abs(target[1] - idx[1]) > r or abs(target[2] - idx[2]) > r):
+                # Leave the cube idx +- r through the face reached first; t_next of a voxel depends
+                # only on its index, so the traversal resumes exactly as the plain DDA would.
+                k_exit = 0
+                t_exit = np.inf
+                for q in range(3):
+                    if step[q] != 0:
+                        tq = t_next[q] + r * t_delta[q]
+                        if tq < t_exit:
+                            t_exit, k_exit = tq, q
+                if t_exit > t_end:
+                    return count
+                for q in range(3):
+                    if q == k_exit:
+                        idx[q] += step[q] * (r + 1)
+                    elif step[q] != 0:
+                        p = (a[q] + t_exit * d[q] - lower[q]) / voxel_size
+                        i = np.int64(np.floor(p))
+                        # inside the cube and (the segment being inside the grid here) inside the grid
+                        idx[q] = min(max(i, idx[q] - r, 0), idx[q] + r, shape[q] - 1)
+                    if step[q] > 0:
+                        t_next[q] = (lower[q] + (idx[q] + 1) * voxel_size - a[q]) / d[q]
+                    elif step[q] < 0:
+                        t_next[q] = (lower[q] + idx[q] * voxel_size - a[q]) / d[q]
+                if idx[k_exit] < 0 or idx[k_exit] >= shape[k_exit]:
+                    return count
+                continue
         if _advance(idx, step, t_next, t_delta, shape) > t_end:
             return count
 
 
+@njit(cache=True)
+def clearance_map(occluders: np.ndarray, max_radius: int) -> np.ndarray:
+    """`(X, Y, Z) uint8`: L-inf distance in voxels from each voxel to the nearest occluder (0 on an
+    occluder), capped at `max_radius`; outside the grid counts as free. Separable exact transform."""
+    X, Y, Z = occluders.shape
+    big = max_radius
+    a = np.empty((X, Y, Z), np.int64)
+    for j in range(Y):  # 1D distances along x: two scans
+        for k in range(Z):
+            last = -10 * big
+            for i in range(X):
+                if occluders[i, j, k] != 0:
+                    last = i
+                a[i, j, k] = min(i - last, big)
+            last = 10 * big + X
+            for i in range(X - 1, -1, -1):
+                if occluders[i, j, k] != 0:
+                    last = i
+                a[i, j, k] = min(a[i, j, k], last - i, big)
+    b = np.empty((X, Y, Z), np.int64)
+    for i in range(X):  # then y, then z: min over the window of max(offset, distance so far)
+        for k in range(Z):
+            for j in range(Y):
+                m = a[i, j, k]
+                for o in range(1, m):
+                    if j - o >= 0 and max(o, a[i, j - o, k]) < m:
+                        m = max(o, a[i, j - o, k])
+                    if j + o < Y and max(o, a[i, j + o, k]) < m:
+                        m = max(o, a[i, j + o, k])
+                b[i, j, k] = m
+    out = np.empty((X, Y, Z), np.uint8)
+    for i in range(X):
+        for j in range(Y):
+            for k in range(Z):
+                m = b[i, j, k]
+                for o in range(1, m):
+                    if k - o >= 0 and max(o, b[i, j, k - o]) < m:
+                        m = max(o, b[i, j, k - o])
+                    if k + o < Z and max(o, b[i, j, k + o]) < m:
+                        m = max(o, b[i, j, k + o])
+                out[i, j, k] = m
+    return out
+
+
+def clearance_map_reference(occluders: np.ndarray, max_radius: int) -> np.ndarray:
+    """Numpy twin of `clearance_map`: grow the occluders by the 3x3x3 cube until `max_radius`."""
+    grown = np.asarray(occluders) != 0
+    out = np.full(grown.shape, max_radius, np.uint8)
+    out[grown] = 0
+    for r in range(1, max_radius):
+        pad = np.pad(grown, 1)
+        nxt = np.zeros_like(grown)
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                for dk in (-1, 0, 1):
+                    nxt |= pad[1 + di:pad.shape[0] - 1 + di, 1 + dj:pad.shape[1] - 1 + dj, 1 + dk:pad.shape[2] - 1 + dk]
+        out[nxt & ~grown] = r
+        grown = nxt
+    return out
+
+
 @njit(cache=True, parallel=True)
 def count_occluders(
-    occluders: np.ndarray, targets: np.ndarray, T_cam_from_grid: np.ndarray, K: np.ndarray, width: int,
-    height: int, lower: np.ndarray, voxel_size: float, cap: int,
+    occluders: np.ndarray, clearance: np.ndarray, targets: np.ndarray, T_cam_from_grid: np.ndarray, K: np.ndarray,
+    width: int, height: int, lower: np.ndarray, voxel_size: float, cap: int,
 ) -> np.ndarray:
     """Per target voxel and one camera: -1 if its centre is not inside the image, else the number of
     occluder voxels crossed before it by the ray from the camera centre to that centre (at most
     `cap + 1`: counting stops there). `(M,) int64`.
 
-    occluders `(X, Y, Z) uint8` (1 = blocks); targets `(M, 3) int64` voxel indices;
+    occluders `(X, Y, Z) uint8` (1 = blocks); clearance `(X, Y, Z) uint8` = `clearance_map(occluders, r)`
+    (lets the traversal skip empty space; any lower values, e.g. all zeros, give the same counts);
+    targets `(M, 3) int64` voxel indices;
     `T_cam_from_grid (4, 4) float64`; `K (3, 3) float64`; image `width x height` with pixel centres
     at integer coordinates (the image covers u in [-0.5, W - 0.5), v likewise); `lower (3,) float64`.
     """
@@ -166,7 +263,7 @@ def count_occluders(
         v = K[1, 1] * yc / zc + K[1, 2]
         if u < -0.5 or u >= width - 0.5 or v < -0.5 or v >= height - 0.5:
             continue
-        out[n] = _occluders_before(occluders, cam, c, targets[n], lower, voxel_size, shape, cap)
+        out[n] = _occluders_before(occluders, clearance, cam, c, targets[n], lower, voxel_size, shape, cap)
     return out
 
 
@@ -185,10 +282,11 @@ def _segment_hits_boxes(a: np.ndarray, b: np.ndarray, box_lo: np.ndarray, box_hi
 
 
 def count_occluders_reference(
-    occluders: np.ndarray, targets: np.ndarray, T_cam_from_grid: np.ndarray, K: np.ndarray, width: int,
-    height: int, lower: np.ndarray, voxel_size: float, cap: int,
+    occluders: np.ndarray, clearance: np.ndarray, targets: np.ndarray, T_cam_from_grid: np.ndarray, K: np.ndarray,
+    width: int, height: int, lower: np.ndarray, voxel_size: float, cap: int,
 ) -> np.ndarray:
-    """Numpy twin of `count_occluders`: per target, a segment-vs-box test against every occluder voxel."""
+    """Numpy twin of `count_occluders`: per target, a segment-vs-box test against every occluder voxel
+    (`clearance` is not needed and ignored)."""
     targets = np.asarray(targets, np.int64).reshape(-1, 3)
     centres = lower + (targets + 0.5) * voxel_size
     R, t = T_cam_from_grid[:3, :3], T_cam_from_grid[:3, 3]
@@ -242,14 +340,16 @@ def _camera_mask(
         candidates &= ~_deep_inside(objects, max_occluders + 1)
     targets = np.argwhere(candidates).astype(np.int64)
     occluders = objects.astype(np.uint8)
+    clearance = clearance_map(occluders, CLEARANCE_RADIUS) if prefilter else np.zeros(objects.shape, np.uint8)
     lower = np.asarray(lower, np.float64)
     seen = np.zeros(len(targets), bool)
     for c in range(len(K)):
         if seen.all():
             break
         todo = np.flatnonzero(~seen)
-        n = counter(occluders, targets[todo], np.asarray(T_cam_from_grid[c], np.float64), np.asarray(K[c], np.float64),
-                    int(image_size[c][0]), int(image_size[c][1]), lower, float(voxel_size), int(max_occluders))
+        n = counter(occluders, clearance, targets[todo], np.asarray(T_cam_from_grid[c], np.float64),
+                    np.asarray(K[c], np.float64), int(image_size[c][0]), int(image_size[c][1]), lower,
+                    float(voxel_size), int(max_occluders))
         seen[todo[(n >= 0) & (n <= max_occluders)]] = True
     out = (observed & ~objects).astype(np.uint8)
     out[tuple(targets[seen].T)] = 1

@@ -9,6 +9,8 @@ from occdata.constants import FREE_LABEL
 from occdata.visibility import (
     camera_mask,
     camera_mask_reference,
+    clearance_map,
+    clearance_map_reference,
     count_occluders,
     count_occluders_reference,
     lidar_mask,
@@ -40,15 +42,21 @@ def _camera(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("seed", range(4))
 def test_count_occluders_matches_reference(seed: int) -> None:
     rng = np.random.default_rng(seed)
-    occ = (rng.random((14, 12, 7)) < 0.12).astype(np.uint8)
+    occ = rng.random((14, 12, 7)) < 0.2
+    occ[:8] = rng.random((8, 12, 7)) < 0.01  # mostly empty near the camera: the skip has room
+    occ = occ.astype(np.uint8)
     T, K = _camera(rng)
     cam = -T[:3, :3].T @ T[:3, 3]
     occ[tuple(np.floor((cam - LOWER) / VS).astype(int))] = 0  # the camera sits in a free voxel
     targets = np.argwhere(np.ones(occ.shape, bool)).astype(np.int64)
+    clear = clearance_map(occ, 16)
+    assert clear.max() >= 3  # the empty-space skip is exercised
     for cap in (0, 3, 100):
-        got = count_occluders(occ, targets, T, K, 64, 40, LOWER, VS, cap)
-        ref = count_occluders_reference(occ, targets, T, K, 64, 40, LOWER, VS, cap)
+        got = count_occluders(occ, clear, targets, T, K, 64, 40, LOWER, VS, cap)
+        ref = count_occluders_reference(occ, clear, targets, T, K, 64, 40, LOWER, VS, cap)
         np.testing.assert_array_equal(got, ref)
+        np.testing.assert_array_equal(count_occluders(occ, np.zeros_like(occ), targets, T, K, 64, 40, LOWER, VS, cap),
+                                      ref)
     assert (got == -1).any() and (got == 0).any() and (got >= 3).any()  # outside, clear and deep targets
 
 
@@ -62,11 +70,11 @@ def test_count_occluders_hand_computed() -> None:
     T[:3, 3] = -T[:3, :3] @ centre
     K = np.array([[10.0, 0.0, 49.5], [0.0, 10.0, 49.5], [0.0, 0.0, 1.0]])
     targets = np.array([[i, 2, 2] for i in range(20)], np.int64)
-    got = count_occluders(occ, targets, T, K, 100, 100, np.zeros(3), VS, 10)
+    got = count_occluders(occ, clearance_map(occ, 8), targets, T, K, 100, 100, np.zeros(3), VS, 10)
     # voxel 0 holds the camera (centre at depth 0: not in front); the walls count before the target only
     expect = [-1] + [0] * 10 + [1, 1, 2, 2, 3, 3, 3, 3, 3]
     np.testing.assert_array_equal(got, expect)
-    assert count_occluders(occ, targets, T, K, 100, 100, np.zeros(3), VS, 1)[-1] == 2  # stops at cap + 1
+    assert count_occluders(occ, np.zeros_like(occ), targets, T, K, 100, 100, np.zeros(3), VS, 1)[-1] == 2  # cap + 1
 
 
 def test_camera_mask_semantics() -> None:
@@ -138,3 +146,12 @@ def test_camera_mask_matches_reference(seed: int) -> None:
         np.testing.assert_array_equal(got, ref)
         obj = (sem != FREE_LABEL) & ~np.isin(sem, (11, 13, 14))
         assert 10 < (got.astype(bool) & obj).sum() < (obj & (lidar == 1)).sum()
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_clearance_map_matches_reference(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    occ = (rng.random((23, 17, 9)) < [0.002, 0.02, 0.2][seed]).astype(np.uint8)
+    for r in (1, 4, 16):
+        np.testing.assert_array_equal(clearance_map(occ, r), clearance_map_reference(occ, r))
+    assert clearance_map(np.zeros((5, 5, 5), np.uint8), 7).min() == 7
