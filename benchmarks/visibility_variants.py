@@ -336,6 +336,22 @@ def run(lab: Lab) -> None:
         lab.score(f"free+ground = mask_lidar; objects: corner rays <= {D} m behind first object voxel",
                   lab.mask_of(tgt, (gap_c <= D) | t_flat | t_free), "depth")
 
+    # Facts the settled definition rests on.
+    mc = lab.mc
+    print("\nfacts: camera-visible but not LiDAR-observed:", int((mc & ~ml).sum()),
+          "| ground voxels with mask_camera != mask_lidar:", int((mc != ml)[flat].sum()), "of", int(flat.sum()),
+          "| free voxels with mask_camera != mask_lidar:", int((mc != ml)[~occ].sum()), "of", int((~occ).sum()),
+          "| object voxels LiDAR-observed:", int(ml[obj].sum()), "of", int(obj.sum()))
+    n_obj, _ = lab.counts(obj, np.argwhere(obj), CENTRE)
+    v_obj = mc[obj]
+    print("object voxels by object voxels crossed on the best camera ray: count, voxels, visible fraction")
+    for k in range(16):
+        sel = n_obj == k
+        print(f"  {k:2d} {int(sel.sum()):6d} {v_obj[sel].mean():.3f}")
+    sel = (n_obj >= 16) & (n_obj <= 40)
+    print(f"  16-40 {int(sel.sum()):6d} {v_obj[sel].mean():.3f}; not seen by any camera or > 40: "
+          f"{int((n_obj > 40).sum())} voxels, visible {v_obj[n_obj > 40].mean():.3f}\n")
+
     # 5. The settled definition, through the library function.
     settled = camera_mask(lab.sem, lab.ml.astype(np.uint8), lab.K, lab.T, lab.size, LOWER, VS)
     lab.score("settled: occdata.visibility.camera_mask (objects: centre ray, <= 7 object voxels)", settled, "settled")
