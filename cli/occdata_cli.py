@@ -270,6 +270,44 @@ def verify(store: Path, no_progress: bool) -> None:
     click.echo(f"{store}: all {int((reader.state != 0).sum())} committed samples verified")
 
 
+@main.command("eval")
+@click.option("--pred", required=True, type=click.Path(path_type=Path),
+              help="Predictions: <scene>/<token>/labels.npz (key 'semantics', the Occ3D layout) or <token>.npz "
+                   "(key 'semantics' or 'pred'); uint8 (200, 200, 16), 17 = free.")
+@click.option("--store", default=Path("data.zarr"), show_default=True, type=click.Path(path_type=Path),
+              help="The occdata store holding the ground truth and poses.")
+@click.option("--split", default="val", show_default=True, help="Split to score (every labelled sample of it).")
+@click.option("--mask", type=click.Choice(["camera", "lidar", "none"]), default="camera", show_default=True,
+              help="Visibility mask for mIoU (Occ3D uses camera). RayIoU uses no mask.")
+@click.option("--no-rayiou", is_flag=True, help="Skip RayIoU (mIoU only, much faster).")
+@click.option("--json", "as_json", is_flag=True, help="Print the results as JSON (percent; null = class absent).")
+@click.option("--no-progress", is_flag=True, help="No progress bar.")
+@friendly_errors
+def eval_cmd(pred: Path, store: Path, split: str, mask: str, no_rayiou: bool, as_json: bool,
+             no_progress: bool) -> None:
+    """Score saved predictions: Occ3D mIoU (+ geometry IoU) and RayIoU@1/2/4 m, on the CPU.
+
+    mIoU: one confusion matrix over the split, voxels inside the mask, mean over the 17 semantic
+    classes (classes absent from truth and prediction are skipped). RayIoU: the SparseOcc protocol
+    (14,040 LiDAR-like rays from up to 8 origins of the sample's scene, first-hit class and
+    distance). See docs/metrics.md.
+    """
+    from occdata.evaluate import EvalConfig, evaluate_predictions, format_table, results_dict, summary_line
+
+    report = evaluate_predictions(EvalConfig(pred=pred, store=store, split=split, mask=mask,  # type: ignore[arg-type]
+                                             rayiou=not no_rayiou, progress=not no_progress))
+    if as_json:
+        click.echo(json.dumps(results_dict(report.miou, report.rayiou, split=report.split, mask=report.mask,
+                                           n_samples=report.n_samples,
+                                           unlabelled_skipped=report.n_unlabelled_skipped,
+                                           seconds=round(report.seconds, 3)), indent=2))
+        return
+    click.echo(format_table(report.miou, report.rayiou))
+    if report.n_unlabelled_skipped:
+        click.echo(f"({report.n_unlabelled_skipped} unlabelled '{split}' samples skipped)")
+    click.echo(summary_line(report))
+
+
 @main.command()
 @_store_opt
 @click.option("--index", "-i", type=int, required=True, help="Sample index in the store.")
