@@ -8,17 +8,18 @@ The definition (measured against a real Occ3D label; docs/visibility.md has the 
 - `lidar_ray_mask`: voxels that a LiDAR ray passes through or ends in (3D DDA).
 - `lidar_mask`: Occ3D's `mask_lidar`: that traversal plus every object voxel (occupied, not a
   ground class): Occ3D aggregates a whole sequence of sweeps and densifies objects, and on the real
-  label every object voxel is LiDAR-observed (100%) while ground and free space are observed only
-  where rays reached them.
+  label 27,040 of 27,042 object voxels are LiDAR-observed while ground and free space are observed
+  only where rays reached them.
 - `count_occluders`: for each target voxel and one camera, whether its centre projects inside the
   image and how many occluder voxels the segment from the camera centre to that centre crosses
   before it (3D DDA, early exit once `max_occluders` is exceeded).
 - `camera_mask`: Occ3D's `mask_camera` from semantics + `mask_lidar`: a LiDAR-observed free or
   ground-surface voxel is camera-visible; a LiDAR-observed object voxel (occupied, not a ground
   class) is camera-visible when, for some camera, its centre is inside the image and at most
-  `max_occluders` (default 7) other object voxels lie before it on the ray. Occ3D traced its camera
-  rays through sparse aggregated points, so a 0.4 m occupied voxel only partly blocks a ray: on the
-  real label the visible fraction falls by ~10% per object voxel crossed (0.97 at 0, 0.50 at 7).
+  `max_occluders` (default 7) other object voxels lie before it on the ray. On the real label the
+  visible fraction falls by ~10% per object voxel crossed (0.97 at 0, 0.50 at 7), as if a 0.4 m
+  occupied voxel only partly blocked a ray (our reading: Occ3D traced its rays through sparser
+  occupancy than the published, densified labels; its code is not public).
 """
 
 from __future__ import annotations
@@ -36,11 +37,11 @@ __all__ = [
     "clearance_map",
     "clearance_map_reference",
     "count_occluders",
-    "lidar_mask",
-    "object_voxels",
     "count_occluders_reference",
+    "lidar_mask",
     "lidar_ray_mask",
     "lidar_ray_mask_reference",
+    "object_voxels",
 ]
 
 # driveable_surface, other_flat, sidewalk, terrain: surfaces the camera test does not apply to.
