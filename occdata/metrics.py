@@ -64,13 +64,14 @@ def _confusion_kernel(gt: np.ndarray, pred: np.ndarray, mask: np.ndarray, use_ma
     tab = np.zeros(k * k, np.int64)
     ff = 0
     for i in range(gt.shape[0]):
+        if use_mask and mask[i] == 0:
+            continue
         p = pred[i]
         g = gt[i]
-        w = mask[i] if use_mask else np.uint8(1)
         if g == free and p == free:
-            ff += w
+            ff += 1
         else:
-            tab[g * k + p] += w
+            tab[g * k + p] += 1
     for g in range(k):
         for p in range(k):
             out[g, p] += tab[g * k + p]
