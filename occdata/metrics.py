@@ -279,7 +279,9 @@ def ray_origins_keyego(T_global_from_keyego: np.ndarray, T_ego_from_lidar: np.nd
             p_lidar = np.zeros(3, np.float32)
         else:
             p_lidar = (T_curlidar_from_global @ T_global_from_lidar[s])[:3, 3].astype(np.float32)
-        p_ego = T_el[current, :3, :3] @ p_lidar.astype(np.float64) + T_el[current, :3, 3]
+        p_h = np.ones(4)
+        p_h[:3] = p_lidar
+        p_ego = T_el[current, :3] @ p_h  # (3, 4) @ homogeneous point, as the reference does
         if abs(p_ego[0]) < max_xy and abs(p_ego[1]) < max_xy:
             kept.append(p_ego)
     if not kept:
