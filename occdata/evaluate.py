@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import time
 import zipfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -118,6 +119,27 @@ def _split_samples(reader: Any, split: str) -> tuple[list[int], int]:
     return [int(i) for i in in_split[labelled]], int((~labelled).sum())
 
 
+def _iter_label_blocks(reader: Any, indices: list[int],
+                       names: tuple[str, ...]) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
+    """Yield (index, {name: array}) for sorted `indices`, reading each array one storage block (shard)
+    at a time: per-sample zarr reads cost more than the metric; memory stays one block."""
+    arrays = {name: reader.array(name) for name in names}
+    first = arrays[names[0]]
+    block = int((first.shards or first.chunks)[0])
+    pos = 0
+    while pos < len(indices):
+        lo = indices[pos] // block * block
+        hi = min(lo + block, reader.n_samples)
+        try:
+            data = {name: np.asarray(a[lo:hi]) for name, a in arrays.items()}
+        except Exception as exc:  # noqa: BLE001 - codec errors surface as many types
+            raise OccDataError(f"corrupt store data in samples {lo}..{hi - 1} of {reader.path}: {exc}") from None
+        while pos < len(indices) and indices[pos] < hi:
+            i = indices[pos]
+            yield i, {name: d[i - lo] for name, d in data.items()}
+            pos += 1
+
+
 def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
     """Score the prediction files of `cfg.pred` on the labelled samples of `cfg.split`."""
     from tqdm import tqdm
@@ -156,10 +178,10 @@ def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
     ray = RayIoUAccumulator() if cfg.rayiou else None
     names = ("labels/semantics",) + ((_MASK_ARRAY[cfg.mask],) if cfg.mask != "none" else ())
     t0 = time.perf_counter()
-    for i in tqdm(indices, desc=f"eval {cfg.split}", unit="sample", disable=not cfg.progress):
+    bar = tqdm(total=len(indices), desc=f"eval {cfg.split}", unit="sample", disable=not cfg.progress)
+    for i, arrays in _iter_label_blocks(reader, indices, names):
         path = files[store_tokens[i]]
         pred = load_prediction(path)
-        arrays = reader.sample_arrays(i, names)
         gt = arrays["labels/semantics"]
         try:
             miou.update(gt, pred, arrays.get(_MASK_ARRAY.get(cfg.mask, "")))
@@ -167,6 +189,8 @@ def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
                 ray.update(gt, pred, scene_ray_origins(reader, i))
         except OccDataError as exc:
             raise OccDataError(f"{path}: {exc}") from None
+        bar.update()
+    bar.close()
     return EvalReport(split=cfg.split, mask=cfg.mask, n_samples=len(indices), n_unlabelled_skipped=n_unlabelled,
                       miou=miou.result(), rayiou=ray.result() if ray else None,
                       seconds=time.perf_counter() - t0)

@@ -56,27 +56,25 @@ _MAX_STEPS = 1000  # the reference's traversal cap (a ray from inside the grid n
 # mIoU
 # --------------------------------------------------------------------------------------------------
 @njit(cache=True)
-def _confusion_kernel(gt: np.ndarray, pred: np.ndarray, mask: np.ndarray, use_mask: bool, k: int,
-                      out: np.ndarray) -> tuple[int, int]:
-    """Add voxel counts to `out (k, k) int64`; flat `gt`, `pred`, `mask` uint8.
-
-    Returns (number of predictions >= k anywhere, number of truths >= k inside the mask); bad
-    voxels are not counted."""
-    bad_pred = 0
-    bad_gt = 0
+def _confusion_kernel(gt: np.ndarray, pred: np.ndarray, mask: np.ndarray, use_mask: bool, k: int, free: int,
+                      out: np.ndarray) -> None:
+    """Add voxel counts to `out (k, k) int64`; flat `gt`, `pred` uint8 (labels < k, checked by the
+    caller) and `mask` uint8 0/1. Free/free pairs (most voxels) are summed in a register; only the
+    rest goes through the table."""
+    tab = np.zeros(k * k, np.int64)
+    ff = 0
     for i in range(gt.shape[0]):
         p = pred[i]
-        if p >= k:
-            bad_pred += 1
-            continue
-        if use_mask and mask[i] == 0:
-            continue
         g = gt[i]
-        if g >= k:
-            bad_gt += 1
-            continue
-        out[g, p] += 1
-    return bad_pred, bad_gt
+        w = mask[i] if use_mask else np.uint8(1)
+        if g == free and p == free:
+            ff += w
+        else:
+            tab[g * k + p] += w
+    for g in range(k):
+        for p in range(k):
+            out[g, p] += tab[g * k + p]
+    out[free, free] += ff
 
 
 def confusion_matrix_reference(gt: np.ndarray, pred: np.ndarray, mask: np.ndarray | None = None,
@@ -120,15 +118,23 @@ def confusion_matrix(gt: np.ndarray, pred: np.ndarray, mask: np.ndarray | None =
         m = np.ascontiguousarray(mask)
         if m.shape != g.shape:
             raise OccDataError(f"mask shape {m.shape} does not match ground truth shape {g.shape}")
-        m = m.view(np.uint8) if m.dtype == np.bool_ else m.astype(np.uint8, copy=False)
+        if m.dtype == np.bool_:
+            m = m.view(np.uint8)
+        elif m.dtype != np.uint8 or int(m.max(initial=0)) > 1:
+            m = (m != 0).astype(np.uint8)
+    pmax = int(p.max(initial=0))
+    if pmax >= num_classes:
+        raise OccDataError(f"prediction has {int((p >= num_classes).sum())} voxels with labels >= {num_classes} "
+                           f"(max {pmax}); labels must be 0..{num_classes - 1}")
+    if int(g.max(initial=0)) >= num_classes:
+        bad = (g >= num_classes) if mask is None else (g >= num_classes) & (m != 0)
+        if bad.any():
+            raise OccDataError(f"ground truth has {int(bad.sum())} voxels with labels >= {num_classes} "
+                               f"(max {int(g[bad].max())}); is the sample labelled?")
+        g = np.where(bad, 0, g).astype(np.uint8)  # out-of-range truth only outside the mask: never counted
     out = np.zeros((num_classes, num_classes), np.int64)
-    bad_pred, bad_gt = _confusion_kernel(g.ravel(), p.ravel(), m.ravel(), mask is not None, num_classes, out)
-    if bad_pred:
-        raise OccDataError(f"prediction has {bad_pred} voxels with labels >= {num_classes} "
-                           f"(max {int(p.max())}); labels must be 0..{num_classes - 1}")
-    if bad_gt:
-        raise OccDataError(f"ground truth has {bad_gt} voxels with labels >= {num_classes} "
-                           f"(max {int(g.max())}); is the sample labelled?")
+    free = FREE_LABEL if FREE_LABEL < num_classes else num_classes - 1
+    _confusion_kernel(g.ravel(), p.ravel(), m.ravel(), mask is not None, num_classes, free, out)
     return out
 
 

@@ -137,6 +137,16 @@ def test_eval_bad_split_and_store(occ3d_pred: Path, synth_store: Path, tmp_path:
     assert "no predictions in" in _one_line_error(tmp_path / "empty", synth_store)
 
 
+def test_eval_reads_the_store_block_by_block(synth_root: Path, occ3d_pred: Path, tmp_path: Path) -> None:
+    """A store with 2-sample shards: the val samples span several blocks; all are scored once."""
+    from occdata.store.build import BuildConfig, build_store
+
+    store = tmp_path / "small_blocks.zarr"
+    build_store(BuildConfig(root=synth_root, out=store, gts=synth_root / "gts", block_samples=2, progress=False))
+    r = _eval_json(occ3d_pred, store)
+    assert r["n_samples"] == 3 and r["miou"] == 100.0 and r["rayiou"] == 100.0
+
+
 def test_eval_unlabelled_split(synth_root: Path, occ3d_pred: Path, tmp_path: Path) -> None:
     """A store built without labels: the split exists but has nothing to score."""
     from occdata.store.build import BuildConfig, build_store

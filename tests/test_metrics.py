@@ -135,6 +135,14 @@ def test_miou_out_of_range_prediction_is_an_error_even_where_masked() -> None:
         MIoUAccumulator().update(_grid([0, 1]), _grid([0, 20]), mask=_grid([1, 0]))
 
 
+def test_miou_unlabelled_truth_outside_the_mask_is_ignored() -> None:
+    """gt [0, 255], pred [0, F], mask [1, 0]: the 255 voxel is masked out -> class 0 = 1/1."""
+    acc = MIoUAccumulator()
+    acc.update(_grid([0, 255]), _grid([0, F]), mask=_grid([1, 0]))
+    r = acc.result()
+    assert r.confusion.sum() == 1 and r.per_class_iou[0] == 1.0
+
+
 def test_confusion_kernel_matches_numpy_twin() -> None:
     rng = np.random.default_rng(0)
     for _ in range(5):
