@@ -135,3 +135,13 @@ def test_bad_inputs(command: str, synth_store: Path, nano_ckpt: Path, tmp_path: 
         f.write_text("x")
         _one_line_error([command, "--store", str(synth_store), "--checkpoint", str(nano_ckpt), "--out", str(f)],
                         "not a folder")
+
+
+def test_picture_indices_spread_over_split() -> None:
+    from fastocc.infer.write import picture_indices
+
+    idx = np.arange(10) + 5
+    assert picture_indices(idx, 3) == [5, 9, 14]  # positions 0, round(4.5) = 4, 9: first, middle, last
+    assert picture_indices(idx, 1) == [5]
+    assert picture_indices(idx, 50) == list(range(5, 15))
+    assert picture_indices(idx, 0) == [] and picture_indices(np.array([], dtype=np.int64), 2) == []

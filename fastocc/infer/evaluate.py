@@ -129,10 +129,12 @@ def evaluate(
     total = len(indices)
     miou_acc = MIoUAccumulator()
     ray_acc = RayIoUAccumulator() if rayiou else None
-    sharded = (world_size or 1) > 1 or (world_size is None and torch.distributed.is_available()
-                                         and torch.distributed.is_initialized()
-                                         and torch.distributed.get_world_size() > 1)
-    show = progress and (rank or 0) == 0
+    dist = torch.distributed
+    if rank is None or world_size is None:  # the loader shards the same way (predict_split)
+        on = dist.is_available() and dist.is_initialized()
+        rank, world_size = (dist.get_rank(), dist.get_world_size()) if on else (0, 1)
+    sharded = world_size > 1
+    show = progress and rank == 0  # one bar, on rank 0 (it counts rank 0's shard when sharded)
     bar = tqdm(total=None if sharded else total, desc="eval", unit="sample", disable=not show,
                dynamic_ncols=True)
     frames = samples = 0
