@@ -206,15 +206,23 @@ def verify(store: Path, no_progress: bool) -> None:
     from tqdm import tqdm
 
     from occdata.store.reader import open_store
-    from occdata.store.verify import verify_store
+    from occdata.store.verify import pending_samples, verify_store
 
     reader = open_store(store)
     with tqdm(total=reader.n_samples, desc="verify", unit="sample", disable=no_progress) as bar:
         problems = verify_store(reader, progress=bar.update)
+    pending = pending_samples(reader)
     if problems:
         for p in problems:
             click.echo(f"CORRUPT sample {p.index} ({p.token}): {p.array}: {p.reason}")
-        raise click.ClickException(f"{len(problems)} problem(s) in {store}")
+    if len(pending):
+        click.echo(f"PENDING {len(pending)} of {reader.n_samples} samples not built yet (first: {int(pending[0])}, "
+                   f"last: {int(pending[-1])}): the build was interrupted or is running; finish it with "
+                   "`occdata build ... --resume`")
+    if problems or len(pending):
+        what = [f"{len(problems)} problem(s)"] if problems else []
+        what += [f"{len(pending)} pending sample(s)"] if len(pending) else []
+        raise click.ClickException(f"{' and '.join(what)} in {store}")
     click.echo(f"{store}: all {int((reader.state != 0).sum())} committed samples verified")
 
 

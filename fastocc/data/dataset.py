@@ -181,9 +181,7 @@ def load_batch(store: str | Path, indices: list[int], sample: SampleConfig, seed
     make = SampleMaker(samples, sample)
     out = []
     for i in indices:
-        samples.reader._check_index(i)
-        if not samples.loadable(i):
-            raise OccDataError(f"sample {i} ({samples.reader.token(i)}) did not build (status != done)")
+        samples.reader.require_done(i)  # out of range, failed (with its reason) or pending: one line
         (raw,) = samples.read_run(i, i + 1)
         out.append(make(raw, np.random.default_rng([seed, epoch, i])))
     return collate(out)
