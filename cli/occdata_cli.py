@@ -86,7 +86,8 @@ def scan(root: Path, version: str | None, check_files: bool, as_json: bool) -> N
               help="Samples per shard (the unit of writing).")
 @click.option("--image-scale", type=float, default=1.0, show_default=True,
               help="1.0 stores the original JPEG bytes; < 1 re-encodes the images at that scale.")
-@click.option("--jpeg-quality", type=int, default=90, show_default=True, help="Quality when re-encoding.")
+@click.option("--jpeg-quality", type=click.IntRange(1, 100), default=90, show_default=True,
+              help="Quality (1-100) when re-encoding.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
 def build(root: Path, version: str | None, out: Path, gts: Path | None, splits: tuple[str, ...], workers: int,

@@ -7,6 +7,7 @@ Call `ds.set_epoch(e)` before each epoch (with persistent_workers=False, so work
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,6 +50,10 @@ class LoaderConfig:
     pad: bool = False
     drop_last: bool = False
 
+    def __post_init__(self) -> None:
+        if isinstance(self.batch_size, bool) or not isinstance(self.batch_size, int) or self.batch_size < 1:
+            raise OccDataError(f"batch_size must be an integer >= 1, got {self.batch_size!r}")
+
 
 class StoreDataset(IterableDataset):
     def __init__(self, config: LoaderConfig) -> None:
@@ -58,6 +63,10 @@ class StoreDataset(IterableDataset):
         self._samples: StoreSamples | None = None
         reader = open_store(config.store)  # fail fast in the main process on a bad path
         self.indices = self._select(reader)
+        if config.drop_last and 0 < len(self.indices) < config.batch_size:
+            # An epoch of zero batches is never what was meant: refuse rather than train on nothing.
+            raise OccDataError(f"drop_last with {len(self.indices)} samples and batch_size {config.batch_size} "
+                               "would yield no batch; lower batch_size or turn drop_last off")
 
     def _select(self, reader) -> np.ndarray:
         state = reader.small("status/state")
@@ -122,9 +131,12 @@ class StoreDataset(IterableDataset):
         buffer: list = []
         batch: list[dict] = []
 
+        emitted = [0]
+
         def emit(raw) -> Iterator[Batch]:
             batch.append(make(raw, self._rng(raw.index)))
             if len(batch) == c.batch_size:
+                emitted[0] += 1
                 yield collate(batch)
                 batch.clear()
 
@@ -142,12 +154,17 @@ class StoreDataset(IterableDataset):
             yield from emit(buffer[k])
         if batch and not c.drop_last:
             yield collate(batch)
+        elif batch and not emitted[0]:
+            _warn_all_dropped(len(batch), c.batch_size, slot)
 
     def _iter_sequential(self, slot: Slot) -> Iterator[Batch]:
         c, s = self.config, self.samples()
         make = SampleMaker(s, c.sample)
         plan = sequential_batches(self.indices, s.scene_index, slot, c.batch_size, c.seed, self.epoch,
                                   c.segment_len)
+        dropped = sum(len(e) for e in plan if c.drop_last and len(e) < c.batch_size)
+        if dropped and dropped == sum(len(e) for e in plan):
+            _warn_all_dropped(dropped, c.batch_size, slot)
         for entries in plan:
             if c.drop_last and len(entries) < c.batch_size:
                 continue
@@ -156,6 +173,12 @@ class StoreDataset(IterableDataset):
                 (raw,) = s.read_run(idx, idx + 1)
                 out.append(make(raw, self._rng(idx), seq_start=start))
             yield collate(out)
+
+
+def _warn_all_dropped(n: int, batch_size: int, slot: Slot) -> None:
+    warnings.warn(f"drop_last: rank {slot.rank} worker {slot.worker} got {n} samples, fewer than batch_size "
+                  f"{batch_size}, and yields no batch this epoch; use fewer workers or a smaller batch_size",
+                  RuntimeWarning, stacklevel=3)
 
 
 def make_loader(config: LoaderConfig, num_workers: int = 0, pin_memory: bool = False,

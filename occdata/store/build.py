@@ -280,6 +280,8 @@ def build_store(config: BuildConfig) -> BuildReport:
         raise OccDataError("--workers and --block-samples must be >= 1")
     if not 0.05 <= config.options.image_scale <= 1.0:
         raise OccDataError("--image-scale must be in [0.05, 1]")
+    if not 1 <= config.options.jpeg_quality <= 100:
+        raise OccDataError(f"--jpeg-quality must be in [1, 100], got {config.options.jpeg_quality}")
     ds = load_nuscenes(config.root, config.version).select(config.splits or None)
     if not ds.samples:
         raise OccDataError(f"no samples selected under {config.root} (splits: {list(config.splits) or 'all'})")
