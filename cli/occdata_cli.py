@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import click
@@ -102,12 +103,17 @@ def build(root: Path, version: str | None, out: Path, gts: Path | None, splits: 
     from occdata.store.build import BuildConfig, build_store
     from occdata.store.sample import SampleOptions
 
-    report = build_store(BuildConfig(
-        root=root, out=out, version=version, gts=gts, splits=splits, workers=workers, resume=resume,
-        on_error=on_error,  # type: ignore[arg-type]
-        block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality),
-        progress=not no_progress,
-    ))
+    try:
+        report = build_store(BuildConfig(
+            root=root, out=out, version=version, gts=gts, splits=splits, workers=workers, resume=resume,
+            on_error=on_error,  # type: ignore[arg-type]
+            block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality),
+            progress=not no_progress,
+        ))
+    except KeyboardInterrupt:
+        click.echo(f"\ninterrupted: every sample committed so far is kept in {out}; rerun the same command "
+                   "with --resume to continue", err=True)
+        sys.exit(130)
     click.echo(
         f"{report.store}: {report.n_done}/{report.n_samples} samples done, {report.n_errors} errors, "
         f"{report.n_labelled} labelled ({report.processed_now} processed in this run)"
