@@ -41,6 +41,7 @@ from occdata.store.layout import (
     checksummed_names,
 )
 from occdata.store.lock import store_lock
+from occdata.store.reader import StoreReader
 from occdata.store.sample import SampleOptions, SampleResult, process_sample, static_arrays, temporal_indices
 
 __all__ = ["BuildConfig", "BuildReport", "build_store", "identity_diff", "sample_checksums"]
@@ -307,6 +308,11 @@ def _open_or_create(config: BuildConfig, ds: NuScenesDataset, split_names: list[
             root = zarr.open_group(out, mode="r+")
         except Exception as exc:  # noqa: BLE001 - any unreadable store is reported the same way
             raise OccDataError(f"cannot resume {out}: not a readable zarr store ({exc})") from None
+        if root.attrs.get("schema") == SCHEMA_NAME:
+            try:
+                StoreReader(out)  # every array there with the schema's shape (edited zarr.json, ...)
+            except OccDataError as exc:
+                raise OccDataError(f"cannot resume: {exc}") from None
         if root.attrs.get("schema") != SCHEMA_NAME:
             raise OccDataError(f"cannot resume {out}: not an occdata store (no schema attribute)")
         stored = root.attrs.get("build_identity")

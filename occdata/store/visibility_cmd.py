@@ -18,6 +18,7 @@ from occdata.constants import FREE_LABEL, GRID
 from occdata.errors import OccDataError
 from occdata.geometry import invert_rigid
 from occdata.store.layout import STATE_DONE
+from occdata.store.lock import store_lock
 from occdata.store.reader import open_store
 from occdata.store.update import update_samples
 from occdata.visibility import camera_visible_mask, lidar_ray_mask
@@ -78,6 +79,11 @@ def compute_visibility(
     store: Path, recompute: bool = False, block: int = 32, progress: bool = True
 ) -> VisibilityReport:
     """Masks for labelled samples that have no shipped camera mask (all with `recompute`)."""
+    with store_lock(store, "visibility"):  # one writer at a time
+        return _compute_visibility(store, recompute, block, progress)
+
+
+def _compute_visibility(store: Path, recompute: bool, block: int, progress: bool) -> VisibilityReport:
     reader = open_store(store)
     group = zarr.open_group(str(store), mode="r+")
     present = group["labels/present"][:]
