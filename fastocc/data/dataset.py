@@ -20,6 +20,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 from fastocc.data.batch import Batch, collate
 from fastocc.data.order import Slot, sequential_batches, shuffle_units
 from fastocc.data.sample import SampleConfig, SampleMaker, StoreSamples
+from fastocc.data.workers import check_main_guard, default_worker_context
 from occdata.errors import OccDataError
 from occdata.store.layout import STATE_DONE
 from occdata.store.reader import open_store
@@ -185,14 +186,13 @@ def make_loader(config: LoaderConfig, num_workers: int = 0, pin_memory: bool = F
                 **kwargs) -> torch.utils.data.DataLoader:
     """A DataLoader over `StoreDataset(config)` (batching happens in the dataset).
 
-    Workers start from a forkserver, not a plain fork: zarr reads run on an asyncio IO thread and
-    a thread pool, and a fork taken while one of them holds a lock (e.g. right after a failed read
-    in the parent) can leave the child blocked forever. Pass multiprocessing_context to override.
+    Workers start from a forkserver unless `multiprocessing_context` is given (see workers.py for
+    why, and for the one-line error a script without `if __name__ == "__main__":` gets).
     """
-    if num_workers > 0 and "multiprocessing_context" not in kwargs:
-        ctx = torch.multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["torch", "zarr", "cv2", "fastocc.data"])  # cheap worker starts
-        kwargs["multiprocessing_context"] = ctx
+    if num_workers > 0:
+        if "multiprocessing_context" not in kwargs:
+            kwargs["multiprocessing_context"] = default_worker_context()
+        check_main_guard(kwargs["multiprocessing_context"])  # one line, not "worker exited unexpectedly"
     ds = StoreDataset(config)
     return torch.utils.data.DataLoader(ds, batch_size=None, num_workers=num_workers, pin_memory=pin_memory,
                                        **kwargs)
