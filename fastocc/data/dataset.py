@@ -192,7 +192,7 @@ def make_loader(config: LoaderConfig, num_workers: int = 0, pin_memory: bool = F
     if num_workers > 0:
         if "multiprocessing_context" not in kwargs:
             kwargs["multiprocessing_context"] = default_worker_context()
-        check_main_guard(kwargs["multiprocessing_context"])  # one line, not "worker exited unexpectedly"
+        check_main_guard(kwargs["multiprocessing_context"])  # one clear line, not a dead worker
     ds = StoreDataset(config)
     return torch.utils.data.DataLoader(ds, batch_size=None, num_workers=num_workers, pin_memory=pin_memory,
                                        **kwargs)
