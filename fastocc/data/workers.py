@@ -5,7 +5,8 @@ What can deadlock a forked worker: zarr runs its IO on an asyncio loop in a back
 forked child that used the parent's loop object waits forever, because the loop's thread does not
 exist in the child (tests/test_loader_start_method.py shows it). zarr >= 3.0.3 resets the loop,
 its IO thread and its executor in the child (`os.register_at_fork`, zarr PR #2815), which removes
-that cause. A plain fork was still not adopted: under heavy load a forked-worker test timed out
+that cause. A plain fork was still not adopted: 30 standalone trials of fork-after-failed-read passed, but
+under heavy load a forked-worker pytest run timed out
 twice (stack: parent waiting on the workers) and the cause was not pinned down in time, so
 workers keep starting from a forkserver (fork-safe by construction: the server forks before any
 zarr IO thread exists).
