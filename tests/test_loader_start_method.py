@@ -67,7 +67,7 @@ SCRIPT = """
     {body}
 """
 LOOP = """loader = make_loader(LoaderConfig(store={store!r}, batch_size=2, sample=cfg), num_workers=2{ctx})
-    print("batches", sum(1 for _ in loader))"""
+    print("samples", sum(len(b.sample_index) for b in loader))"""
 
 
 @pytest.mark.timeout(120)
@@ -88,4 +88,4 @@ def test_guarded_script_works(synth_store: Path, tmp_path: Path) -> None:
     body = "def main():\n        " + LOOP.format(store=str(synth_store), ctx="") \
         .replace("\n    ", "\n        ") + "\n    if __name__ == \"__main__\":\n        main()"
     r = _run(SCRIPT.format(body=body), tmp_path)
-    assert r.returncode == 0 and "batches 3" in r.stdout, r.stderr[-2000:]
+    assert r.returncode == 0 and "samples 6" in r.stdout, r.stderr[-2000:]
