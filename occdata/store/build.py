@@ -16,7 +16,6 @@ import threading
 import zlib
 from collections.abc import Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
-from concurrent.futures import wait as futures_wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -490,9 +489,8 @@ def _results(tasks: Iterator[tuple[Any, ...]], workers: int, stop: _DeferredInte
             yield window.popleft().result()
     finally:
         # Interrupted or failed: cancel what no worker has started; the few tasks in flight finish
-        # (workers ignore SIGINT) so the pool shuts down cleanly. Terminating workers instead can
-        # hang the shutdown: a killed worker may hold the call queue's lock.
-        pool.shutdown(wait=False, cancel_futures=True)
-        futures_wait(list(window), timeout=120)
-        pool.shutdown(wait=True)
+        # (workers ignore SIGINT) and the pool shuts down cleanly. Terminating workers instead can
+        # hang the shutdown (a killed worker may hold the call queue's lock), and so can
+        # `concurrent.futures.wait` on futures that the shutdown cancels (never counted as done).
+        pool.shutdown(wait=True, cancel_futures=True)
 
