@@ -30,6 +30,9 @@ def friendly_errors(fn: F) -> F:
             raise click.ClickException(str(exc)) from None
         except FileNotFoundError as exc:
             raise click.ClickException(f"file not found: {exc.filename or exc}") from None
+        except OSError as exc:  # a full disk, a read-only folder, ...: the reason and the file, one line
+            where = f": {exc.filename}" if exc.filename else ""
+            raise click.ClickException(f"{exc.strerror or exc}{where}") from None
 
     return wrapper  # type: ignore[return-value]
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 
 import click
 import numpy as np
@@ -93,7 +94,8 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
               help="Samples per shard (the unit of writing).")
 @click.option("--image-scale", type=float, default=1.0, show_default=True,
               help="1.0 stores the original JPEG bytes; < 1 re-encodes the images at that scale.")
-@click.option("--jpeg-quality", type=int, default=90, show_default=True, help="Quality when re-encoding.")
+@click.option("--jpeg-quality", type=click.IntRange(1, 100), default=90, show_default=True,
+              help="Quality (1-100) when re-encoding.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
 def build(root: str, version: str | None, out: str, gts: str | None, splits: tuple[str, ...], workers: int,
@@ -117,13 +119,19 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
         click.echo(f"labels: {gts_path} (found in the dataset root)")
     else:
         click.echo(f"labels: none (no --gts, and {root_path / 'gts'} does not exist): the store will be unlabelled")
-    report = build_store(BuildConfig(
-        root=root_path, out=local_path(out, "--out"), version=version, gts=gts_path,
-        labels_required=gts is not None, splits=splits, workers=workers, resume=resume,
-        on_error=on_error,  # type: ignore[arg-type]
-        block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality),
-        progress=not no_progress,
-    ))
+    out_path = local_path(out, "--out")
+    try:
+        report = build_store(BuildConfig(
+            root=root_path, out=out_path, version=version, gts=gts_path,
+            labels_required=gts is not None, splits=splits, workers=workers, resume=resume,
+            on_error=on_error,  # type: ignore[arg-type]
+            block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality),
+            progress=not no_progress,
+        ))
+    except KeyboardInterrupt:
+        click.echo(f"\ninterrupted: every sample committed so far is kept in {out_path}; rerun the same command "
+                   "with --resume to continue", err=True)
+        sys.exit(130)
     for note in report.warnings:
         click.echo(f"warning: {note}", err=True)
     click.echo(
@@ -282,11 +290,12 @@ def verify(store: str, no_progress: bool, images: bool) -> None:
     from tqdm import tqdm
 
     from occdata.store.reader import open_store
-    from occdata.store.verify import verify_store
+    from occdata.store.verify import pending_samples, verify_store
 
     reader = open_store(store)
     with tqdm(total=reader.n_samples, desc="verify", unit="sample", disable=no_progress) as bar:
         problems = verify_store(reader, progress=bar.update)
+    pending = pending_samples(reader)
     if images:
         from occdata.store.verify_images import verify_images
 
@@ -295,7 +304,14 @@ def verify(store: str, no_progress: bool, images: bool) -> None:
     if problems:
         for p in problems:
             click.echo(f"CORRUPT sample {p.index} ({p.token}): {p.array}: {p.reason}")
-        raise click.ClickException(f"{len(problems)} problem(s) in {store}")
+    if len(pending):
+        click.echo(f"PENDING {len(pending)} of {reader.n_samples} samples not built yet (first: {int(pending[0])}, "
+                   f"last: {int(pending[-1])}): the build was interrupted or is running; finish it with "
+                   "`occdata build ... --resume`")
+    if problems or len(pending):
+        what = [f"{len(problems)} problem(s)"] if problems else []
+        what += [f"{len(pending)} pending sample(s)"] if len(pending) else []
+        raise click.ClickException(f"{' and '.join(what)} in {store}")
     click.echo(f"{store}: all {int((reader.state != 0).sum())} committed samples verified")
 
 

@@ -22,7 +22,7 @@ from occdata.constants import GRID, NUM_CLASSES
 from occdata.depth_targets import DEPTH_MAX, DEPTH_MIN, depth_target
 from occdata.errors import OccDataError
 from occdata.image_ops import normalise_chw, normalise_lut
-from occdata.store.layout import N_CAM, STATE_DONE
+from occdata.store.layout import N_CAM, STATE_DONE, STATE_PENDING
 from occdata.store.reader import StoreReader
 
 __all__ = [
@@ -126,15 +126,22 @@ class StoreSamples:
             for name in _LABELS:
                 labels[name] = read(name, a, b)
         out = []
+        check = self.reader.integrity.check_rows  # a missing chunk reads as fill: compare with the checksums
         for i in idx:
             jo, uo = self.img_off[i], self.uvd_off[i]
             lab = {k: v[i - min(labelled)] for k, v in labels.items()} if self.present[i] else None
-            out.append(RawSample(
+            raw = RawSample(
                 index=i,
                 jpegs=[jpeg[int(s) - j0: int(s) - j0 + int(n)] for s, n in jo],
                 uvd=[uvd[int(s) - u0: int(s) - u0 + int(n)] for s, n in uo],
                 labels=lab,
-            ))
+            )
+            if self.state[i] != STATE_PENDING:
+                check("images/jpeg", [i], [b"".join(a.tobytes() for a in raw.jpegs)])
+                check("depth/uvd", [i], [b"".join(a.tobytes() for a in raw.uvd)])
+                for name, row in (lab or {}).items():
+                    check(name, [i], [row])
+            out.append(raw)
         return out
 
     def loadable(self, i: int) -> bool:

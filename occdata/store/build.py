@@ -13,6 +13,8 @@ import dataclasses
 import multiprocessing as mp
 import os
 import shutil
+import signal
+import threading
 import zlib
 from collections.abc import Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -42,9 +44,12 @@ from occdata.store.layout import (
     checksummed_names,
     token_width,
 )
+from occdata.store.lock import store_lock
+from occdata.store.reader import StoreReader
 from occdata.store.sample import SampleOptions, SampleResult, process_sample, static_arrays, temporal_indices
 
-__all__ = ["BuildConfig", "BuildReport", "build_store", "find_label_files", "label_layouts", "sample_checksums"]
+__all__ = ["BuildConfig", "BuildReport", "build_store", "find_label_files", "identity_diff", "label_layouts",
+           "sample_checksums"]
 
 
 @dataclass(frozen=True)
@@ -88,6 +93,39 @@ def _identity(config: BuildConfig, ds: NuScenesDataset) -> dict[str, Any]:
         "options": asdict(config.options),
         "sample_tokens_crc32": zlib.crc32("".join(s.token for s in ds.samples).encode()),
     }
+
+
+# build_identity key -> what the user changes to change it
+_IDENTITY_OPTION = {
+    "source_root": "--root", "source_version": "--version", "gts": "--gts", "splits": "--split",
+    "block_samples": "--block-samples", "options.image_scale": "--image-scale",
+    "options.jpeg_quality": "--jpeg-quality", "options.min_depth": "min_depth",
+    "sample_tokens_crc32": "the sample list in the tables",
+}
+
+
+def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def identity_diff(stored: dict[str, Any], now: dict[str, Any]) -> list[str]:
+    """One phrase per differing input/option: `--image-scale: store 1.0, now 0.5`."""
+    a, b = _flatten(stored), _flatten(now)
+    out = []
+    for key in sorted(set(a) | set(b), key=lambda k: list(_IDENTITY_OPTION).index(k) if k in _IDENTITY_OPTION else 99):
+        if a.get(key, "<unset>") != b.get(key, "<unset>"):
+            if key == "sample_tokens_crc32":
+                out.append("the sample list in the tables differs (tables edited?)")
+            else:
+                was, now_ = a.get(key, "<unset>"), b.get(key, "<unset>")
+                out.append(f"{_IDENTITY_OPTION.get(key, key)}: store {was!r}, now {now_!r}")
+    return out
 
 
 def _compressor(name: str) -> Any:
@@ -175,7 +213,7 @@ class _Writer:
         self.root = root
         self.arrays = {s.name: root[s.name] for s in PER_SAMPLE}
         self.flat = {name: root[name] for name in FLAT_ARRAYS}
-        self.initial_state = self.arrays["status/state"][:]  # what an earlier (killed) run committed
+        self.initial_state = _resume_state(root)  # what an earlier (killed) run committed
         self.cursor = {name: 0 for name in FLAT_ARRAYS}
         committed = self.initial_state != STATE_PENDING
         for off_name, flat_name in FLAT_OF_OFFSETS.items():
@@ -235,8 +273,9 @@ class _Writer:
         ])
         self.arrays["status/checksum"][i0:i1] = sums
         failed = [r for r in results if r.error]
-        if failed:
-            errors = [e for e in self.root.attrs.get("errors", []) if not i0 <= e["index"] < i1]
+        old_errors = self.root.attrs.get("errors", [])
+        if failed or any(i0 <= e["index"] < i1 for e in old_errors):  # a retried sample may now succeed
+            errors = [e for e in old_errors if not i0 <= e["index"] < i1]
             errors += [{"index": r.index, "token": r.token, "reason": r.error} for r in failed]
             self.root.attrs["errors"] = sorted(errors, key=lambda e: e["index"])
         self.arrays["status/state"][i0:i1] = np.array(
@@ -247,6 +286,23 @@ class _Writer:
         for flat_name, arr in self.flat.items():
             if arr.shape[0] != self.cursor[flat_name]:
                 arr.resize((self.cursor[flat_name], *arr.shape[1:]))
+
+
+def _resume_state(root: zarr.Group) -> np.ndarray:
+    """The commit flags as an earlier run left them; an absent chunk is pending (it is rebuilt)."""
+    arr = root["status/state"]
+    rows = int(arr.chunks[0])
+    out = np.zeros(arr.shape, dtype=np.uint8)
+    for i0 in range(0, arr.shape[0], rows):
+        try:
+            out[i0 : i0 + rows] = arr[i0 : i0 + rows]
+        except Exception as exc:  # noqa: BLE001 - a damaged chunk: say which file and how to recover
+            key = f"status/state/{arr.metadata.encode_chunk_key((i0 // rows,))}"
+            raise OccDataError(
+                f"cannot resume: the commit flags of samples {i0}..{min(i0 + rows, arr.shape[0]) - 1} are unreadable "
+                f"({type(exc).__name__}: {exc}); delete {key} inside the store and rerun --resume to rebuild them"
+            ) from None
+    return out
 
 
 def _row_bytes(flat_name: str) -> int:
@@ -264,10 +320,19 @@ def _open_or_create(config: BuildConfig, ds: NuScenesDataset, split_names: list[
             root = zarr.open_group(out, mode="r+")
         except Exception as exc:  # noqa: BLE001 - any unreadable store is reported the same way
             raise OccDataError(f"cannot resume {out}: not a readable zarr store ({exc})") from None
-        if root.attrs.get("schema") != SCHEMA_NAME or root.attrs.get("build_identity") != attrs["build_identity"]:
+        if root.attrs.get("schema") == SCHEMA_NAME:
+            try:
+                StoreReader(out)  # every array there with the schema's shape (edited zarr.json, ...)
+            except OccDataError as exc:
+                raise OccDataError(f"cannot resume: {exc}") from None
+        if root.attrs.get("schema") != SCHEMA_NAME:
+            raise OccDataError(f"cannot resume {out}: not an occdata store (no schema attribute)")
+        stored = root.attrs.get("build_identity")
+        if stored != attrs["build_identity"]:
+            diffs = identity_diff(stored if isinstance(stored, dict) else {}, attrs["build_identity"])
             raise OccDataError(
-                f"cannot resume {out}: it was built from other inputs or options (compare `occdata info`); "
-                "use a new --out"
+                f"cannot resume {out}: it was built from other inputs or options: {'; '.join(diffs)}. "
+                "Rerun with the store's values, or use a new --out"
             )
         for partial in out.rglob("*.partial"):  # atomic-write leftovers of a killed run
             partial.unlink(missing_ok=True)
@@ -299,6 +364,8 @@ def build_store(config: BuildConfig) -> BuildReport:
         raise OccDataError("--workers and --block-samples must be >= 1")
     if not 0.05 <= config.options.image_scale <= 1.0:
         raise OccDataError("--image-scale must be in [0.05, 1]")
+    if not 1 <= config.options.jpeg_quality <= 100:
+        raise OccDataError(f"--jpeg-quality must be in [1, 100], got {config.options.jpeg_quality}")
     ds = load_nuscenes(config.root, config.version).select(config.splits or None)
     if not ds.samples:
         raise OccDataError(f"no samples selected under {config.root} (splits: {list(config.splits) or 'all'})")
@@ -313,10 +380,26 @@ def build_store(config: BuildConfig) -> BuildReport:
     in_scene = np.array([s.index_in_scene for s in ds.samples])
     prev_index, prev_valid = temporal_indices(scene_index, in_scene)
     split_code = {name: i for i, name in enumerate(split_names)}
+    with store_lock(config.out, "build"):
+        try:
+            return _build_locked(config, ds, labels, split_names, split_code, scene_index, prev_index, prev_valid)
+        except OSError as exc:  # a full disk, a read-only folder: committed samples are kept
+            where = f" ({exc.filename})" if exc.filename else ""
+            raise OccDataError(
+                f"cannot write the store {config.out}: {exc.strerror or exc}{where}. Everything committed so far "
+                "is kept; fix the cause and rerun with --resume"
+            ) from None
 
+
+def _build_locked(config: BuildConfig, ds: NuScenesDataset, labels: list[Path | None], split_names: list[str],
+                  split_code: dict[str, int], scene_index: np.ndarray, prev_index: np.ndarray,
+                  prev_valid: np.ndarray) -> BuildReport:
     root = _open_or_create(config, ds, split_names)
     writer = _Writer(root)
-    pending = np.flatnonzero(writer.initial_state == STATE_PENDING)
+    # Pending samples, and those that failed before (their input may have been fixed since).
+    pending = np.flatnonzero(writer.initial_state != STATE_DONE)
+    if len(pending) and root.attrs.get("complete"):
+        root.attrs["complete"] = False  # until this run has committed them again
     tok_width = int(root["sample/token"].shape[-1])
 
     def tasks() -> Iterator[tuple[Any, ...]]:
@@ -332,29 +415,35 @@ def build_store(config: BuildConfig) -> BuildReport:
     run: list[SampleResult] = []
     processed = 0
     bar = tqdm(total=len(pending), desc="build", unit="sample", disable=not config.progress, dynamic_ncols=True)
+    stop = _DeferredInterrupt()
     try:
-        for result in _results(tasks(), config.workers):
-            if result.error and config.on_error == "fail":
-                writer.commit(run)
-                writer.finish()
-                raise OccDataError(
-                    f"sample {result.index} ({result.token}) failed: {result.error}. "
-                    f"Everything before it is committed; fix the input and rerun with --resume "
-                    f"(or use --on-error skip)."
-                )
-            if run and result.index != run[-1].index + 1:
-                writer.commit(run)
-                run = []
-            run.append(result)
-            processed += 1
-            bar.update(1)
-            if (result.index + 1) % block == 0 or result.index == len(ds.samples) - 1:
-                writer.commit(run)
-                run = []
-        writer.commit(run)
-        writer.finish()
+        with stop:
+            for result in _results(tasks(), config.workers, stop):
+                if result.error and config.on_error == "fail":
+                    writer.commit(run)
+                    writer.finish()
+                    raise OccDataError(
+                        f"sample {result.index} ({result.token}) failed: {result.error}. "
+                        f"Everything before it is committed; fix the input and rerun with --resume "
+                        f"(or use --on-error skip)."
+                    )
+                if run and result.index != run[-1].index + 1:
+                    writer.commit(run)
+                    run = []
+                run.append(result)
+                processed += 1
+                bar.update(1)
+                if (result.index + 1) % block == 0 or result.index == len(ds.samples) - 1:
+                    writer.commit(run)
+                    run = []
+                if stop.hit:
+                    break
+            writer.commit(run)  # results already received are kept, also on Ctrl-C
+            writer.finish()
     finally:
         bar.close()
+    if stop.hit:
+        raise KeyboardInterrupt
     final_state = root["status/state"][:]
     complete = bool((final_state != STATE_PENDING).all())
     root.attrs["complete"] = complete
@@ -409,18 +498,58 @@ def find_label_files(
     return found, ds
 
 
-def _results(tasks: Iterator[tuple[Any, ...]], workers: int) -> Iterator[SampleResult]:
+class _DeferredInterrupt:
+    """Ctrl-C sets a flag that the build loop checks after each sample (a commit is never cut in
+    half); a second Ctrl-C interrupts at once. Only in the main thread (signals live there)."""
+
+    def __init__(self) -> None:
+        self.hit = False
+        self._prev: Any = None
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        self.hit = True
+        signal.signal(signal.SIGINT, self._prev)
+
+    def __enter__(self) -> _DeferredInterrupt:
+        if threading.current_thread() is threading.main_thread():
+            self._prev = signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._prev is not None:
+            signal.signal(signal.SIGINT, self._prev)
+            self._prev = None
+
+
+def _ignore_sigint() -> None:
+    """Worker initializer: Ctrl-C in a terminal reaches the whole process group; only the main
+    process acts on it (no KeyboardInterrupt tracebacks from workers, no half-dead pool)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _results(tasks: Iterator[tuple[Any, ...]], workers: int, stop: _DeferredInterrupt) -> Iterator[SampleResult]:
     """Results in task order; at most a few tasks in flight per worker, so memory stays bounded."""
     if workers == 1:
         for t in tasks:
             yield _work(t)
+            if stop.hit:
+                return
         return
     window: collections.deque[Future[SampleResult]] = collections.deque()
-    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_ignore_sigint)
+    try:
         for t in tasks:
+            if stop.hit:
+                return
             window.append(pool.submit(_work, t))
             if len(window) >= 3 * workers:
                 yield window.popleft().result()
-        while window:
+        while window and not stop.hit:
             yield window.popleft().result()
+    finally:
+        # Interrupted or failed: cancel what no worker has started; the few tasks in flight finish
+        # (workers ignore SIGINT) and the pool shuts down cleanly. Terminating workers instead can
+        # hang the shutdown (a killed worker may hold the call queue's lock), and so can
+        # `concurrent.futures.wait` on futures that the shutdown cancels (never counted as done).
+        pool.shutdown(wait=True, cancel_futures=True)
 
