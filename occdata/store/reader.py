@@ -14,12 +14,14 @@ from occdata.errors import OccDataError
 from occdata.store.integrity import CorruptStoreError, StoreIntegrity
 from occdata.store.layout import (
     FLAT_ARRAYS,
+    MIN_TOKEN_BYTES,
     PER_SAMPLE,
     SCHEMA_NAME,
     SCHEMA_VERSION,
     STATE_DONE,
     STATE_ERROR,
     STATE_PENDING,
+    TOKEN_ARRAYS,
     checksummed_names,
     token_str,
 )
@@ -75,6 +77,15 @@ class StoreReader:
                     for s in PER_SAMPLE}
         for name, (row, dtype, _) in FLAT_ARRAYS.items():
             expected[name] = ((None, *row), dtype)
+        # Token arrays are as wide as the store's longest token (>= 32 bytes), the same for all three.
+        try:
+            width = int(self.group["sample/token"].shape[-1])
+        except Exception:  # noqa: BLE001 - reported below as a missing/unreadable array
+            width = MIN_TOKEN_BYTES
+        if width >= MIN_TOKEN_BYTES:
+            for name in TOKEN_ARRAYS:
+                shape, dtype = expected[name]
+                expected[name] = ((*shape[:-1], width), dtype)
         for name, (shape, dtype) in expected.items():
             try:
                 arr = self.group[name]
