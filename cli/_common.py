@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import functools
+import urllib.parse
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, TypeVar
 
 import click
 
 from occdata.errors import OccDataError
 
-__all__ = ["friendly_errors"]
+__all__ = ["DEFAULT_STORE", "friendly_errors", "local_path"]
+
+DEFAULT_STORE = "data.zarr"  # what `occdata build` writes by default and every store reader opens
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -28,3 +32,16 @@ def friendly_errors(fn: F) -> F:
             raise click.ClickException(f"file not found: {exc.filename or exc}") from None
 
     return wrapper  # type: ignore[return-value]
+
+
+def local_path(value: str | Path, option: str) -> Path:
+    """A local path from an option value; a `file://` URL is accepted, another URL is refused with
+    one line (the command reads or writes local folders only)."""
+    text = str(value)
+    if text.startswith("file:"):
+        parsed = urllib.parse.urlparse(text)
+        if parsed.netloc in ("", "localhost"):
+            return Path(urllib.parse.unquote(parsed.path))
+    if "://" in text or text.startswith("file:"):
+        raise OccDataError(f"{option} must be a local path or a file:// URL, got {text}")
+    return Path(text)

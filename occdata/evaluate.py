@@ -10,12 +10,14 @@ memory); the table helpers are shared with `fastocc eval`.
 from __future__ import annotations
 
 import math
+import queue
+import threading
 import time
 import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 
@@ -35,6 +37,7 @@ __all__ = [
 ]
 
 MaskName = Literal["camera", "lidar", "none"]
+T = TypeVar("T")
 _MASK_ARRAY = {"camera": "labels/mask_camera", "lidar": "labels/mask_lidar"}
 
 
@@ -43,7 +46,7 @@ class EvalConfig:
     """What `occdata eval` scores: prediction folder `pred`, store, split, visibility mask for mIoU."""
 
     pred: Path
-    store: Path = Path("data.zarr")
+    store: str | Path = "data.zarr"  # a path or an fsspec URL
     split: str = "val"
     mask: MaskName = "camera"
     rayiou: bool = True
@@ -140,6 +143,45 @@ def _iter_label_blocks(reader: Any, indices: list[int],
             pos += 1
 
 
+def _read_ahead(items: Iterator[T], depth: int = 4) -> Iterator[T]:
+    """Iterate `items` in a background thread, at most `depth` ahead: file and store decoding (zlib,
+    zstd release the GIL) overlaps the metric. Exceptions reach the consumer unchanged."""
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    end = object()
+
+    def put(item: tuple[bool, Any]) -> None:
+        while not stop.is_set():
+            try:
+                q.put(item, timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def work() -> None:
+        try:
+            for x in items:
+                put((True, x))
+                if stop.is_set():
+                    return
+            put((True, end))
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer as is
+            put((False, exc))
+
+    thread = threading.Thread(target=work, name="occdata-eval-read", daemon=True)
+    thread.start()
+    try:
+        while True:
+            ok, x = q.get()
+            if not ok:
+                raise x
+            if x is end:
+                return
+            yield x
+    finally:
+        stop.set()
+
+
 def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
     """Score the prediction files of `cfg.pred` on the labelled samples of `cfg.split`."""
     from tqdm import tqdm
@@ -179,9 +221,10 @@ def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
     names = ("labels/semantics",) + ((_MASK_ARRAY[cfg.mask],) if cfg.mask != "none" else ())
     t0 = time.perf_counter()
     bar = tqdm(total=len(indices), desc=f"eval {cfg.split}", unit="sample", disable=not cfg.progress)
-    for i, arrays in _iter_label_blocks(reader, indices, names):
+    samples = ((i, arrays, load_prediction(files[store_tokens[i]]))
+               for i, arrays in _iter_label_blocks(reader, indices, names))
+    for i, arrays, pred in _read_ahead(samples):
         path = files[store_tokens[i]]
-        pred = load_prediction(path)
         gt = arrays["labels/semantics"]
         try:
             miou.update(gt, pred, arrays.get(_MASK_ARRAY.get(cfg.mask, "")))

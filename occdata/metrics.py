@@ -64,13 +64,14 @@ def _confusion_kernel(gt: np.ndarray, pred: np.ndarray, mask: np.ndarray, use_ma
     tab = np.zeros(k * k, np.int64)
     ff = 0
     for i in range(gt.shape[0]):
+        if use_mask and mask[i] == 0:
+            continue
         p = pred[i]
         g = gt[i]
-        w = mask[i] if use_mask else np.uint8(1)
         if g == free and p == free:
-            ff += w
+            ff += 1
         else:
-            tab[g * k + p] += w
+            tab[g * k + p] += 1
     for g in range(k):
         for p in range(k):
             out[g, p] += tab[g * k + p]
@@ -278,7 +279,9 @@ def ray_origins_keyego(T_global_from_keyego: np.ndarray, T_ego_from_lidar: np.nd
             p_lidar = np.zeros(3, np.float32)
         else:
             p_lidar = (T_curlidar_from_global @ T_global_from_lidar[s])[:3, 3].astype(np.float32)
-        p_ego = T_el[current, :3, :3] @ p_lidar.astype(np.float64) + T_el[current, :3, 3]
+        p_h = np.ones(4)
+        p_h[:3] = p_lidar
+        p_ego = T_el[current, :3] @ p_h  # (3, 4) @ homogeneous point, as the reference does
         if abs(p_ego[0]) < max_xy and abs(p_ego[1]) < max_xy:
             kept.append(p_ego)
     if not kept:

@@ -280,6 +280,36 @@ def _march(lab: np.ndarray, grid: OccGrid, origin: np.ndarray, dirs: np.ndarray,
     return dist, cls
 
 
+def _agree_with_march(lab: np.ndarray, grid: OccGrid, origin: np.ndarray, dirs: np.ndarray, dist: np.ndarray,
+                      cls: np.ndarray, steps: tuple[float, ...]) -> int:
+    """Check (dist, cls) of each ray against marches of decreasing step: a ray agrees with a march
+    of step h if the classes match and d_true in (d_march - h, d_march]. Rays that disagree with
+    the coarse march (a voxel corner grazed over less than h) are re-checked with the next step;
+    returns how many rays disagreed with the coarsest."""
+    todo = np.arange(len(dirs))
+    n_coarse = -1
+    diag = float(np.linalg.norm(np.asarray(grid.upper) - np.asarray(grid.lower)))
+    for h in steps:
+        if todo.size == 0:
+            break
+        # grazing rays are rare: many left after the coarse march means a real disagreement
+        assert n_coarse < 0 or todo.size <= 50, f"{todo.size} rays disagree with the coarse march"
+        chunk = max(1, int(4e6 / (diag / h)))  # bounded memory: rays x samples per march
+        agree = np.zeros(todo.size, bool)
+        for lo in range(0, todo.size, chunk):
+            sl = todo[lo: lo + chunk]
+            bd, bc = _march(lab, grid, origin, dirs[sl], h)
+            d = dist[sl]
+            both_miss = np.isnan(bd) & np.isnan(d)
+            close = (d <= bd + 1e-4) & (d > bd - h - 1e-4)
+            agree[lo: lo + chunk] = (bc == cls[sl]) & (both_miss | close)
+        todo = todo[~agree]
+        if n_coarse < 0:
+            n_coarse = int(todo.size)
+    assert todo.size == 0, f"rays {todo[:10]} disagree even with a {steps[-1]} m march"
+    return n_coarse
+
+
 def test_first_hit_distances_equal_a_brute_force_march() -> None:
     """Random grids and rays: the DDA's (distance where the ray leaves the first occupied voxel,
     class) equals a 0.01 m march; the few rays that graze a voxel corner (chord < 0.01 m, missed by
@@ -292,24 +322,25 @@ def test_first_hit_distances_equal_a_brute_force_march() -> None:
         origin = rng.uniform(np.asarray(grid.lower) + 0.1, np.asarray(grid.upper) - 0.1)
         dirs = _random_dirs(rng, 400)
         dist, cls = first_hits(lab, origin[None], dirs, grid=grid)
-        dist, cls = dist[0].astype(np.float64), cls[0]
-        bd, bc = _march(lab, grid, origin, dirs, 0.01)
-        ok = (bc == cls) & (np.isnan(bd) == np.isnan(dist))
-        ok_hit = ok & ~np.isnan(dist)
-        assert np.all(dist[ok_hit] <= bd[ok_hit] + 1e-5) and np.all(dist[ok_hit] > bd[ok_hit] - 0.01 - 1e-5)
-        assert (~ok).mean() < 0.02, f"{(~ok).sum()} of {len(ok)} rays disagree with the 0.01 m march"
-        bad = np.flatnonzero(~ok)
-        for step in (0.0005, 0.00002):  # finer marches for the grazing rays only
-            if bad.size == 0:
-                break
-            fd, fc = _march(lab, grid, origin, dirs[bad], step)
-            agree = (fc == cls[bad]) & (np.isnan(fd) == np.isnan(dist[bad]))
-            hit = agree & ~np.isnan(fd)
-            assert np.all(np.abs(dist[bad][hit] - fd[hit]) <= step + 1e-5)
-            bad = bad[~agree]
-        assert bad.size == 0, f"rays {bad} disagree even with a 0.00002 m march"
-        checked += int(ok_hit.sum())
+        n_graze = _agree_with_march(lab, grid, origin, dirs, dist[0].astype(np.float64), cls[0],
+                                    (0.01, 0.0005, 0.00002))
+        assert n_graze < 0.02 * len(dirs)
+        checked += int((cls[0] != F).sum())
     assert checked > 800  # the test saw many real hits
+
+
+def test_protocol_rays_on_the_real_label_equal_a_brute_force_march(real_occ3d_label) -> None:
+    """Full Occ3D grid ([-40, 40] x [-40, 40] x [-1, 5.4]), real label, the protocol's rays (every
+    7th of 14,040) from a LiDAR-like origin: class and distance equal a 0.02 m march (grazing rays:
+    finer marches)."""
+    sem = np.load(real_occ3d_label, allow_pickle=False)["semantics"]
+    origin = np.array([0.94, 0.13, 1.84])
+    dirs = lidar_ray_directions()[::7]
+    dist, cls = first_hits(sem, origin[None], dirs)
+    dist, cls = dist[0].astype(np.float64), cls[0]
+    assert (cls != F).sum() > 1000
+    n_graze = _agree_with_march(sem, GRID, origin, dirs, dist, cls, (0.02, 0.0005, 0.0001))
+    assert n_graze < 0.03 * len(dirs)  # 27 of 2006 here: shallow ground hits clip voxel corners
 
 
 def test_rayiou_identical_grids_is_one_for_every_class_seen(real_occ3d_label) -> None:

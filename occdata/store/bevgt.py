@@ -9,15 +9,16 @@ import zarr
 
 from occdata.bev import bev_bits
 from occdata.errors import OccDataError
+from occdata.store.reader import store_location
 from occdata.store.update import update_samples
 
 __all__ = ["compute_bev_gt"]
 
 
-def compute_bev_gt(store: Path, block: int = 32, progress: bool = True) -> int:
+def compute_bev_gt(store: str | Path, block: int = 32, progress: bool = True) -> int:
     """Returns the number of samples written. Runs as part of `occdata build` already."""
     try:
-        group = zarr.open_group(str(store), mode="r+")
+        group = zarr.open_group(store_location(store), mode="r+")
     except Exception as exc:  # noqa: BLE001
         raise OccDataError(f"not a readable occdata store: {store} ({type(exc).__name__})") from None
     present = group["labels/present"][:]

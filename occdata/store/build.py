@@ -9,7 +9,9 @@ sample and gives a store identical to an uninterrupted build.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import multiprocessing as mp
+import os
 import shutil
 import zlib
 from collections.abc import Iterator
@@ -26,6 +28,7 @@ from zarr.codecs import ZstdCodec
 from occdata.constants import CAMERA_ORDER, CLASS_COLORS, CLASS_NAMES, FREE_LABEL, GRID
 from occdata.errors import OccDataError
 from occdata.nuscenes import NuScenesDataset, load_nuscenes
+from occdata.nuscenes.reader import confined_path
 from occdata.store.layout import (
     FLAT_ARRAYS,
     FLAT_OF_OFFSETS,
@@ -35,11 +38,13 @@ from occdata.store.layout import (
     STATE_DONE,
     STATE_ERROR,
     STATE_PENDING,
+    TOKEN_ARRAYS,
     checksummed_names,
+    token_width,
 )
 from occdata.store.sample import SampleOptions, SampleResult, process_sample, static_arrays, temporal_indices
 
-__all__ = ["BuildConfig", "BuildReport", "build_store", "sample_checksums"]
+__all__ = ["BuildConfig", "BuildReport", "build_store", "find_label_files", "label_layouts", "sample_checksums"]
 
 
 @dataclass(frozen=True)
@@ -48,6 +53,10 @@ class BuildConfig:
     out: Path
     version: str | None = None
     gts: Path | None = None
+    # With labels_required (an explicit --gts), a labels folder in which no sample finds its file
+    # is an error (a wrong folder would give a silently unlabelled store); off for the default
+    # <root>/gts, which may legitimately hold no labels for the selected split (test).
+    labels_required: bool = True
     splits: tuple[str, ...] = ()
     workers: int = 1
     resume: bool = False
@@ -65,6 +74,7 @@ class BuildReport:
     n_errors: int
     n_labelled: int
     processed_now: int
+    warnings: tuple[str, ...] = ()  # from reading the tables (identical duplicates, nbr_samples)
 
 
 def _identity(config: BuildConfig, ds: NuScenesDataset) -> dict[str, Any]:
@@ -84,12 +94,14 @@ def _compressor(name: str) -> Any:
     return None if name == "images/jpeg" else ZstdCodec(level=1)
 
 
-def _create(root: zarr.Group, n: int, block: int, attrs: dict[str, Any]) -> None:
+def _create(root: zarr.Group, n: int, block: int, attrs: dict[str, Any], tok_width: int) -> None:
     n_check = len(checksummed_names())
     for s in PER_SAMPLE:
         shape = (n, *s.shape)
         if s.name == "status/checksum":
             shape = (n, n_check)
+        if s.name in TOKEN_ARRAYS:  # tokens are stored whole, however long
+            shape = (*shape[:-1], tok_width)
         if s.sharded:
             chunks, shards = (1, *shape[1:]), (min(block, n), *shape[1:])
         else:
@@ -170,7 +182,7 @@ class _Writer:
             if committed.any():
                 off = self.arrays[off_name][:][committed]
                 self.cursor[flat_name] = int((off[..., 0] + off[..., 1]).max(initial=0))
-        self.fill = {s.name: np.full(s.shape, s.fill, dtype=s.dtype) for s in PER_SAMPLE}
+        self.fill = {s.name: np.full(self.arrays[s.name].shape[1:], s.fill, dtype=s.dtype) for s in PER_SAMPLE}
 
     def commit(self, results: list[SampleResult]) -> None:
         if not results:
@@ -264,9 +276,16 @@ def _open_or_create(config: BuildConfig, ds: NuScenesDataset, split_names: list[
     tmp = out.with_name(out.name + ".creating")
     shutil.rmtree(tmp, ignore_errors=True)
     root = zarr.open_group(tmp, mode="w")
-    _create(root, len(ds.samples), config.block_samples, attrs)
+    _create(root, len(ds.samples), config.block_samples, attrs, token_width(_all_tokens(ds)))
     tmp.rename(out)  # the store appears only once its layout is complete
     return zarr.open_group(out, mode="r+")
+
+
+def _all_tokens(ds: NuScenesDataset) -> Iterator[str]:
+    for s in ds.samples:
+        yield s.token
+        yield s.lidar.token
+        yield from (c.token for c in s.cameras)
 
 
 def _work(args: tuple[Any, ...]) -> SampleResult:
@@ -285,6 +304,9 @@ def build_store(config: BuildConfig) -> BuildReport:
         raise OccDataError(f"no samples selected under {config.root} (splits: {list(config.splits) or 'all'})")
     if config.gts is not None and not Path(config.gts).is_dir():
         raise OccDataError(f"labels folder not found: {config.gts}")
+    labels: list[Path | None] = [None] * len(ds.samples)
+    if config.gts is not None:
+        labels, ds = find_label_files(Path(config.gts), ds, config.labels_required)
     split_names = sorted({sc.split for sc in ds.scenes})
     scene_pos = {sc.token: i for i, sc in enumerate(ds.scenes)}
     scene_index = np.array([scene_pos[s.scene_token] for s in ds.samples])
@@ -295,20 +317,16 @@ def build_store(config: BuildConfig) -> BuildReport:
     root = _open_or_create(config, ds, split_names)
     writer = _Writer(root)
     pending = np.flatnonzero(writer.initial_state == STATE_PENDING)
-
-    def label_path(i: int) -> Path | None:
-        if config.gts is None:
-            return None
-        s = ds.samples[i]
-        return Path(config.gts) / s.scene_name / s.token / "labels.npz"
+    tok_width = int(root["sample/token"].shape[-1])
 
     def tasks() -> Iterator[tuple[Any, ...]]:
         for i in pending:
             s = ds.samples[i]
             static = static_arrays(
-                s, int(scene_index[i]), split_code[ds.scenes[scene_index[i]].split], prev_index[i], prev_valid[i]
+                s, int(scene_index[i]), split_code[ds.scenes[scene_index[i]].split], prev_index[i], prev_valid[i],
+                tok_width,
             )
-            yield (int(i), s, static, label_path(int(i)), config.options)
+            yield (int(i), s, static, labels[int(i)], config.options)
 
     block = config.block_samples
     run: list[SampleResult] = []
@@ -348,7 +366,47 @@ def build_store(config: BuildConfig) -> BuildReport:
         n_errors=int((final_state == STATE_ERROR).sum()),
         n_labelled=int(root["labels/present"][:].sum()),
         processed_now=processed,
+        warnings=ds.warnings,
     )
+
+
+def label_layouts(scene_name: str, token: str) -> tuple[str, str]:
+    """The two accepted places of a sample's labels, relative to `gts`: Occ3D-nuScenes nests them
+    by scene name, the flat layout (e.g. a single downloaded example) does not."""
+    return f"{scene_name}/{token}/labels.npz", f"{token}/labels.npz"
+
+
+def find_label_files(
+    gts: Path, ds: NuScenesDataset, required: bool
+) -> tuple[list[Path | None], NuScenesDataset]:
+    """Per sample, its `labels.npz` under `gts` (nested `<scene>/<token>/` first, then flat
+    `<token>/`), or None. Scene names and tokens come from the tables: a label path that would leave
+    `gts` marks that sample with a problem (the sample fails, naming the row). With `required`, no
+    match for any sample is an error that shows the expected layout and one expected path.
+    """
+    found: list[Path | None] = []
+    samples = []
+    for s in ds.samples:
+        where = f"scene {s.scene_name!r} / sample {s.token!r} (labels path under --gts)"
+        path: Path | None = None
+        try:
+            candidates = [confined_path(gts, rel, where) for rel in label_layouts(s.scene_name, s.token)]
+            path = next((c for c in candidates if os.path.lexists(c)), None)
+        except OccDataError as exc:
+            s = dataclasses.replace(s, problem=s.problem or str(exc))
+        found.append(path)
+        samples.append(s)
+    if required and ds.samples and not any(found):
+        s = ds.samples[0]
+        nested, flat = label_layouts(s.scene_name, s.token)
+        raise OccDataError(
+            f"no label file under {gts} matches any of the {len(ds.samples)} samples; expected "
+            f"{gts}/<scene name>/<sample token>/labels.npz or {gts}/<sample token>/labels.npz, "
+            f"e.g. {gts / nested} (check --gts; leave it out for samples without labels, e.g. the test split)"
+        )
+    if any(s.problem for s in samples):
+        ds = NuScenesDataset(ds.root, ds.version, ds.scenes, tuple(samples), ds.warnings)
+    return found, ds
 
 
 def _results(tasks: Iterator[tuple[Any, ...]], workers: int) -> Iterator[SampleResult]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import urllib.parse
 from pathlib import Path
 from typing import Any
 
@@ -12,14 +13,27 @@ import zarr
 from occdata.errors import OccDataError
 from occdata.store.layout import PER_SAMPLE, SCHEMA_NAME, SCHEMA_VERSION, STATE_DONE, token_str
 
-__all__ = ["StoreReader", "open_store"]
+__all__ = ["StoreReader", "open_store", "store_location"]
+
+
+def store_location(path: str | Path) -> str:
+    """A store path or fsspec URL as zarr should get it: `file://` URLs (and the `file:/x` that
+    some tools make of them) become plain local paths, so local stores are written with ordinary
+    file operations; other URLs (s3://, gs://, memory://, ...) are passed on unchanged."""
+    text = str(path)
+    if text.startswith("file:"):
+        parsed = urllib.parse.urlparse(text)
+        if parsed.netloc not in ("", "localhost"):
+            raise OccDataError(f"cannot open {text}: only local file:// URLs are supported")
+        return urllib.parse.unquote(parsed.path)
+    return text
 
 
 class StoreReader:
     """A thin reader over one store. `root` may be a local path or an fsspec URL."""
 
     def __init__(self, root: str | Path) -> None:
-        self.path = str(root)
+        self.path = store_location(root)
         try:
             self.group = zarr.open_group(self.path, mode="r")
         except Exception as exc:  # noqa: BLE001 - every failure to open reads the same to a user
@@ -108,6 +122,8 @@ class StoreReader:
 
 
 def open_store(path: str | Path) -> StoreReader:
-    if "://" not in str(path) and not Path(path).exists():
+    """Open a store for reading: a local path or an fsspec URL (`file:///x.zarr`, `s3://...`)."""
+    path = store_location(path)
+    if "://" not in path and not Path(path).exists():
         raise OccDataError(f"store not found: {path}")
     return StoreReader(path)
