@@ -294,18 +294,22 @@ class _Logger:
             self.tb.close()
 
 
-def _evaluate_fn():
+def _evaluate_fns():
+    """The shared evaluation (`fastocc.infer.evaluate`), or None where this install lacks it."""
     try:
-        from fastocc.infer.evaluate import evaluate
+        from fastocc.infer.evaluate import all_reduce_report, evaluate
     except ImportError:
         return None
-    return evaluate
+    return evaluate, all_reduce_report
 
 
-def _report_dict(report: Any) -> dict[str, Any]:
-    """Primitive fields of an EvalReport (numbers only) for metrics.jsonl."""
-    d = dataclasses.asdict(report) if dataclasses.is_dataclass(report) else dict(vars(report))
-    return {k: float(v) for k, v in d.items() if isinstance(v, int | float) and not isinstance(v, bool)}
+def _report_dict(report: Any) -> dict[str, float]:
+    """mIoU (camera mask), geometric IoU, RayIoU and frames/s of an EvalReport as fractions."""
+    out = {"miou": float(report.miou.miou), "geo_iou": float(report.miou.geo_iou),
+           "frames_per_s": float(report.frames_per_s)}
+    if report.rayiou is not None:
+        out["rayiou"] = float(report.rayiou.rayiou)
+    return out
 
 
 def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> TrainResult:
@@ -564,32 +568,35 @@ def _copy_atomic(src: Path, dst: Path) -> None:
 
 
 def _validate(run: _Run, raw_model: nn.Module, ema: EMA | None, say) -> dict[str, float] | None:
-    """Val metrics with the shared evaluation (`fastocc.infer.evaluate`): raw weights, and EMA if kept."""
-    evaluate = _evaluate_fn()
-    if evaluate is None:
+    """Val metrics with the shared evaluation: raw weights, and the EMA weights when kept ("ema_*").
+
+    Every rank predicts its shard of the split; the accumulator states are summed across ranks."""
+    fns = _evaluate_fns()
+    if fns is None:
         say("validation skipped: fastocc.infer.evaluate is not available in this install")
         return None
+    evaluate, all_reduce_report = fns
     from fastocc.infer.predict import PredictConfig
 
     pcfg = PredictConfig(store=run.cfg.store, split=run.cfg.val_split, batch_size=1, workers=run.cfg.workers,
                          device=str(run.info.device))
-    out: dict[str, float] = {}
-    queue_state = None
-    if raw_model.temporal is not None:  # evaluation resets the queue; training continues with its own
-        t = raw_model.temporal
-        queue_state = (t._feats, t._poses, t._bev_aug)
-    report = evaluate(raw_model, run.model_cfg, pcfg, rayiou=run.cfg.val_rayiou, progress=run.progress)
-    out.update(_report_dict(report))
+    temporal = raw_model.temporal
+    queue_state = None if temporal is None else (temporal._feats, temporal._poses, temporal._bev_aug)
+
+    def score() -> dict[str, float]:
+        report = evaluate(raw_model, run.model_cfg, pcfg, rayiou=run.cfg.val_rayiou, progress=run.progress)
+        return _report_dict(all_reduce_report(report, run.info.device) if run.info.enabled else report)
+
+    out = score()
     if ema is not None:
         saved = {k: v.clone() for k, v in raw_model.state_dict().items()}
         raw_model.load_state_dict(ema.state)
         try:
-            report = evaluate(raw_model, run.model_cfg, pcfg, rayiou=run.cfg.val_rayiou, progress=run.progress)
+            out.update({f"ema_{k}": v for k, v in score().items()})
         finally:
             raw_model.load_state_dict(saved)
-        out.update({f"ema_{k}": v for k, v in _report_dict(report).items()})
-    raw_model.clear_caches()
+    raw_model.clear_caches()  # evaluation reset the temporal queue; training continues with its own
     if queue_state is not None:
-        raw_model.temporal._feats, raw_model.temporal._poses, raw_model.temporal._bev_aug = queue_state
+        temporal._feats, temporal._poses, temporal._bev_aug = queue_state
     raw_model.train()
     return out
