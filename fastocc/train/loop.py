@@ -505,7 +505,8 @@ def _train(cfg: TrainConfig, info: D.DistInfo, resume: bool, progress: bool) -> 
                                   "data_wait": wait_log / max(elapsed, 1e-9)})
                     t_log, wait_log, samples_log = time.perf_counter(), 0.0, 0
                 micro_i, acc_loss, acc_terms, acc_n, acc_idx, acc_finite = 0, 0.0, {}, 0, [], True
-                if cfg.save_every_steps and opt_steps % cfg.save_every_steps == 0 and pos < per_epoch:
+                if (cfg.save_every_steps and opt_steps % cfg.save_every_steps == 0 and pos < per_epoch
+                        and nonfinite_run == 0):  # never replace the last good checkpoint by a skipped step's
                     checkpoint(run.out / "last.pt")
             bar.close()
             del loader
