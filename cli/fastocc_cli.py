@@ -126,5 +126,81 @@ def train(config_file: Path | None, resume: bool, no_progress: bool, **options: 
     click.echo(f"done: {result.epochs_done} epochs, {result.opt_steps} steps; best val mIoU {best}; {result.out}")
 
 
+_STORE = click.option("--store", default="data.zarr", show_default=True, help="Store path or fsspec URL.")
+_CKPT = click.option("--checkpoint", "checkpoint", required=True, type=click.Path(path_type=Path),
+                     help="A checkpoint written by fastocc (carries its model config; no preset flags).")
+_SPLIT = click.option("--split", default="val", show_default=True, help="Store split to run on.")
+_TTA = click.option("--tta", is_flag=True, help="Average the class probabilities of the 4 BEV flips (x, y, both).")
+_BATCH = click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True)
+_DEVICE = click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
+_WORKERS = click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
+                        help="Data-loading worker processes.")
+
+
+def _predict_config(store: str, split: str, batch_size: int, workers: int, tta: bool, device: str):  # noqa: ANN202
+    from fastocc.infer import PredictConfig
+
+    return PredictConfig(store=store, split=split, batch_size=batch_size,
+                         workers=workers, tta=tta, device=device)
+
+
+@main.command()
+@_CKPT
+@_STORE
+@_SPLIT
+@click.option("--out", "out", required=True, type=click.Path(path_type=Path),
+              help="Folder for OUT/<scene>/<token>/labels.npz (Occ3D layout, key 'semantics', uint8).")
+@_TTA
+@click.option("--png", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Also draw N pictures (cameras, 3D prediction | truth, top views) into OUT/pictures.")
+@_BATCH
+@_DEVICE
+@_WORKERS
+@click.option("--no-progress", "quiet", is_flag=True, help="No progress bar.")
+@friendly_errors
+def predict(checkpoint: Path, store: str, split: str, out: Path, tta: bool, png: int, batch_size: int, device: str,
+            workers: int, quiet: bool) -> None:
+    """Predict a store split with a checkpoint and write the Occ3D layout (score it with `occdata eval`).
+
+    Samples run in scene order (the temporal queue of models with history is carried); each file is
+    written atomically.
+    """
+    from fastocc.infer.write import PredictRun, run_predict
+
+    cfg = _predict_config(store, split, batch_size, workers, tta, device)
+    summary = run_predict(PredictRun(checkpoint=checkpoint, out=out, predict=cfg, png=png, progress=not quiet))
+    click.echo(f"wrote {summary.files} predictions to {summary.out} in {summary.seconds:.1f} s"
+               + (f"; {len(summary.pictures)} pictures in {summary.out / 'pictures'}" if summary.pictures else ""))
+
+
+@main.command("eval")
+@_CKPT
+@_STORE
+@_SPLIT
+@_TTA
+@click.option("--mask", type=click.Choice(["camera", "lidar", "none"]), default="camera", show_default=True,
+              help="Voxels scored by mIoU (camera = the official Occ3D protocol). RayIoU uses no mask.")
+@click.option("--no-rayiou", is_flag=True, help="Skip RayIoU (mIoU only).")
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
+@_BATCH
+@_DEVICE
+@_WORKERS
+@click.option("--no-progress", "quiet", is_flag=True, help="No progress bar.")
+@friendly_errors
+def eval_cmd(checkpoint: Path, store: str, split: str, tta: bool, mask: str, no_rayiou: bool, as_json: bool,
+             batch_size: int, device: str, workers: int, quiet: bool) -> None:
+    """Score a checkpoint on a store split: Occ3D mIoU, RayIoU@1/2/4 m and inference frames/s.
+
+    Predictions stay in memory; the metric code is `occdata eval`'s, so the numbers equal
+    `fastocc predict` followed by `occdata eval` on the same checkpoint.
+    """
+    from fastocc.infer.evaluate import EvalRun, format_report, run_eval
+
+    cfg = _predict_config(store, split, batch_size, workers, tta, device)
+    report = run_eval(EvalRun(checkpoint=checkpoint, predict=cfg, rayiou=not no_rayiou, mask=mask,  # type: ignore[arg-type]
+                              progress=not quiet))
+    click.echo(json.dumps(report.to_json(), indent=2) if as_json else format_report(report))
+
+
 if __name__ == "__main__":
     main()

@@ -137,29 +137,81 @@ def bev_gt(store: Path, no_progress: bool) -> None:
 
 
 @main.command()
-@_store_opt
+@click.option("--store", default="data.zarr", show_default=True, type=click.Path(path_type=Path),
+              help="An occdata zarr store.")
 @click.option("--recompute", is_flag=True,
               help="Recompute for every labelled sample (default: only those without a shipped camera mask), "
-                   "and report the agreement with the shipped Occ3D masks.")
+                   "and print the agreement with the shipped masks per class.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
 def visibility(store: Path, recompute: bool, no_progress: bool) -> None:
-    """Camera and LiDAR visibility masks by ray casting through the voxel grid (3D DDA).
+    """Occ3D-style camera and LiDAR masks from the stored semantics (docs/visibility.md).
 
-    A voxel is camera-visible if its centre projects inside some camera image with positive depth
-    and no occupied voxel lies strictly between the camera centre and it. The LiDAR mask holds the
-    voxels the stored keyframe LiDAR rays pass through or end in. Occupancy comes from the stored
-    semantics, so only labelled samples are processed.
+    LiDAR mask: voxels the stored keyframe LiDAR rays pass through or end in, plus every object
+    voxel (as Occ3D's). Camera mask, within the label's LiDAR mask (the computed one if the label
+    ships none): LiDAR-observed free and ground voxels, and object voxels whose centre some camera
+    sees with at most 7 object voxels before it on the ray. Stored as visibility/camera and
+    visibility/lidar; only labelled samples are processed.
     """
     from occdata.store.visibility_cmd import compute_visibility
 
     report = compute_visibility(store, recompute=recompute, progress=not no_progress)
     click.echo(f"{store}: visibility computed for {report.computed} samples "
                f"({report.seconds_per_sample:.2f} s/sample); {report.skipped_unlabelled} unlabelled skipped")
-    if report.agreement_iou:
-        ious = np.array(list(report.agreement_iou.values()))
-        click.echo(f"agreement with shipped mask_camera (IoU of visible sets) over {len(ious)} samples: "
-                   f"mean {ious.mean():.4f}, min {ious.min():.4f}")
+    if report.compared:
+        from occdata.constants import CLASS_NAMES, FREE_LABEL
+
+        occ = np.arange(len(CLASS_NAMES)) != FREE_LABEL
+        click.echo(f"agreement with the shipped masks over {report.compared} samples (IoU of visible sets; "
+                   "visible % of each class's voxels):")
+        for name, c in (("mask_camera", report.camera), ("mask_lidar", report.lidar)):
+            click.echo(f"  {name}: IoU all {c.iou():.4f}, occupied {c.iou(occ):.4f}, free {c.iou(~occ):.4f}")
+        click.echo(f"  {'class':20s} {'voxels':>10s} {'camera ours':>11s} {'shipped':>8s} {'IoU':>6s}"
+                   f" {'lidar ours':>10s} {'shipped':>8s} {'IoU':>6s}")
+        cam, lid = report.camera, report.lidar
+        for k, name in enumerate(CLASS_NAMES):
+            n = cam.voxels[k]
+            if not n:
+                continue
+            click.echo(f"  {name:20s} {n:10d} {100 * cam.computed[k] / n:10.1f}% {100 * cam.shipped[k] / n:7.1f}%"
+                       f" {cam.iou([k]):6.3f} {100 * lid.computed[k] / n:9.1f}% {100 * lid.shipped[k] / n:7.1f}%"
+                       f" {lid.iou([k]):6.3f}")
+
+
+@main.command("visibility-check")
+@click.option("--label", required=True, type=click.Path(path_type=Path), help="An Occ3D labels.npz.")
+@click.option("--root", required=True, type=click.Path(path_type=Path),
+              help="nuScenes-format root whose camera rig to use (cameras are rigid on the car).")
+@click.option("--version", default=None, help="Version folder; auto if only one.")
+@click.option("--sample", default=None, help="Sample token whose cameras to use (default: the first keyframe).")
+@click.option("--max-occluders", default=7, show_default=True, type=click.IntRange(min=0),
+              help="Object voxels a camera ray may cross before a voxel stops being visible (0 = strict).")
+@click.option("--json", "as_json", is_flag=True, help="Print the figures as JSON.")
+@friendly_errors
+def visibility_check(label: Path, root: Path, version: str | None, sample: str | None, max_occluders: int,
+                     as_json: bool) -> None:
+    """Recompute one Occ3D label's camera mask from its semantics + mask_lidar and score it.
+
+    Prints the IoU with the label's mask_camera (all / occupied / free voxels) and each class's
+    visible fraction, ours beside the label's. See docs/visibility.md.
+    """
+    from occdata.constants import CLASS_NAMES
+    from occdata.visibility_check import CheckConfig, check_label
+
+    r = check_label(CheckConfig(label=label, root=root, version=version, sample=sample, max_occluders=max_occluders))
+    if as_json:
+        click.echo(json.dumps({
+            "iou_all": r.iou_all, "iou_occupied": r.iou_occupied, "iou_free": r.iou_free,
+            "precision": r.precision, "recall": r.recall,
+            "visible_fraction": {CLASS_NAMES[k]: {"ours": a, "label": b, "voxels": n}
+                                 for k, (a, b, n) in r.visible_fraction.items()},
+        }, indent=2))
+        return
+    click.echo(f"IoU with the label's mask_camera: all {r.iou_all:.4f}, occupied {r.iou_occupied:.4f}, "
+               f"free {r.iou_free:.4f} (precision {r.precision:.4f}, recall {r.recall:.4f})")
+    click.echo(f"  {'class':20s} {'voxels':>8s} {'ours':>7s} {'label':>7s}")
+    for k, (a, b, n) in r.visible_fraction.items():
+        click.echo(f"  {CLASS_NAMES[k]:20s} {n:8d} {100 * a:6.1f}% {100 * b:6.1f}%")
 
 
 @main.command()
@@ -216,6 +268,44 @@ def verify(store: Path, no_progress: bool) -> None:
             click.echo(f"CORRUPT sample {p.index} ({p.token}): {p.array}: {p.reason}")
         raise click.ClickException(f"{len(problems)} problem(s) in {store}")
     click.echo(f"{store}: all {int((reader.state != 0).sum())} committed samples verified")
+
+
+@main.command("eval")
+@click.option("--pred", required=True, type=click.Path(path_type=Path),
+              help="Predictions: <scene>/<token>/labels.npz (key 'semantics', the Occ3D layout) or <token>.npz "
+                   "(key 'semantics' or 'pred'); uint8 (200, 200, 16), 17 = free.")
+@click.option("--store", default=Path("data.zarr"), show_default=True, type=click.Path(path_type=Path),
+              help="The occdata store holding the ground truth and poses.")
+@click.option("--split", default="val", show_default=True, help="Split to score (every labelled sample of it).")
+@click.option("--mask", type=click.Choice(["camera", "lidar", "none"]), default="camera", show_default=True,
+              help="Visibility mask for mIoU (Occ3D uses camera). RayIoU uses no mask.")
+@click.option("--no-rayiou", is_flag=True, help="Skip RayIoU (mIoU only, much faster).")
+@click.option("--json", "as_json", is_flag=True, help="Print the results as JSON (percent; null = class absent).")
+@click.option("--no-progress", is_flag=True, help="No progress bar.")
+@friendly_errors
+def eval_cmd(pred: Path, store: Path, split: str, mask: str, no_rayiou: bool, as_json: bool,
+             no_progress: bool) -> None:
+    """Score saved predictions: Occ3D mIoU (+ geometry IoU) and RayIoU@1/2/4 m, on the CPU.
+
+    mIoU: one confusion matrix over the split, voxels inside the mask, mean over the 17 semantic
+    classes (classes absent from truth and prediction are skipped). RayIoU: the SparseOcc protocol
+    (14,040 LiDAR-like rays from up to 8 origins of the sample's scene, first-hit class and
+    distance). See docs/metrics.md.
+    """
+    from occdata.evaluate import EvalConfig, evaluate_predictions, format_table, results_dict, summary_line
+
+    report = evaluate_predictions(EvalConfig(pred=pred, store=store, split=split, mask=mask,  # type: ignore[arg-type]
+                                             rayiou=not no_rayiou, progress=not no_progress))
+    if as_json:
+        click.echo(json.dumps(results_dict(report.miou, report.rayiou, split=report.split, mask=report.mask,
+                                           n_samples=report.n_samples,
+                                           unlabelled_skipped=report.n_unlabelled_skipped,
+                                           seconds=round(report.seconds, 3)), indent=2))
+        return
+    click.echo(format_table(report.miou, report.rayiou))
+    if report.n_unlabelled_skipped:
+        click.echo(f"({report.n_unlabelled_skipped} unlabelled '{split}' samples skipped)")
+    click.echo(summary_line(report))
 
 
 @main.command()

@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 from occdata.constants import CAMERA_ORDER, FREE_LABEL, GRID
-from occdata.geometry import invert_rigid, transform_points
+from occdata.geometry import transform_points
 from occdata.nuscenes import load_lidar_points, load_nuscenes
 from occdata.synth.rig import CAMERA_TIME_OFFSETS_US, RIG
+from occdata.visibility import GROUND_CLASSES
 
 
 @pytest.fixture(scope="module")
@@ -131,51 +132,35 @@ def test_labels_format_and_content(ds, synth_root: Path) -> None:
         assert seen[c], f"class {c} never labelled"
 
 
-def test_mask_camera_agrees_with_depth_maps(ds, synth_root: Path) -> None:
-    """Independent check from the rendered depth maps: a free voxel whose centre lies clearly in front
-    of the rendered surface (or under sky) should be visible; a voxel clearly behind the surface in
-    every camera that sees it should not. Voxelisation makes objects up to a voxel fatter than the
-    rendered surfaces (a car roof at 1.5 m fills its voxel to 1.8 m, at camera height), so lines of
-    sight grazing objects are blocked in the voxel world: the strict check uses the minimum depth over
-    a 15x15-pixel window, the pixel-exact figure is reported too."""
-    centres = GRID.voxel_centers().reshape(-1, 3).astype(np.float64)
-    counts = {"pixel": [0, 0], "window": [0, 0], "hidden": [0, 0]}
+def test_mask_camera_keeps_the_surfaces_the_cameras_see(ds, synth_root: Path) -> None:
+    """Independent check from the rendered depth maps: un-project every 4th pixel to key ego; the object
+    voxels these surface points fall in are surfaces a camera sees, so mask_camera (Occ3D semantics,
+    docs/visibility.md) must keep them. Free and ground voxels are camera-visible exactly where
+    LiDAR-observed; the camera mask never leaves the LiDAR mask."""
+    seen_visible = seen = 0
     for sample in ds.samples:
         lab = _labels(synth_root, sample)
-        mask = lab["mask_camera"].reshape(-1)
-        free = lab["semantics"].reshape(-1) == FREE_LABEL
-        front = {"pixel": np.zeros(len(centres), bool), "window": np.zeros(len(centres), bool)}
-        behind_all = np.ones(len(centres), bool)
-        seen_any = np.zeros(len(centres), bool)
+        sem, cam_mask, lidar = lab["semantics"], lab["mask_camera"].astype(bool), lab["mask_lidar"].astype(bool)
+        assert not (cam_mask & ~lidar).any()
+        flat = (sem == FREE_LABEL) | np.isin(sem, GROUND_CLASSES)
+        np.testing.assert_array_equal(cam_mask[flat], lidar[flat])
+        hit = np.zeros(GRID.shape, bool)
         for i, cam in enumerate(sample.cameras):
-            p = transform_points(invert_rigid(sample.T_keyego_from_cam(i)), centres)
-            z = p[:, 2]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                uv = p[:, :2] / z[:, None] @ cam.K[:2, :2].T + cam.K[:2, 2]
-            ui, vi = np.round(uv[:, 0]), np.round(uv[:, 1])
-            inimg = (z > 0) & (ui >= 0) & (ui < cam.width) & (vi >= 0) & (vi < cam.height)
-            depth = _depth_of(synth_root, cam.token)
-            d_sky_far = np.where(depth == 0, np.float32(1e4), depth)
-            margin = 1.0 + 0.03 * z
-            for name, dmap in (("pixel", d_sky_far), ("window", cv2.erode(d_sky_far, np.ones((15, 15), np.uint8)))):
-                d = np.zeros(len(z))
-                d[inimg] = dmap[vi[inimg].astype(int), ui[inimg].astype(int)]
-                front[name] |= inimg & (d > z + margin)
-            d = np.zeros(len(z))
-            d[inimg] = d_sky_far[vi[inimg].astype(int), ui[inimg].astype(int)]
-            behind_all &= ~inimg | (d < z - margin)
-            seen_any |= inimg
-        for name in ("pixel", "window"):
-            sel = front[name] & free
-            counts[name][0] += int(mask[sel].sum())
-            counts[name][1] += int(sel.sum())
-        hidden = seen_any & behind_all & ~front["pixel"]
-        counts["hidden"][0] += int((mask[hidden] == 0).sum())
-        counts["hidden"][1] += int(hidden.sum())
-    agree = {k: a / n for k, (a, n) in counts.items()}
-    print("\nmask_camera vs depth maps: " + ", ".join(
-        f"{k} {agree[k] * 100:.2f}% (n={counts[k][1]})" for k in ("pixel", "window", "hidden")))
-    assert agree["window"] > 0.85 and agree["hidden"] > 0.97 and agree["pixel"] > 0.7
+            depth = _depth_of(synth_root, cam.token)[::4, ::4]
+            v, u = np.nonzero(depth > 0)
+            d = depth[v, u].astype(np.float64)
+            rays = np.stack([u * 4.0, v * 4.0, np.ones(len(u))], 1) @ np.linalg.inv(cam.K).T
+            p = transform_points(sample.T_keyego_from_cam(i), rays * d[:, None])
+            idx = np.floor((p - np.asarray(GRID.lower)) / GRID.voxel_size).astype(int)
+            ok = ((idx >= 0) & (idx < np.asarray(GRID.shape))).all(axis=1)
+            hit[tuple(idx[ok].T)] = True
+        objects = hit & ~flat
+        seen += int(objects.sum())
+        seen_visible += int((objects & cam_mask).sum())
+    frac = seen_visible / seen
+    print(f"\nobject voxels holding a rendered surface point: {frac * 100:.2f}% camera-visible (n={seen})")
+    assert seen > 1000 and frac > 0.9
+
 
 
 def _tables(root: Path) -> dict[str, list[dict]]:

@@ -99,15 +99,15 @@ def _read_jpeg(path: Path, width: int, height: int, options: SampleOptions) -> b
 def load_occ3d_labels(path: Path) -> dict[str, np.ndarray]:
     """An Occ3D `labels.npz`: semantics / mask_lidar / mask_camera, each `(200, 200, 16) uint8`.
 
-    Raises `SampleError` naming the file for unreadable files, missing keys, wrong shapes or
-    out-of-range values. Never unpickles.
+    Only `semantics` is required: a label without masks (custom data) gets all-zero masks, which
+    `occdata visibility` fills in. Raises `SampleError` naming the file for unreadable files, a
+    missing `semantics`, wrong shapes or out-of-range values. Never unpickles.
     """
     try:
         with np.load(path, allow_pickle=False) as npz:
-            missing = [k for k in LABEL_KEYS if k not in npz.files]
-            if missing:
-                raise SampleError(f"bad labels {path}: missing keys {missing} (has {sorted(npz.files)})")
-            out = {k: np.asarray(npz[k]) for k in LABEL_KEYS}
+            if "semantics" not in npz.files:
+                raise SampleError(f"bad labels {path}: missing keys ['semantics'] (has {sorted(npz.files)})")
+            out = {k: np.asarray(npz[k]) for k in LABEL_KEYS if k in npz.files}
     except SampleError:
         raise
     except (OSError, ValueError, zlib.error, EOFError) as exc:
@@ -120,7 +120,9 @@ def load_occ3d_labels(path: Path) -> dict[str, np.ndarray]:
     if out["semantics"].max() > FREE_LABEL or out["semantics"].min() < 0:
         raise SampleError(f"bad labels {path}: semantics outside 0..{FREE_LABEL}")
     for k in ("mask_lidar", "mask_camera"):
-        if out[k].max() > 1 or out[k].min() < 0:
+        if k not in out:
+            out[k] = np.zeros(GRID.shape, np.uint8)
+        elif out[k].max() > 1 or out[k].min() < 0:
             raise SampleError(f"bad labels {path}: {k} is not 0/1")
     return {k: v.astype(np.uint8, copy=False) for k, v in out.items()}
 

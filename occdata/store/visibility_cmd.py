@@ -1,35 +1,63 @@
-"""`occdata visibility`: camera and LiDAR visibility masks by ray casting (DESIGN §5.3).
+"""`occdata visibility`: Occ3D-style camera and LiDAR masks for a store (DESIGN §5.3, docs/visibility.md).
 
-Occupancy comes from the stored semantics (label != free), so labelled samples are needed. The
-LiDAR rays are the keyframe points stored as depth targets (points inside some camera image),
-un-projected exactly into the key-ego frame.
+Occupancy comes from the stored semantics, so labelled samples are needed. The LiDAR rays are the
+keyframe points stored as depth targets (points inside some camera image), un-projected exactly
+into the key-ego frame; `occdata.visibility.lidar_mask` adds every object voxel, as Occ3D's mask
+does. The camera mask lies within the sample's LiDAR mask: the label's own `mask_lidar` when it
+ships one, else the computed one (a label-only store).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import zarr
 
-from occdata.constants import FREE_LABEL, GRID
+from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES
 from occdata.errors import OccDataError
 from occdata.geometry import invert_rigid
 from occdata.store.layout import STATE_DONE
 from occdata.store.reader import open_store
 from occdata.store.update import update_samples
-from occdata.visibility import camera_visible_mask, lidar_ray_mask
+from occdata.visibility import camera_mask, lidar_mask
 
-__all__ = ["VisibilityReport", "compute_visibility", "sample_visibility"]
+__all__ = ["MaskCounts", "VisibilityReport", "compute_visibility", "points_keyego_from_uvd", "sample_visibility"]
+
+
+@dataclass
+class MaskCounts:
+    """Voxel counts per class (index 0..17) comparing a computed mask with a shipped one, summed over samples."""
+
+    voxels: np.ndarray = field(default_factory=lambda: np.zeros(NUM_CLASSES, np.int64))
+    computed: np.ndarray = field(default_factory=lambda: np.zeros(NUM_CLASSES, np.int64))
+    shipped: np.ndarray = field(default_factory=lambda: np.zeros(NUM_CLASSES, np.int64))
+    both: np.ndarray = field(default_factory=lambda: np.zeros(NUM_CLASSES, np.int64))
+
+    def add(self, semantics: np.ndarray, computed: np.ndarray, shipped: np.ndarray) -> None:
+        sem = np.where(semantics == 255, FREE_LABEL, semantics).reshape(-1).astype(np.int64)
+        a, b = computed.reshape(-1) != 0, shipped.reshape(-1) != 0
+        self.voxels += np.bincount(sem, minlength=NUM_CLASSES)
+        self.computed += np.bincount(sem[a], minlength=NUM_CLASSES)
+        self.shipped += np.bincount(sem[b], minlength=NUM_CLASSES)
+        self.both += np.bincount(sem[a & b], minlength=NUM_CLASSES)
+
+    def iou(self, classes: np.ndarray | slice = slice(None)) -> float:
+        """IoU of the computed and shipped visible sets over the given classes (1.0 if both are empty)."""
+        both = self.both[classes].sum()
+        union = self.computed[classes].sum() + self.shipped[classes].sum() - both
+        return float(both / union) if union else 1.0
 
 
 @dataclass(frozen=True)
 class VisibilityReport:
     computed: int
     skipped_unlabelled: int
-    agreement_iou: dict[int, float]  # sample index -> IoU(computed camera mask, shipped mask_camera)
+    camera: MaskCounts  # over the samples that ship a camera mask (recompute mode), else empty
+    lidar: MaskCounts
+    compared: int  # samples in `camera` / `lidar`
     seconds_per_sample: float
 
 
@@ -48,36 +76,29 @@ def sample_visibility(
     image_size: np.ndarray,
     lidar_origin_keyego: np.ndarray,
     points_keyego: np.ndarray,
+    mask_lidar: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Camera mask (union over cameras) and LiDAR mask, each `(X, Y, Z) uint8`.
+    """Camera mask and LiDAR mask, each `(X, Y, Z) uint8`.
 
     semantics `(X, Y, Z) uint8`; K `(C, 3, 3)`; T_keyego_from_cam `(C, 4, 4)`; image_size `(C, 2)`
-    (W, H); lidar_origin_keyego `(3,)`; points_keyego `(M, 3)`.
+    (W, H); lidar_origin_keyego `(3,)`; points_keyego `(M, 3)`. The camera mask is computed within
+    `mask_lidar` if given (a shipped one), else within the computed LiDAR mask.
     """
-    occupied = ((semantics != FREE_LABEL) & (semantics != 255)).astype(np.uint8)
     lower = np.asarray(GRID.lower, dtype=np.float64)
-    camera = np.zeros(GRID.shape, dtype=np.uint8)
-    for c in range(len(K)):
-        T_cam_from_keyego = invert_rigid(np.asarray(T_keyego_from_cam[c], dtype=np.float64))
-        camera |= camera_visible_mask(
-            occupied, T_cam_from_keyego, np.asarray(K[c], dtype=np.float64),
-            int(image_size[c, 0]), int(image_size[c, 1]), lower, GRID.voxel_size,
-        )
-    origins = np.repeat(np.asarray(lidar_origin_keyego, dtype=np.float64)[None], len(points_keyego), axis=0)
-    lidar = lidar_ray_mask(origins, np.asarray(points_keyego, dtype=np.float64), lower, GRID.voxel_size,
-                           np.array(GRID.shape, dtype=np.int64))
+    points = np.asarray(points_keyego, dtype=np.float64).reshape(-1, 3)
+    origins = np.broadcast_to(np.asarray(lidar_origin_keyego, dtype=np.float64), points.shape)
+    lidar = lidar_mask(semantics, origins, points, lower, GRID.voxel_size)
+    T_cam = np.stack([invert_rigid(np.asarray(T, dtype=np.float64)) for T in T_keyego_from_cam])
+    camera = camera_mask(semantics, lidar if mask_lidar is None else mask_lidar, np.asarray(K, np.float64), T_cam,
+                         np.asarray(image_size), lower, GRID.voxel_size)
     return camera, lidar
-
-
-def _iou(a: np.ndarray, b: np.ndarray) -> float:
-    union = np.logical_or(a, b).sum()
-    return float(np.logical_and(a, b).sum() / union) if union else 1.0
 
 
 def compute_visibility(
     store: Path, recompute: bool = False, block: int = 32, progress: bool = True
 ) -> VisibilityReport:
-    """Masks for labelled samples that have no shipped camera mask (all with `recompute`)."""
+    """Masks for labelled samples that ship no camera mask (every labelled sample with `recompute`,
+    comparing with the shipped masks per class)."""
     reader = open_store(store)
     group = zarr.open_group(str(store), mode="r+")
     present = group["labels/present"][:]
@@ -90,28 +111,33 @@ def compute_visibility(
         has_mask = np.array([bool(present[i]) and bool(group["labels/mask_camera"][i].any())
                              for i in range(reader.n_samples)])
         select = present & ~has_mask & ~group["visibility/present"][:]
-    agreement: dict[int, float] = {}
+    camera_counts, lidar_counts = MaskCounts(), MaskCounts()
+    compared = 0
 
     def fn(a: dict[str, np.ndarray], i: int) -> dict[str, np.ndarray]:
+        nonlocal compared
         pts = [points_keyego_from_uvd(uvd, a["calib/K"][c], a["calib/T_keyego_from_cam"][c])
                for c, uvd in enumerate(reader.depth_points(i))]
+        shipped_lidar = a["labels/mask_lidar"] if a["labels/mask_lidar"].any() else None
         camera, lidar = sample_visibility(
             a["labels/semantics"], a["calib/K"], a["calib/T_keyego_from_cam"], a["cam/image_size"],
-            a["calib/T_ego_from_lidar"][:3, 3], np.concatenate(pts) if pts else np.zeros((0, 3)),
+            a["calib/T_ego_from_lidar"][:3, 3], np.concatenate(pts) if pts else np.zeros((0, 3)), shipped_lidar,
         )
         if a["labels/mask_camera"].any():
-            agreement[i] = _iou(camera, a["labels/mask_camera"])
+            camera_counts.add(a["labels/semantics"], camera, a["labels/mask_camera"])
+            lidar_counts.add(a["labels/semantics"], lidar, a["labels/mask_lidar"])
+            compared += 1
         return {"visibility/camera": camera, "visibility/lidar": lidar, "visibility/present": np.bool_(True)}
 
     t0 = time.perf_counter()
     n = update_samples(
         group,
-        ("labels/semantics", "labels/mask_camera", "calib/K", "calib/T_keyego_from_cam", "cam/image_size",
-         "calib/T_ego_from_lidar"),
+        ("labels/semantics", "labels/mask_camera", "labels/mask_lidar", "calib/K", "calib/T_keyego_from_cam",
+         "cam/image_size", "calib/T_ego_from_lidar"),
         fn, select, block, "visibility", progress,
     )
     seconds = (time.perf_counter() - t0) / max(n, 1)
     return VisibilityReport(
-        computed=n, skipped_unlabelled=int((done & ~present).sum()), agreement_iou=agreement,
-        seconds_per_sample=seconds,
+        computed=n, skipped_unlabelled=int((done & ~present).sum()), camera=camera_counts, lidar=lidar_counts,
+        compared=compared, seconds_per_sample=seconds,
     )

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from occdata.constants import CAMERA_ORDER, FREE_LABEL, GRID, LIDAR_CHANNEL
+from occdata.constants import CAMERA_ORDER, GRID, LIDAR_CHANNEL
 from occdata.errors import OccDataError
 from occdata.geometry import invert_rigid, quaternion_wxyz_from_matrix, transform_points
 from occdata.synth import render
@@ -19,7 +19,7 @@ from occdata.synth.labels import world_semantics
 from occdata.synth.rig import CAMERA_TIME_OFFSETS_US, RIG, camera_K
 from occdata.synth.tables import make_token, npz_bytes, static_tables, write_atomic, write_tables
 from occdata.synth.world import Primitives, SceneWorld, make_world
-from occdata.visibility import camera_visible_mask, lidar_ray_mask
+from occdata.visibility import camera_mask, lidar_mask
 
 __all__ = [
     "LIDAR_AZIMUTH_STEP_DEG",
@@ -34,6 +34,7 @@ __all__ = [
 ]
 
 KEYFRAME_PERIOD_US = 500_000  # 2 Hz
+MASK_SWEEP_RADIUS = 2  # mask_lidar aggregates the sweeps of keyframes k-2 .. k+2 of the scene
 CAMERA_MAX_DEPTH = 150.0  # m along the optical axis; beyond is drawn as sky (depth 0)
 LIDAR_MAX_RANGE = 80.0  # m
 LIDAR_ELEVATIONS_DEG = np.linspace(-30.67, 10.67, 32)  # HDL-32E-like, ring 0 = lowest beam
@@ -169,18 +170,19 @@ class SensorFrame:
 
 
 def _render_keyframe(
-    out: Path, world: SceneWorld, scene_name: str, t_lidar: int, sd_tokens: dict[str, str], width: int, height: int
+    out: Path, world: SceneWorld, scene_name: str, t_lidar: int, sd_tokens: dict[str, str], width: int, height: int,
+    extra_lidar_times: tuple[int, ...] = (),
 ) -> tuple[list[SensorFrame], dict[str, np.ndarray]]:
     """Render and write the 6 camera images (+ depth maps) and the LiDAR sweep of the keyframe at
-    `t_lidar`; returns the written frames and the Occ3D labels (key ego = ego at `t_lidar`)."""
+    `t_lidar`; returns the written frames and the Occ3D labels (key ego = ego at `t_lidar`).
+    `mask_lidar` also counts the returns of sweeps at `extra_lidar_times` (not written)."""
     lower = np.asarray(GRID.lower, np.float64)
     T_global_from_keyego = ego_transform(world, t_lidar)
     T_keyego_from_global = invert_rigid(T_global_from_keyego)
     wg_lidar = WorldGrid.build(world, t_lidar)
     semantics = world_semantics(world.ground, wg_lidar.prims, T_global_from_keyego)
-    occupied = (semantics != FREE_LABEL).astype(np.uint8)
-    mask_camera = np.zeros(GRID.shape, np.uint8)
     mask_lidar = np.zeros(GRID.shape, np.uint8)
+    cam_K, cam_T = [], []
     frames = []
     for ch in (*CAMERA_ORDER, LIDAR_CHANNEL):
         is_cam = ch != LIDAR_CHANNEL
@@ -197,17 +199,28 @@ def _render_keyframe(
                 raise OccDataError(f"JPEG encoding failed for {rel}")
             write_atomic(out / rel, jpg.tobytes())
             write_atomic(out / "depth" / f"{sd_tokens[ch]}.npy", _npy_bytes(depth))
-            T_cam_from_keyego = invert_rigid(T_keyego_from_global @ T_global_from_sensor)
-            mask_camera |= camera_visible_mask(occupied, T_cam_from_keyego, K, width, height, lower, GRID.voxel_size)
+            cam_K.append(K)
+            cam_T.append(invert_rigid(T_keyego_from_global @ T_global_from_sensor))
         else:
             points = render_lidar(world, wg_lidar, T_global_from_sensor)
             write_atomic(out / rel, points.tobytes())
             T_keyego_from_lidar = T_keyego_from_global @ T_global_from_sensor
-            origins_keyego = np.broadcast_to(T_keyego_from_lidar[:3, 3], (len(points), 3))
-            points_keyego = transform_points(T_keyego_from_lidar, points[:, :3])
-            mask_lidar = lidar_ray_mask(np.ascontiguousarray(origins_keyego), points_keyego, lower, GRID.voxel_size,
-                                        np.asarray(GRID.shape, np.int64))
+            origins = [np.broadcast_to(T_keyego_from_lidar[:3, 3], (len(points), 3))]
+            ends = [transform_points(T_keyego_from_lidar, points[:, :3])]
+            # Like Occ3D, aggregate neighbouring sweeps (their returns only: a ray's free space is
+            # stale once actors have moved) so ground beyond one sweep's rings is observed too.
+            for t_other in extra_lidar_times:
+                T_keyego_from_other = T_keyego_from_global @ ego_transform(world, t_other) @ RIG[ch].T_ego_from_sensor
+                other = render_lidar(world, WorldGrid.build(world, t_other),
+                                     ego_transform(world, t_other) @ RIG[ch].T_ego_from_sensor)
+                p_keyego = transform_points(T_keyego_from_other, other[:, :3])
+                origins.append(p_keyego)
+                ends.append(p_keyego)
+            mask_lidar = lidar_mask(semantics, np.concatenate(origins), np.concatenate(ends), lower, GRID.voxel_size)
         frames.append(SensorFrame(ch, int(ts), rel, T_global_from_ego))
+    # Occ3D semantics: the camera mask lies within the LiDAR mask (DESIGN §5.3, docs/visibility.md).
+    mask_camera = camera_mask(semantics, mask_lidar, np.stack(cam_K), np.stack(cam_T),
+                              np.array([[width, height]] * len(cam_K)), lower, GRID.voxel_size)
     return frames, {"semantics": semantics, "mask_lidar": mask_lidar, "mask_camera": mask_camera}
 
 
@@ -263,8 +276,10 @@ def synthesize(config: SynthConfig) -> Path:
             tables["sample"].append({"token": s_tok, "timestamp": t_lidar, "scene_token": scene_tok,
                                      "prev": sample_toks[k - 1] if k > 0 else "",
                                      "next": sample_toks[k + 1] if k + 1 < config.samples else ""})
+            window = range(max(0, k - MASK_SWEEP_RADIUS), min(config.samples, k + MASK_SWEEP_RADIUS + 1))
+            near = [t0 + 100_000 + j * KEYFRAME_PERIOD_US for j in window if j != k]
             frames, labels = _render_keyframe(out, world, scene_name, t_lidar, {ch: sd_toks[ch][k] for ch in channels},
-                                              W, H)
+                                              W, H, tuple(near))
             for f in frames:
                 tok = sd_toks[f.channel][k]
                 is_cam = f.channel != LIDAR_CHANNEL

@@ -1,0 +1,108 @@
+"""Benchmark BEV-flip test-time augmentation (issue #9): time factor and metric change on a split.
+
+Runs `fastocc.infer.evaluate` on the same split without and with `--tta`, interleaved, `--repeats`
+times each; the time factor is min(TTA prediction time) / min(plain prediction time), where prediction
+time = loading + network (what `fastocc eval` reports as frames/s; metric time excluded). The metrics
+(mIoU with the camera mask, RayIoU) are deterministic, so one value each.
+
+Without --store a synthetic world is written and built in a temporary folder (`occdata synth`; train
+and val scenes). Without --checkpoint a randomly initialised nano network is used (seed 0): its TTA
+metric change says nothing about a trained model, and the output says which weights were used.
+
+    python benchmarks/bench_tta.py [--store S] [--checkpoint C] [--split val] [--repeats 2] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from fastocc.checkpoint import load_model  # noqa: E402
+from fastocc.infer import PredictConfig  # noqa: E402
+from fastocc.infer.evaluate import EvalReport, evaluate  # noqa: E402
+from fastocc.model import FastOcc, preset  # noqa: E402
+
+
+def make_store(tmp: Path, scenes: int, samples: int, width: int, height: int) -> Path:
+    from occdata.store.build import BuildConfig, build_store
+    from occdata.synth import SynthConfig, synthesize
+
+    root = synthesize(SynthConfig(out=tmp / "world", scenes=scenes, samples=samples, seed=7, width=width,
+                                  height=height, progress=False))
+    out = tmp / "data.zarr"
+    build_store(BuildConfig(root=root, out=out, gts=root / "gts", progress=False))
+    return out
+
+
+def _metrics(r: EvalReport) -> dict:
+    return {"miou": r.miou.miou, "geo_iou": r.miou.geo_iou, "rayiou": r.rayiou.rayiou if r.rayiou else None,
+            "infer_seconds": r.infer_seconds, "frames_per_s": r.frames_per_s, "samples": r.samples}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--store", type=Path, default=None)
+    ap.add_argument("--checkpoint", type=Path, default=None)
+    ap.add_argument("--split", default="val")
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--batch-size", type=int, default=1)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--synth-scenes", type=int, default=2)
+    ap.add_argument("--synth-samples", type=int, default=6)
+    ap.add_argument("--synth-size", default="800x450", help="WxH of the synthetic images")
+    ap.add_argument("--json", type=Path, default=None, help="Also write the summary here.")
+    args = ap.parse_args()
+
+    with tempfile.TemporaryDirectory() as tmp:
+        store = args.store
+        if store is None:
+            w, h = (int(v) for v in args.synth_size.split("x"))
+            store = make_store(Path(tmp), args.synth_scenes, args.synth_samples, w, h)
+        if args.checkpoint is not None:
+            model, ckpt = load_model(args.checkpoint, device=args.device)
+            cfg, weights = ckpt.model_config, f"checkpoint {args.checkpoint} (meta {ckpt.meta})"
+        else:
+            torch.manual_seed(0)
+            cfg = preset("nano")
+            model, weights = FastOcc(cfg).to(args.device).eval(), "random-init nano (seed 0): NOT a trained model"
+        runs: dict[bool, list[EvalReport]] = {False: [], True: []}
+        for _ in range(args.repeats):
+            for tta in (False, True):
+                pc = PredictConfig(store=store, split=args.split, batch_size=args.batch_size, tta=tta,
+                                   device=args.device)
+                runs[tta].append(evaluate(model, cfg, pc, progress=False))
+        plain = min(runs[False], key=lambda r: r.infer_seconds)
+        aug = min(runs[True], key=lambda r: r.infer_seconds)
+        summary = {
+            "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
+                        "threads": torch.get_num_threads(), "device": args.device,
+                        "loadavg_1min": os.getloadavg()[0]},
+            "store": str(args.store) if args.store else f"synthetic {args.synth_scenes} scenes x "
+                                                        f"{args.synth_samples} samples, {args.synth_size}",
+            "split": args.split, "weights": weights, "model": cfg.name, "input_hw": list(cfg.input_hw),
+            "repeats": args.repeats,
+            "plain": _metrics(plain), "tta": _metrics(aug),
+            "time_factor": aug.infer_seconds / plain.infer_seconds,
+            "miou_change_points": 100 * (aug.miou.miou - plain.miou.miou),
+            "rayiou_change_points": 100 * (aug.rayiou.rayiou - plain.rayiou.rayiou),
+            "timestamp": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+        }
+    text = json.dumps(summary, indent=2)
+    print(text)
+    if args.json:
+        args.json.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()

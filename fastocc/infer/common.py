@@ -1,0 +1,34 @@
+"""Small pieces shared by `fastocc predict` and `fastocc eval`: the split's samples, the device."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from occdata.errors import OccDataError
+from occdata.store.layout import STATE_DONE
+from occdata.store.reader import StoreReader, open_store
+
+__all__ = ["check_device", "split_indices"]
+
+
+def split_indices(store: str | Path | StoreReader, split: str | None) -> np.ndarray:
+    """Store indices of the built samples of `split` (None: all), ascending; an unknown split name is an
+    `OccDataError` naming the store's splits (the loader yields exactly these samples)."""
+    reader = store if isinstance(store, StoreReader) else open_store(store)
+    keep = reader.small("status/state") == STATE_DONE
+    if split is not None:
+        names = list(reader.attrs["splits"])
+        if split not in names:
+            raise OccDataError(f"unknown split {split!r}; the store has {names}")
+        keep &= reader.small("sample/split") == names.index(split)
+    return np.flatnonzero(keep)
+
+
+def check_device(device: str) -> None:
+    """One clear error for a device that is not there (instead of a CUDA traceback mid-run)."""
+    kind = torch.device(device).type
+    if kind == "cuda" and not torch.cuda.is_available():
+        raise OccDataError(f"device {device!r} asked for, but no CUDA device is available (use --device cpu)")

@@ -1,0 +1,140 @@
+"""`fastocc predict`: a checkpoint's predictions over a split, written in the Occ3D layout.
+
+    OUT/<scene name>/<sample token>/labels.npz     key `semantics`, (200, 200, 16) uint8, 17 = free
+    OUT/pictures/<nnn>_<scene>_<token>.png         with --png N: N samples spread over the split
+
+Every file is written to a temporary name in its folder and renamed into place, so a crash never leaves
+a truncated file behind (files already written stay valid). `occdata eval --pred OUT` scores the folder.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from fastocc.checkpoint import load_model
+from fastocc.infer.common import check_device, split_indices
+from fastocc.infer.predict import PredictConfig, predict_split
+from fastocc.model.config import ModelConfig
+from occdata.errors import OccDataError
+from occdata.render import prediction_picture
+from occdata.store.reader import StoreReader, open_store
+
+__all__ = ["PredictRun", "PredictSummary", "picture_indices", "run_predict", "write_predictions"]
+
+PICTURES_DIR = "pictures"
+
+
+@dataclass(frozen=True)
+class PredictRun:
+    """`fastocc predict` options. `png`: how many pictures (spread evenly over the split's samples)."""
+
+    checkpoint: Path
+    out: Path
+    predict: PredictConfig
+    png: int = 0
+    progress: bool = True
+    prefer_ema: bool = True
+
+
+@dataclass(frozen=True)
+class PredictSummary:
+    out: Path
+    files: int
+    pictures: tuple[Path, ...] = field(default_factory=tuple)
+    seconds: float = 0.0
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _npz_bytes(semantics: np.ndarray) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, semantics=semantics)
+    return buf.getvalue()
+
+
+def picture_indices(indices: np.ndarray, n: int) -> list[int]:
+    """`n` store indices spread evenly over `indices` (all of them when n >= len)."""
+    if n <= 0 or not len(indices):
+        return []
+    pick = np.unique(np.round(np.linspace(0, len(indices) - 1, min(n, len(indices)))).astype(np.int64))
+    return [int(indices[k]) for k in pick]
+
+
+def _scene_name(reader: StoreReader, index: int) -> str:
+    return str(reader.attrs["scenes"][int(reader.small("sample/scene_index")[index])]["name"])
+
+
+def _write_picture(reader: StoreReader, path: Path, index: int, pred: np.ndarray, gt: np.ndarray | None,
+                   mask: np.ndarray | None, title: str) -> None:
+    images = reader.images(index, reduce=2)
+    img = prediction_picture(images, pred, gt, mask, camera_names=reader.attrs.get("camera_order", ()),
+                             title=title)
+    ok, data = cv2.imencode(".png", cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise OSError(f"cannot encode {path}")
+    _atomic_write(path, data.tobytes())
+
+
+def write_predictions(model: nn.Module, model_cfg: ModelConfig, out: Path, cfg: PredictConfig, png: int = 0,
+                      progress: bool = True) -> PredictSummary:
+    """Predict the split of `cfg` and write `OUT/<scene>/<token>/labels.npz` (+ `png` pictures)."""
+    t0 = time.perf_counter()
+    out = Path(out)
+    reader = open_store(cfg.store)
+    indices = split_indices(reader, cfg.split)
+    if not len(indices):
+        raise OccDataError(f"split {cfg.split!r} of {cfg.store} has no built samples")
+    if out.exists() and not out.is_dir():
+        raise OccDataError(f"--out {out} exists and is not a folder")
+    wanted = {idx: k for k, idx in enumerate(picture_indices(indices, png))}
+    pictures: list[Path] = []
+    files = 0
+    with tqdm(total=len(indices), desc="predict", unit="sample", disable=not progress, dynamic_ncols=True) as bar:
+        for batch, probs in predict_split(model, model_cfg, cfg):
+            pred = probs.argmax(1).to(torch.uint8).numpy()
+            del probs
+            for b in range(len(batch)):
+                idx = int(batch.sample_index[b])
+                token, scene = reader.token(idx), _scene_name(reader, idx)
+                _atomic_write(out / scene / token / "labels.npz", _npz_bytes(pred[b]))
+                files += 1
+                if idx in wanted:
+                    has = bool(batch.has_labels[b])
+                    gt = batch.semantics[b].numpy().astype(np.uint8) if has else None
+                    mask = batch.mask_camera[b].numpy().astype(np.uint8) if has else None
+                    path = out / PICTURES_DIR / f"{wanted[idx]:03d}_{scene}_{token}.png"
+                    title = f"{scene}  sample {token}  (store index {idx}){'  TTA' if cfg.tta else ''}"
+                    _write_picture(reader, path, idx, pred[b], gt, mask, title)
+                    pictures.append(path)
+            bar.update(len(batch))
+    return PredictSummary(out=out, files=files, pictures=tuple(sorted(pictures)), seconds=time.perf_counter() - t0)
+
+
+def run_predict(run: PredictRun) -> PredictSummary:
+    """`fastocc predict`: load the checkpoint (its own model config) and `write_predictions`."""
+    check_device(run.predict.device)
+    split_indices(run.predict.store, run.predict.split)  # unknown split / bad store before loading weights
+    model, ckpt = load_model(run.checkpoint, device=run.predict.device, prefer_ema=run.prefer_ema)
+    return write_predictions(model, ckpt.model_config, run.out, run.predict, png=run.png, progress=run.progress)

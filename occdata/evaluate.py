@@ -1,0 +1,291 @@
+"""Score prediction files against a store's labels: `occdata eval` (Occ3D mIoU + RayIoU, no torch).
+
+Predictions are `uint8` label grids `(200, 200, 16)` (x, y, z; 17 = free) in either layout:
+- Occ3D: `PRED/<scene>/<token>/labels.npz` with key `semantics`;
+- flat: `PRED/<token>.npz` with key `semantics` or `pred`.
+Ground truth, masks and poses come from the store. Samples are streamed one at a time (constant
+memory); the table helpers are shared with `fastocc eval`.
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+import threading
+import time
+import zipfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal, TypeVar
+
+import numpy as np
+
+from occdata.constants import CLASS_NAMES, FREE_LABEL, GRID
+from occdata.errors import OccDataError
+from occdata.metrics import MIoUAccumulator, MIoUResult, RayIoUAccumulator, RayIoUResult, scene_ray_origins
+
+__all__ = [
+    "EvalConfig",
+    "EvalReport",
+    "evaluate_predictions",
+    "find_predictions",
+    "format_table",
+    "load_prediction",
+    "results_dict",
+    "summary_line",
+]
+
+MaskName = Literal["camera", "lidar", "none"]
+T = TypeVar("T")
+_MASK_ARRAY = {"camera": "labels/mask_camera", "lidar": "labels/mask_lidar"}
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """What `occdata eval` scores: prediction folder `pred`, store, split, visibility mask for mIoU."""
+
+    pred: Path
+    store: Path = Path("data.zarr")
+    split: str = "val"
+    mask: MaskName = "camera"
+    rayiou: bool = True
+    progress: bool = True
+
+
+@dataclass(frozen=True)
+class EvalReport:
+    split: str
+    mask: str
+    n_samples: int
+    n_unlabelled_skipped: int
+    miou: MIoUResult
+    rayiou: RayIoUResult | None
+    seconds: float
+
+
+def find_predictions(pred: Path) -> dict[str, Path]:
+    """Token -> prediction file for every `<scene>/<token>/labels.npz` and `<token>.npz` under `pred`."""
+    pred = Path(pred)
+    if not pred.is_dir():
+        raise OccDataError(f"prediction folder not found: {pred}")
+    found: dict[str, Path] = {}
+    for path in sorted(pred.glob("*/*/labels.npz")) + sorted(pred.glob("*.npz")):
+        token = path.parent.name if path.name == "labels.npz" else path.stem
+        if token in found:
+            raise OccDataError(f"two predictions for token {token}: {found[token]} and {path}")
+        found[token] = path
+    return found
+
+
+def load_prediction(path: Path) -> np.ndarray:
+    """One prediction file -> `(200, 200, 16) uint8`; one clear error per kind of bad file."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            key = "semantics" if "semantics" in z.files else "pred" if "pred" in z.files else None
+            if key is None:
+                raise OccDataError(f"{path}: no 'semantics' or 'pred' array (found: {', '.join(z.files) or 'none'})")
+            a = z[key]
+    except OccDataError:
+        raise
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise OccDataError(f"{path}: not a readable .npz file ({type(exc).__name__}: {exc})") from None
+    if a.shape != GRID.shape:
+        raise OccDataError(f"{path}: prediction shape {a.shape}, expected {GRID.shape} (x, y, z)")
+    if a.dtype != np.uint8:
+        if not np.issubdtype(a.dtype, np.integer):
+            raise OccDataError(f"{path}: prediction dtype {a.dtype}, expected integer class labels (uint8)")
+        if a.min() < 0 or a.max() >= len(CLASS_NAMES):
+            raise OccDataError(f"{path}: labels outside 0..{len(CLASS_NAMES) - 1} (min {a.min()}, max {a.max()})")
+        a = a.astype(np.uint8)
+    if int(a.max()) >= len(CLASS_NAMES):
+        bad = int((a >= len(CLASS_NAMES)).sum())
+        raise OccDataError(f"{path}: {bad} voxels with labels >= {len(CLASS_NAMES)} (max {int(a.max())}); "
+                           f"labels must be 0..{len(CLASS_NAMES) - 1}, {FREE_LABEL} = free")
+    return a
+
+
+def _split_samples(reader: Any, split: str) -> tuple[list[int], int]:
+    """Committed store indices of `split` with labels, and how many committed ones lack labels."""
+    from occdata.store.layout import STATE_DONE
+
+    splits = list(reader.attrs.get("splits", []))
+    if split not in splits:
+        raise OccDataError(f"split '{split}' is not in store {reader.path} (splits: {', '.join(splits) or 'none'})")
+    in_split = np.flatnonzero((reader.small("sample/split") == splits.index(split))
+                              & (reader.small("status/state") == STATE_DONE))
+    if in_split.size == 0:
+        raise OccDataError(f"split '{split}' has no samples in store {reader.path}")
+    labelled = reader.small("labels/present")[in_split]
+    if not labelled.any():
+        raise OccDataError(f"split '{split}' has no labelled samples in store {reader.path} (nothing to score)")
+    return [int(i) for i in in_split[labelled]], int((~labelled).sum())
+
+
+def _iter_label_blocks(reader: Any, indices: list[int],
+                       names: tuple[str, ...]) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
+    """Yield (index, {name: array}) for sorted `indices`, reading each array one storage block (shard)
+    at a time: per-sample zarr reads cost more than the metric; memory stays one block."""
+    arrays = {name: reader.array(name) for name in names}
+    first = arrays[names[0]]
+    block = int((first.shards or first.chunks)[0])
+    pos = 0
+    while pos < len(indices):
+        lo = indices[pos] // block * block
+        hi = min(lo + block, reader.n_samples)
+        try:
+            data = {name: np.asarray(a[lo:hi]) for name, a in arrays.items()}
+        except Exception as exc:  # noqa: BLE001 - codec errors surface as many types
+            raise OccDataError(f"corrupt store data in samples {lo}..{hi - 1} of {reader.path}: {exc}") from None
+        while pos < len(indices) and indices[pos] < hi:
+            i = indices[pos]
+            yield i, {name: d[i - lo] for name, d in data.items()}
+            pos += 1
+
+
+def _read_ahead(items: Iterator[T], depth: int = 4) -> Iterator[T]:
+    """Iterate `items` in a background thread, at most `depth` ahead: file and store decoding (zlib,
+    zstd release the GIL) overlaps the metric. Exceptions reach the consumer unchanged."""
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    end = object()
+
+    def put(item: tuple[bool, Any]) -> None:
+        while not stop.is_set():
+            try:
+                q.put(item, timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def work() -> None:
+        try:
+            for x in items:
+                put((True, x))
+                if stop.is_set():
+                    return
+            put((True, end))
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer as is
+            put((False, exc))
+
+    thread = threading.Thread(target=work, name="occdata-eval-read", daemon=True)
+    thread.start()
+    try:
+        while True:
+            ok, x = q.get()
+            if not ok:
+                raise x
+            if x is end:
+                return
+            yield x
+    finally:
+        stop.set()
+
+
+def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
+    """Score the prediction files of `cfg.pred` on the labelled samples of `cfg.split`."""
+    from tqdm import tqdm
+
+    from occdata.store.reader import open_store
+
+    if cfg.mask not in ("camera", "lidar", "none"):
+        raise OccDataError(f"unknown mask '{cfg.mask}' (camera, lidar or none)")
+    reader = open_store(cfg.store)
+    indices, n_unlabelled = _split_samples(reader, cfg.split)
+    files = find_predictions(cfg.pred)
+    if not files:
+        raise OccDataError(f"no predictions in {cfg.pred} (expected <scene>/<token>/labels.npz or <token>.npz)")
+    store_tokens = [reader.token(i) for i in range(reader.n_samples)]
+    index_of = {t: i for i, t in enumerate(store_tokens)}
+    scenes = reader.attrs["scenes"]
+    scene_index = reader.small("sample/scene_index")
+    unknown = sorted(t for t in files if t not in index_of)
+    if unknown:
+        raise OccDataError(f"{len(unknown)} prediction(s) for tokens not in store {reader.path}, "
+                           f"e.g. {files[unknown[0]]}")
+    for token, path in files.items():
+        if path.name == "labels.npz":
+            want = scenes[int(scene_index[index_of[token]])]["name"]
+            if path.parent.parent.name != want:
+                raise OccDataError(f"{path}: sample {token} belongs to scene {want}, not {path.parent.parent.name}")
+    missing = [i for i in indices if store_tokens[i] not in files]
+    if missing:
+        i = missing[0]
+        scene = scenes[int(scene_index[i])]["name"]
+        raise OccDataError(f"{len(missing)} of {len(indices)} labelled '{cfg.split}' samples have no prediction, "
+                           f"e.g. {store_tokens[i]} (expected {cfg.pred}/{scene}/{store_tokens[i]}/labels.npz "
+                           f"or {cfg.pred}/{store_tokens[i]}.npz)")
+
+    miou = MIoUAccumulator()
+    ray = RayIoUAccumulator() if cfg.rayiou else None
+    names = ("labels/semantics",) + ((_MASK_ARRAY[cfg.mask],) if cfg.mask != "none" else ())
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(indices), desc=f"eval {cfg.split}", unit="sample", disable=not cfg.progress)
+    samples = ((i, arrays, load_prediction(files[store_tokens[i]]))
+               for i, arrays in _iter_label_blocks(reader, indices, names))
+    for i, arrays, pred in _read_ahead(samples):
+        path = files[store_tokens[i]]
+        gt = arrays["labels/semantics"]
+        try:
+            miou.update(gt, pred, arrays.get(_MASK_ARRAY.get(cfg.mask, "")))
+            if ray is not None:
+                ray.update(gt, pred, scene_ray_origins(reader, i))
+        except OccDataError as exc:
+            raise OccDataError(f"{path}: {exc}") from None
+        bar.update()
+    bar.close()
+    return EvalReport(split=cfg.split, mask=cfg.mask, n_samples=len(indices), n_unlabelled_skipped=n_unlabelled,
+                      miou=miou.result(), rayiou=ray.result() if ray else None,
+                      seconds=time.perf_counter() - t0)
+
+
+def _pct(x: float) -> float | None:
+    return None if math.isnan(x) else round(100.0 * float(x), 4)
+
+
+def results_dict(miou: MIoUResult, rayiou: RayIoUResult | None, **extra: Any) -> dict[str, Any]:
+    """JSON-ready summary, values in PERCENT (null where a class is absent: 0/0)."""
+    out: dict[str, Any] = {"unit": "percent", **extra, "miou": _pct(miou.miou), "geo_iou": _pct(miou.geo_iou)}
+    if rayiou is not None:
+        out["rayiou"] = _pct(rayiou.rayiou)
+        out["rayiou_at"] = {f"{t:g}": _pct(v) for t, v in rayiou.rayiou_at.items()}
+    per = {}
+    for c, name in enumerate(CLASS_NAMES[:FREE_LABEL]):
+        row: dict[str, float | None] = {"iou": _pct(miou.per_class_iou[c])}
+        if rayiou is not None:
+            for j, t in enumerate(rayiou.rayiou_at):
+                row[f"rayiou@{t:g}"] = _pct(rayiou.per_class[j, c])
+        per[name] = row
+    out["per_class"] = per
+    return out
+
+
+def format_table(miou: MIoUResult, rayiou: RayIoUResult | None) -> str:
+    """Per-class table (percent; '-' where a class is absent from truth and prediction)."""
+
+    def f(x: float) -> str:
+        return f"{100 * x:8.2f}" if not math.isnan(x) else f"{'-':>8}"
+
+    taus = list(rayiou.rayiou_at) if rayiou is not None else []
+    head = f"{'class':22s}{'IoU':>8}" + "".join(f"{'RayIoU@' + format(t, 'g'):>11}" for t in taus)
+    lines = [head, "-" * len(head)]
+    for c, name in enumerate(CLASS_NAMES[:FREE_LABEL]):
+        row = f"{name:22s}{f(miou.per_class_iou[c])}"
+        if rayiou is not None:
+            row += "".join(f"   {f(rayiou.per_class[j, c])}" for j in range(len(taus)))
+        lines.append(row)
+    lines.append("-" * len(head))
+    mean = f"{'mean':22s}{f(miou.miou)}"
+    if rayiou is not None:
+        mean += "".join(f"   {f(v)}" for v in rayiou.rayiou_at.values())
+    lines.append(mean)
+    return "\n".join(lines)
+
+
+def summary_line(report: EvalReport) -> str:
+    s = (f"{report.split}: {report.n_samples} samples, mIoU {100 * report.miou.miou:.2f} "
+         f"(mask {report.mask}), geometry IoU {100 * report.miou.geo_iou:.2f}")
+    if report.rayiou is not None:
+        at = ", ".join(f"@{t:g} {100 * v:.2f}" for t, v in report.rayiou.rayiou_at.items())
+        s += f", RayIoU {100 * report.rayiou.rayiou:.2f} ({at})"
+    return s + f"; {report.n_samples / max(report.seconds, 1e-9):.1f} samples/s"
