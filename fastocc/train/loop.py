@@ -353,10 +353,6 @@ def _train(cfg: TrainConfig, info: D.DistInfo, resume: bool, progress: bool) -> 
         (no_decay if p.ndim <= 1 or name.endswith(".bias") else decay).append(p)  # no decay on norms/biases
     optimizer = torch.optim.AdamW([{"params": decay, "weight_decay": cfg.weight_decay},
                                    {"params": no_decay, "weight_decay": 0.0}], lr=cfg.peak_lr())
-    if info.enabled:
-        model = nn.parallel.DistributedDataParallel(
-            raw_model, device_ids=[info.device.index] if info.device.type == "cuda" else None,
-            find_unused_parameters=False)
 
     say(f"fastocc train: preset {cfg.preset} head {cfg.head} input {run.model_cfg.input_hw} history "
         f"{run.model_cfg.num_history} on {info.world_size} x {info.device}; {n_train} training samples/epoch, "
@@ -393,6 +389,10 @@ def _train(cfg: TrainConfig, info: D.DistInfo, resume: bool, progress: bool) -> 
         say(f"estimated time per epoch on CPU: ~{dt * per_epoch / 60:.1f} min ({per_epoch} micro-batches x "
             f"{dt:.2f} s forward+backward, measured on one synthetic batch; data loading not included)")
     D.barrier(info)
+    if info.enabled:  # wrap after the time estimate: DDP's gradient hooks must see only real steps
+        model = nn.parallel.DistributedDataParallel(
+            raw_model, device_ids=[info.device.index] if info.device.type == "cuda" else None,
+            find_unused_parameters=True)  # e.g. the ResNet fc layer is never used
 
     def checkpoint(path: Path, meta_extra: dict[str, Any] | None = None) -> None:
         rng = [get_rng_state()]
