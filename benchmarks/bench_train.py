@@ -89,7 +89,15 @@ def run_curve(run: Path, store: str, rayiou: bool, workers: int) -> dict:
 
             step = int(load_checkpoint(p).meta.get("opt_steps", 0))
             ckpts.setdefault(step, p)  # one checkpoint per step count
-    points = [evaluate_checkpoint(p, store, noise, rayiou, workers) for _, p in sorted(ckpts.items())]
+    cache_path = run / "bench_eval.json"  # results per (checkpoint name, step): re-runs only score new ones
+    cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
+    points = []
+    for step, p in sorted(ckpts.items()):
+        key = f"{p.name}@{step}@{store}@{rayiou}"
+        if key not in cache:
+            cache[key] = evaluate_checkpoint(p, store, noise, rayiou, workers)
+            cache_path.write_text(json.dumps(cache, indent=1))
+        points.append(cache[key])
     records = [json.loads(ln) for ln in (run / "metrics.jsonl").read_text().splitlines() if ln.strip()]
     train = [r for r in records if r["kind"] == "train"]
     epochs = [r for r in records if r["kind"] == "epoch"]
