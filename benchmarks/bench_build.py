@@ -27,6 +27,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from occdata.bev import bev_bits  # noqa: E402
+from occdata.jpeg_check import decode_jpeg_checked  # noqa: E402
 from occdata.nuscenes import load_lidar_points, load_nuscenes  # noqa: E402
 from occdata.projection import project_to_cameras  # noqa: E402
 from occdata.store.build import BuildConfig, build_store  # noqa: E402
@@ -139,6 +140,15 @@ def run(root: Path, gts: Path | None, work: Path, repeats: int) -> dict:
     t_kernel, t_peer = time_pair(lambda: project_to_cameras(pts, T, K, sizes, 0.0),
                                  lambda: peer_projection(pts, s), 50 * repeats)
 
+    # The corrupt-JPEG check (issue #12): the same 1/8-scale validation decode of the 6 images with
+    # and without capturing libjpeg's warnings (stderr redirected per decode), interleaved.
+    blobs = [np.frombuffer(c.path.read_bytes(), np.uint8) for c in s.cameras]
+    t_plain, t_checked = time_pair(
+        lambda: [cv2.imdecode(b, cv2.IMREAD_REDUCED_GRAYSCALE_8) for b in blobs],
+        lambda: [decode_jpeg_checked(b, cv2.IMREAD_REDUCED_GRAYSCALE_8) for b in blobs], 20 * repeats)
+    jpeg_check = {"plain_decode_ms_per_sample": 1e3 * t_plain, "checked_decode_ms_per_sample": 1e3 * t_checked,
+                  "overhead_ms_per_sample": 1e3 * (t_checked - t_plain)}
+
     # Bytes: store vs source (images + LiDAR + labels of the same samples).
     source = sum(c.path.stat().st_size for s in samples for c in s.cameras)
     source += sum(s.lidar.path.stat().st_size for s in samples)
@@ -181,6 +191,7 @@ def run(root: Path, gts: Path | None, work: Path, repeats: int) -> dict:
         "visibility": {"s_per_sample": vis.seconds_per_sample, "samples": vis.computed,
                        "mean_iou_vs_shipped_mask_camera": float(np.mean(ious)) if ious else None,
                        "min_iou": float(np.min(ious)) if ious else None},
+        "jpeg_warning_check": jpeg_check,
         "bytes": {"source_per_sample": source / n, "store_per_sample": store_bytes / n,
                   "store_over_source": store_bytes / source},
         "image_encodings_bytes_and_decode_s": {k: {"bytes": b, "decode_s": t} for k, (b, t) in enc.items()},

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from cli._common import friendly_errors
+from cli._common import DEFAULT_STORE, friendly_errors
 
 __all__ = ["main"]
 
@@ -32,6 +32,9 @@ def main() -> None:
 @click.option("--warmup", type=click.IntRange(min=0), default=1, help="Untimed runs first.")
 @click.option("--mode", type=click.Choice(["infer", "train"]), default="infer", help="train = forward + backward.")
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="torch CPU threads (default: torch's).")
+@click.option("--runtime", "runtimes", multiple=True, type=click.Choice(["torch", "compile", "onnx", "all"]),
+              help="End-to-end latency per frame (raw images -> preprocessing -> semantics) through the Predictor "
+              "for eager PyTorch, torch.compile and/or ONNX Runtime in one run; repeat or use 'all'.")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
 def bench(
     preset_name: str,
@@ -42,12 +45,30 @@ def bench(
     warmup: int,
     mode: str,
     threads: int | None,
+    runtimes: tuple[str, ...],
     as_json: bool,
 ) -> None:
-    """Per-stage latency, analytic FLOPs (MACs), parameters and peak memory on synthetic inputs."""
+    """Per-stage latency, analytic FLOPs (MACs), parameters and peak memory on synthetic inputs.
+
+    With --runtime: end-to-end latency per frame of eager PyTorch / torch.compile / ONNX Runtime instead.
+    """
     from fastocc.bench import BenchConfig, format_report, run_benchmark  # torch import only when used
     from fastocc.model import HeadKind
 
+    if runtimes:
+        from fastocc.bench import RUNTIMES, RuntimeBenchConfig, format_runtime_report, run_runtime_benchmark
+
+        if head == "all" or mode != "infer":
+            raise click.UsageError("--runtime measures one head in infer mode (not --head all / --mode train)")
+        chosen = RUNTIMES if "all" in runtimes else tuple(dict.fromkeys(runtimes))
+        rcfg = RuntimeBenchConfig(preset=preset_name, head=HeadKind(head), runtimes=chosen, device=device,
+                                  repeats=repeats, warmup=warmup, threads=threads)
+        try:
+            rresult = run_runtime_benchmark(rcfg)
+        except ValueError as exc:
+            raise click.ClickException(str(exc)) from None
+        click.echo(json.dumps(rresult, indent=2) if as_json else format_runtime_report(rresult))
+        return
     heads = tuple(HeadKind) if head == "all" else (HeadKind(head),)
     cfg = BenchConfig(
         preset=preset_name,
@@ -66,8 +87,37 @@ def bench(
     click.echo(json.dumps(result, indent=2) if as_json else format_report(result))
 
 
+@main.command("export")
+@click.option("--checkpoint", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="fastocc checkpoint (carries its model config).")
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="ONNX file to write; the JSON sidecar goes next to it (model.onnx -> model.json).")
+@click.option("--rig", default=None, help="Store or nuScenes tree whose first sample gives K and extrinsics "
+              "(default: the synthetic nuScenes-like rig).")
+@click.option("--opset", type=click.IntRange(min=1), default=18, show_default=True, help="ONNX opset (>= 18).")
+@click.option("--frames", type=click.IntRange(min=1), default=2, show_default=True,
+              help="Random frames in the parity check (temporal models: a moving stream).")
+@friendly_errors
+def export_cmd(checkpoint: Path, out: Path, rig: str | None, opset: int, frames: int) -> None:
+    """Export a checkpoint to ONNX for one fixed camera rig, checked against PyTorch.
+
+    Intrinsics, extrinsics and the test image transform are baked in (LSS indices and interpolation
+    weights precomputed), so the graph uses standard ONNX operators only. The file is written only if
+    ONNX Runtime (CPU) matches PyTorch: max |logit diff| <= 1e-3 and >= 99.9% identical argmax.
+    """
+    from fastocc.deploy import ExportConfig, export_onnx
+
+    rep = export_onnx(ExportConfig(checkpoint=checkpoint, out=out, rig=rig, opset=opset, frames=frames))
+    p = rep.parity
+    click.echo(f"parity over {p.frames} frames: max |logit diff| {p.max_abs_diff:.2e} (limit "
+               f"{p.limits['max_abs_diff']:g}), argmax agreement {100 * p.min_agreement:.4f}% (limit "
+               f"{100 * p.limits['min_agreement']:g}%): {'PASS' if p.passed else 'FAIL'}")
+    click.echo(f"wrote {rep.out} ({rep.size_mib:.1f} MiB, opset {rep.opset}) and {rep.sidecar} in "
+               f"{rep.seconds:.1f} s; rig {rep.rig_hash[:12]}")
+
+
 @main.command("show-batch")
-@click.option("--store", required=True, help="Store path or fsspec URL.")
+@click.option("--store", default=DEFAULT_STORE, show_default=True, help="Store path or fsspec URL.")
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="PNG to write.")
 @click.option("--index", "-i", type=click.IntRange(min=0), default=0, help="Store index of the sample.")
 @click.option("--train", is_flag=True, help="Random training augmentation (default: the test transform).")

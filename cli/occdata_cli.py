@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
+import sys
 
 import click
 import numpy as np
 
-from cli._common import friendly_errors
+from cli._common import DEFAULT_STORE, friendly_errors, local_path
 
 __all__ = ["main"]
 
@@ -23,7 +23,8 @@ def main() -> None:
 
 
 @main.command()
-@click.option("--out", required=True, type=click.Path(path_type=Path), help="Output directory (nuScenes-format root).")
+@click.option("--out", required=True, metavar="DIR",
+              help="Output directory (nuScenes-format root; a folder or a file:// URL).")
 @click.option("--scenes", default=2, show_default=True, type=click.IntRange(min=1), help="Number of scenes.")
 @click.option("--samples", default=10, show_default=True, type=click.IntRange(min=1),
               help="Keyframes (2 Hz) per scene.")
@@ -32,7 +33,7 @@ def main() -> None:
 @click.option("--height", default=900, show_default=True, type=click.IntRange(min=16), help="Image height.")
 @click.option("--no-progress", is_flag=True, help="Hide the progress bar.")
 @friendly_errors
-def synth(out: Path, scenes: int, samples: int, seed: int, width: int, height: int, no_progress: bool) -> None:
+def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: int, no_progress: bool) -> None:
     """Write a synthetic nuScenes-format world with Occ3D labels and exact depth maps.
 
     Tables (v1.0-mini), 6 ray-cast camera images, a 32-beam LiDAR sweep per keyframe,
@@ -40,26 +41,30 @@ def synth(out: Path, scenes: int, samples: int, seed: int, width: int, height: i
     """
     from occdata.synth import SynthConfig, synthesize
 
-    root = synthesize(SynthConfig(out=out, scenes=scenes, samples=samples, seed=seed, width=width, height=height,
-                                  progress=not no_progress))
+    root = synthesize(SynthConfig(out=local_path(out, "--out"), scenes=scenes, samples=samples, seed=seed,
+                                  width=width, height=height, progress=not no_progress))
     click.echo(f"wrote {scenes} scenes x {samples} samples to {root}")
 
 
 @main.command()
-@click.option("--root", required=True, type=click.Path(path_type=Path), help="nuScenes-format dataset root.")
+@click.option("--root", required=True, metavar="DIR", help="nuScenes-format dataset root (a folder or a file:// URL).")
 @click.option("--version", default=None, help="Version folder (v1.0-trainval, v1.0-mini, ...); auto if only one.")
 @click.option("--check-files/--no-check-files", default=True, show_default=True,
               help="Check that every keyframe image and LiDAR file exists.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @friendly_errors
-def scan(root: Path, version: str | None, check_files: bool, as_json: bool) -> None:
+def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> None:
     """Read and validate a nuScenes-format tree; print scenes and samples per split.
 
-    Every foreign key is resolved; a broken tree fails with one line naming the file or token.
+    Every foreign key is resolved and every sample is checked as `occdata build` checks it from
+    the tables (values, paths inside the root, calibration, intrinsics); a broken tree fails with
+    one line naming the file, row or token.
     """
     from occdata.nuscenes.summary import scan_tree
 
-    summary = scan_tree(root, version, check_files)
+    summary = scan_tree(local_path(root, "--root"), version, check_files)
+    for note in summary["warnings"]:
+        click.echo(f"warning: {note}", err=True)
     if as_json:
         click.echo(json.dumps(summary, indent=2))
         return
@@ -69,12 +74,15 @@ def scan(root: Path, version: str | None, check_files: bool, as_json: bool) -> N
 
 
 @main.command()
-@click.option("--root", required=True, type=click.Path(path_type=Path), help="nuScenes-format dataset root.")
+@click.option("--root", required=True, metavar="DIR", help="nuScenes-format dataset root (a folder or a file:// URL).")
 @click.option("--version", default=None, help="Version folder (v1.0-trainval, v1.0-mini, ...); auto if only one.")
-@click.option("--out", required=True, type=click.Path(path_type=Path), help="Output zarr store (a folder).")
-@click.option("--gts", type=click.Path(path_type=Path), default=None,
-              help="Occ3D-nuScenes labels folder (gts/<scene>/<sample_token>/labels.npz). Samples without a "
-                   "label file are stored without labels (e.g. the test split).")
+@click.option("--out", default=DEFAULT_STORE, show_default=True, metavar="DIR",
+              help="Output zarr store (a folder or a file:// URL).")
+@click.option("--gts", default=None, metavar="DIR",
+              help="Occ3D-nuScenes labels folder: <gts>/<scene>/<sample_token>/labels.npz or the flat "
+                   "<gts>/<sample_token>/labels.npz. Default: <root>/gts if it exists. Samples without a "
+                   "label file are stored without labels (e.g. the test split); an explicit --gts in "
+                   "which no sample finds its file is an error.")
 @click.option("--split", "splits", multiple=True,
               help="Keep only scenes of this split (repeatable): train, val, test, mini_train, mini_val, ...")
 @click.option("--workers", type=int, default=1, show_default=True, help="Worker processes converting samples.")
@@ -86,10 +94,11 @@ def scan(root: Path, version: str | None, check_files: bool, as_json: bool) -> N
               help="Samples per shard (the unit of writing).")
 @click.option("--image-scale", type=float, default=1.0, show_default=True,
               help="1.0 stores the original JPEG bytes; < 1 re-encodes the images at that scale.")
-@click.option("--jpeg-quality", type=int, default=90, show_default=True, help="Quality when re-encoding.")
+@click.option("--jpeg-quality", type=click.IntRange(1, 100), default=90, show_default=True,
+              help="Quality (1-100) when re-encoding.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
-def build(root: Path, version: str | None, out: Path, gts: Path | None, splits: tuple[str, ...], workers: int,
+def build(root: str, version: str | None, out: str, gts: str | None, splits: tuple[str, ...], workers: int,
           resume: bool, on_error: str, block_samples: int, image_scale: float, jpeg_quality: int,
           no_progress: bool) -> None:
     """Convert a nuScenes-format tree (+ Occ3D labels) into one chunked zarr store.
@@ -101,12 +110,30 @@ def build(root: Path, version: str | None, out: Path, gts: Path | None, splits: 
     from occdata.store.build import BuildConfig, build_store
     from occdata.store.sample import SampleOptions
 
-    report = build_store(BuildConfig(
-        root=root, out=out, version=version, gts=gts, splits=splits, workers=workers, resume=resume,
-        on_error=on_error,  # type: ignore[arg-type]
-        block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality),
-        progress=not no_progress,
-    ))
+    root_path = local_path(root, "--root")
+    gts_path = local_path(gts, "--gts") if gts is not None else None
+    if gts_path is not None:
+        click.echo(f"labels: {gts_path} (--gts)")
+    elif (root_path / "gts").is_dir():
+        gts_path = root_path / "gts"
+        click.echo(f"labels: {gts_path} (found in the dataset root)")
+    else:
+        click.echo(f"labels: none (no --gts, and {root_path / 'gts'} does not exist): the store will be unlabelled")
+    out_path = local_path(out, "--out")
+    try:
+        report = build_store(BuildConfig(
+            root=root_path, out=out_path, version=version, gts=gts_path,
+            labels_required=gts is not None, splits=splits, workers=workers, resume=resume,
+            on_error=on_error,  # type: ignore[arg-type]
+            block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality),
+            progress=not no_progress,
+        ))
+    except KeyboardInterrupt:
+        click.echo(f"\ninterrupted: every sample committed so far is kept in {out_path}; rerun the same command "
+                   "with --resume to continue", err=True)
+        sys.exit(130)
+    for note in report.warnings:
+        click.echo(f"warning: {note}", err=True)
     click.echo(
         f"{report.store}: {report.n_done}/{report.n_samples} samples done, {report.n_errors} errors, "
         f"{report.n_labelled} labelled ({report.processed_now} processed in this run)"
@@ -115,14 +142,16 @@ def build(root: Path, version: str | None, out: Path, gts: Path | None, splits: 
         click.echo("errors are recorded in the store: see `occdata info --store ...`", err=True)
 
 
-_store_opt = click.option("--store", required=True, type=click.Path(path_type=Path), help="An occdata zarr store.")
+# A plain string, not click.Path: click would turn an fsspec URL such as file:///x/y.zarr into file:/x/y.zarr.
+_store_opt = click.option("--store", default=DEFAULT_STORE, show_default=True, metavar="STORE",
+                          help="An occdata zarr store: a folder or an fsspec URL (file://, s3://, ...).")
 
 
 @main.command("bev-gt")
 @_store_opt
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
-def bev_gt(store: Path, no_progress: bool) -> None:
+def bev_gt(store: str, no_progress: bool) -> None:
     """(Re)compute the BEV multi-hot ground truth from the stored voxel labels.
 
     One uint32 bit field per BEV cell (bit c: class c occurs in the column; bit 17 = free).
@@ -137,14 +166,13 @@ def bev_gt(store: Path, no_progress: bool) -> None:
 
 
 @main.command()
-@click.option("--store", default="data.zarr", show_default=True, type=click.Path(path_type=Path),
-              help="An occdata zarr store.")
+@_store_opt
 @click.option("--recompute", is_flag=True,
               help="Recompute for every labelled sample (default: only those without a shipped camera mask), "
                    "and print the agreement with the shipped masks per class.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
-def visibility(store: Path, recompute: bool, no_progress: bool) -> None:
+def visibility(store: str, recompute: bool, no_progress: bool) -> None:
     """Occ3D-style camera and LiDAR masks from the stored semantics (docs/visibility.md).
 
     LiDAR mask: voxels the stored keyframe LiDAR rays pass through or end in, plus every object
@@ -179,8 +207,8 @@ def visibility(store: Path, recompute: bool, no_progress: bool) -> None:
 
 
 @main.command("visibility-check")
-@click.option("--label", required=True, type=click.Path(path_type=Path), help="An Occ3D labels.npz.")
-@click.option("--root", required=True, type=click.Path(path_type=Path),
+@click.option("--label", required=True, metavar="FILE", help="An Occ3D labels.npz (a path or a file:// URL).")
+@click.option("--root", required=True, metavar="DIR",
               help="nuScenes-format root whose camera rig to use (cameras are rigid on the car).")
 @click.option("--version", default=None, help="Version folder; auto if only one.")
 @click.option("--sample", default=None, help="Sample token whose cameras to use (default: the first keyframe).")
@@ -188,7 +216,7 @@ def visibility(store: Path, recompute: bool, no_progress: bool) -> None:
               help="Object voxels a camera ray may cross before a voxel stops being visible (0 = strict).")
 @click.option("--json", "as_json", is_flag=True, help="Print the figures as JSON.")
 @friendly_errors
-def visibility_check(label: Path, root: Path, version: str | None, sample: str | None, max_occluders: int,
+def visibility_check(label: str, root: str, version: str | None, sample: str | None, max_occluders: int,
                      as_json: bool) -> None:
     """Recompute one Occ3D label's camera mask from its semantics + mask_lidar and score it.
 
@@ -198,7 +226,8 @@ def visibility_check(label: Path, root: Path, version: str | None, sample: str |
     from occdata.constants import CLASS_NAMES
     from occdata.visibility_check import CheckConfig, check_label
 
-    r = check_label(CheckConfig(label=label, root=root, version=version, sample=sample, max_occluders=max_occluders))
+    r = check_label(CheckConfig(label=local_path(label, "--label"), root=local_path(root, "--root"), version=version,
+                                sample=sample, max_occluders=max_occluders))
     if as_json:
         click.echo(json.dumps({
             "iou_all": r.iou_all, "iou_occupied": r.iou_occupied, "iou_free": r.iou_free,
@@ -218,7 +247,7 @@ def visibility_check(label: Path, root: Path, version: str | None, sample: str |
 @_store_opt
 @click.option("--json", "as_json", is_flag=True, help="Print everything as JSON (scene table included).")
 @friendly_errors
-def info(store: Path, as_json: bool) -> None:
+def info(store: str, as_json: bool) -> None:
     """Samples, scenes, arrays (shapes, dtypes, chunks), attrs and recorded errors of a store."""
     from occdata.store.inspect import store_info
     from occdata.store.reader import open_store
@@ -249,33 +278,49 @@ def info(store: Path, as_json: bool) -> None:
 @main.command()
 @_store_opt
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
+@click.option("--images", is_flag=True, help="Also decode every stored image and report damaged JPEGs.")
 @friendly_errors
-def verify(store: Path, no_progress: bool) -> None:
+def verify(store: str, no_progress: bool, images: bool) -> None:
     """Recompute every committed sample's checksums; report corruption with the sample it hits.
 
-    Exits 1 if anything is wrong.
+    With --images, also decode every stored image and report those that libjpeg decodes only with
+    a warning (damage that a store built before that check at build time may hold). Exits 1 if
+    anything is wrong.
     """
     from tqdm import tqdm
 
     from occdata.store.reader import open_store
-    from occdata.store.verify import verify_store
+    from occdata.store.verify import pending_samples, verify_store
 
     reader = open_store(store)
     with tqdm(total=reader.n_samples, desc="verify", unit="sample", disable=no_progress) as bar:
         problems = verify_store(reader, progress=bar.update)
+    pending = pending_samples(reader)
+    if images:
+        from occdata.store.verify_images import verify_images
+
+        with tqdm(total=len(reader.done_indices()), desc="images", unit="sample", disable=no_progress) as bar:
+            problems += verify_images(reader, progress=bar.update)
     if problems:
         for p in problems:
             click.echo(f"CORRUPT sample {p.index} ({p.token}): {p.array}: {p.reason}")
-        raise click.ClickException(f"{len(problems)} problem(s) in {store}")
+    if len(pending):
+        click.echo(f"PENDING {len(pending)} of {reader.n_samples} samples not built yet (first: {int(pending[0])}, "
+                   f"last: {int(pending[-1])}): the build was interrupted or is running; finish it with "
+                   "`occdata build ... --resume`")
+    if problems or len(pending):
+        what = [f"{len(problems)} problem(s)"] if problems else []
+        what += [f"{len(pending)} pending sample(s)"] if len(pending) else []
+        raise click.ClickException(f"{' and '.join(what)} in {store}")
     click.echo(f"{store}: all {int((reader.state != 0).sum())} committed samples verified")
 
 
 @main.command("eval")
-@click.option("--pred", required=True, type=click.Path(path_type=Path),
+@click.option("--pred", required=True, metavar="DIR",
               help="Predictions: <scene>/<token>/labels.npz (key 'semantics', the Occ3D layout) or <token>.npz "
                    "(key 'semantics' or 'pred'); uint8 (200, 200, 16), 17 = free.")
-@click.option("--store", default=Path("data.zarr"), show_default=True, type=click.Path(path_type=Path),
-              help="The occdata store holding the ground truth and poses.")
+@click.option("--store", default=DEFAULT_STORE, show_default=True, metavar="STORE",
+              help="The occdata store holding the ground truth and poses (a folder or an fsspec URL).")
 @click.option("--split", default="val", show_default=True, help="Split to score (every labelled sample of it).")
 @click.option("--mask", type=click.Choice(["camera", "lidar", "none"]), default="camera", show_default=True,
               help="Visibility mask for mIoU (Occ3D uses camera). RayIoU uses no mask.")
@@ -283,7 +328,7 @@ def verify(store: Path, no_progress: bool) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON (percent; null = class absent).")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
-def eval_cmd(pred: Path, store: Path, split: str, mask: str, no_rayiou: bool, as_json: bool,
+def eval_cmd(pred: str, store: str, split: str, mask: str, no_rayiou: bool, as_json: bool,
              no_progress: bool) -> None:
     """Score saved predictions: Occ3D mIoU (+ geometry IoU) and RayIoU@1/2/4 m, on the CPU.
 
@@ -294,7 +339,7 @@ def eval_cmd(pred: Path, store: Path, split: str, mask: str, no_rayiou: bool, as
     """
     from occdata.evaluate import EvalConfig, evaluate_predictions, format_table, results_dict, summary_line
 
-    report = evaluate_predictions(EvalConfig(pred=pred, store=store, split=split, mask=mask,  # type: ignore[arg-type]
+    report = evaluate_predictions(EvalConfig(pred=local_path(pred, "--pred"), store=store, split=split, mask=mask,  # type: ignore[arg-type]
                                              rayiou=not no_rayiou, progress=not no_progress))
     if as_json:
         click.echo(json.dumps(results_dict(report.miou, report.rayiou, split=report.split, mask=report.mask,
@@ -311,9 +356,9 @@ def eval_cmd(pred: Path, store: Path, split: str, mask: str, no_rayiou: bool, as
 @main.command()
 @_store_opt
 @click.option("--index", "-i", type=int, required=True, help="Sample index in the store.")
-@click.option("--out", required=True, type=click.Path(path_type=Path), help="Output .npz file.")
+@click.option("--out", required=True, metavar="FILE", help="Output .npz file (a path or a file:// URL).")
 @friendly_errors
-def dump(store: Path, index: int, out: Path) -> None:
+def dump(store: str, index: int, out: str) -> None:
     """Write one sample as plain numpy arrays (.npz, no pickles).
 
     Keys: images (6,H,W,3) uint8 RGB; K; T_ego_from_cam; T_keyego_from_cam; T_ego_from_lidar;
@@ -324,21 +369,21 @@ def dump(store: Path, index: int, out: Path) -> None:
     from occdata.store.inspect import dump_sample
     from occdata.store.reader import open_store
 
-    keys = dump_sample(open_store(store), index, out)
+    keys = dump_sample(open_store(store), index, local_path(out, "--out"))
     click.echo(f"{out}: {', '.join(keys)}")
 
 
 @main.command("check-projection")
 @_store_opt
 @click.option("--index", "-i", type=int, default=0, show_default=True, help="Sample index in the store.")
-@click.option("--out", required=True, type=click.Path(path_type=Path), help="Output .png file.")
+@click.option("--out", required=True, metavar="FILE", help="Output .png file (a path or a file:// URL).")
 @friendly_errors
-def check_projection(store: Path, index: int, out: Path) -> None:
+def check_projection(store: str, index: int, out: str) -> None:
     """Draw the stored LiDAR depth targets on the 6 images (coloured by depth) into one PNG."""
     from occdata.store.draw import draw_projection
     from occdata.store.reader import open_store
 
-    click.echo(str(draw_projection(open_store(store), index, out)))
+    click.echo(str(draw_projection(open_store(store), index, local_path(out, "--out"))))
 
 
 if __name__ == "__main__":

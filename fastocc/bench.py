@@ -25,7 +25,15 @@ from torch import nn
 from .losses import LossConfig, LossTargets, occupancy_loss
 from .model import FastOcc, HeadKind, ModelConfig, preset, synthetic_inputs
 
-__all__ = ["BenchConfig", "format_report", "run_benchmark"]
+__all__ = [
+    "RUNTIMES",
+    "BenchConfig",
+    "RuntimeBenchConfig",
+    "format_report",
+    "format_runtime_report",
+    "run_benchmark",
+    "run_runtime_benchmark",
+]
 
 
 @dataclass(frozen=True)
@@ -262,4 +270,119 @@ def format_report(result: dict[str, Any]) -> str:
                 f"{s['fwd_loss_bwd_s_per_sample']:.3f} s/sample, {s['params'] / 1e6:.2f} M params, "
                 f"peak {s['peak_mib']:.0f} MiB"
             )
+    return "\n".join(lines)
+
+
+RUNTIMES: tuple[str, ...] = ("torch", "compile", "onnx")
+
+
+@dataclass(frozen=True)
+class RuntimeBenchConfig:
+    """End-to-end latency per frame through `fastocc.Predictor`: 6 raw uint8 1600 x 900 images (synthetic rig)
+    -> preprocessing (the loader's test transform) -> network -> (200, 200, 16) uint8 semantics.
+
+    runtimes: "torch" (the network, eager), "compile" (the fixed-rig export wrapper through torch.compile),
+    "onnx" (the exported graph in ONNX Runtime, exported here with its parity check)."""
+
+    preset: str = "nano"
+    head: HeadKind = HeadKind.FASTOCC
+    runtimes: tuple[str, ...] = RUNTIMES
+    device: str = "cpu"
+    repeats: int = 5
+    warmup: int = 2
+    threads: int | None = None
+    seed: int = 0
+
+
+def run_runtime_benchmark(cfg: RuntimeBenchConfig) -> dict[str, Any]:
+    """Median end-to-end ms per frame and its split (preprocess / network) per runtime, in one process."""
+    import tempfile
+    from pathlib import Path
+
+    import numpy as np
+
+    from .deploy import ExportConfig, Predictor, export_model, synthetic_rig
+
+    device = torch.device(cfg.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda requested but CUDA is not available")
+    unknown = sorted(set(cfg.runtimes) - set(RUNTIMES))
+    if unknown:
+        raise ValueError(f"unknown runtime(s) {unknown}; choose from {list(RUNTIMES)}")
+    if cfg.threads is not None:
+        torch.set_num_threads(cfg.threads)
+    threads = torch.get_num_threads()
+    model_cfg = preset(cfg.preset, head=cfg.head)
+    model = _build(model_cfg, torch.device("cpu"), cfg.seed).eval()
+    rig = synthetic_rig(model_cfg.num_cams)
+    rng = np.random.default_rng(cfg.seed)
+    frames = [[rng.integers(0, 256, (int(h), int(w), 3), dtype=np.uint8) for w, h in rig.image_size]
+              for _ in range(2)]
+    poses = [np.eye(4), np.eye(4)]
+    poses[1][0, 3] = 1.0
+    result: dict[str, Any] = {"runtimes": {}}
+    reference = None
+    with tempfile.TemporaryDirectory() as tmp:
+        for rt in cfg.runtimes:
+            t0 = time.perf_counter()
+            if rt == "onnx":
+                if device.type != "cpu":
+                    raise ValueError("the onnx runtime is benchmarked on CPU only (onnxruntime CPU build)")
+                out = Path(tmp) / "model.onnx"
+                export_model(model, rig, ExportConfig(checkpoint=Path("(in memory)"), out=out, frames=1))
+                pred = Predictor(out, threads=threads)
+            else:
+                pred = Predictor.from_model(model, rig, runtime=rt, device=cfg.device)
+            setup = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            first = pred(frames[0], poses[0])
+            first_call = time.perf_counter() - t0
+            for i in range(cfg.warmup):
+                pred(frames[(i + 1) % 2], poses[(i + 1) % 2])
+            totals, pre, netw = [], [], []
+            for i in range(cfg.repeats):
+                t0 = time.perf_counter()
+                pred(frames[i % 2], poses[i % 2])
+                totals.append(time.perf_counter() - t0)
+                pre.append(pred.times.preprocess)
+                netw.append(pred.times.network)
+            if reference is None:
+                reference = first
+            result["runtimes"][rt] = {
+                "ms": 1e3 * statistics.median(totals),
+                "preprocess_ms": 1e3 * statistics.median(pre),
+                "network_ms": 1e3 * statistics.median(netw),
+                "setup_s": setup,
+                "first_call_s": first_call,
+                "argmax_agreement_with_first": float((first == reference).mean()),
+            }
+            del pred
+    rts = result["runtimes"]
+    if "torch" in rts:
+        for r in rts.values():
+            r["ratio_to_torch"] = r["ms"] / rts["torch"]["ms"]
+    result["config"] = {
+        "preset": cfg.preset,
+        "head": cfg.head.value,
+        "input_hw": list(model_cfg.input_hw),
+        "device": cfg.device,
+        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+        "threads": threads,
+        "repeats": cfg.repeats,
+        "warmup": cfg.warmup,
+        "torch": torch.__version__,
+        "image_size": [int(v) for v in rig.image_size[0]],
+    }
+    return result
+
+
+def format_runtime_report(result: dict[str, Any]) -> str:
+    c = result["config"]
+    lines = [f"preset {c['preset']} head {c['head']} {c['input_hw']} end-to-end per frame on {c['device_name']} "
+             f"({c['threads']} threads), raw {c['image_size'][0]}x{c['image_size'][1]} images"]
+    for rt, r in result["runtimes"].items():
+        ratio = f"  x{r['ratio_to_torch']:.2f} of torch" if "ratio_to_torch" in r else ""
+        lines.append(f"  {rt:<8} {r['ms']:9.1f} ms  (preprocess {r['preprocess_ms']:7.1f}, network "
+                     f"{r['network_ms']:8.1f}){ratio}  setup {r['setup_s']:.1f} s, first call "
+                     f"{r['first_call_s']:.1f} s, argmax agreement {100 * r['argmax_agreement_with_first']:.3f}%")
     return "\n".join(lines)

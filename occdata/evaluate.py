@@ -46,7 +46,7 @@ class EvalConfig:
     """What `occdata eval` scores: prediction folder `pred`, store, split, visibility mask for mIoU."""
 
     pred: Path
-    store: Path = Path("data.zarr")
+    store: str | Path = "data.zarr"  # a path or an fsspec URL
     split: str = "val"
     mask: MaskName = "camera"
     rayiou: bool = True

@@ -194,4 +194,4 @@ def test_show_batch_cli(store: Path, tmp_path: Path) -> None:
     img = __import__("cv2").imread(str(out))
     assert img.shape[1] == 3 * 704 and img.std() > 20
     r = CliRunner().invoke(main, ["show-batch", "--store", str(store), "--out", str(out), "-i", "4"])
-    assert r.exit_code != 0 and "did not build" in r.output
+    assert r.exit_code != 0 and "failed to build" in r.output

@@ -288,17 +288,21 @@ def _agree_with_march(lab: np.ndarray, grid: OccGrid, origin: np.ndarray, dirs: 
     returns how many rays disagreed with the coarsest."""
     todo = np.arange(len(dirs))
     n_coarse = -1
+    diag = float(np.linalg.norm(np.asarray(grid.upper) - np.asarray(grid.lower)))
     for h in steps:
         if todo.size == 0:
             break
+        # grazing rays are rare: many left after the coarse march means a real disagreement
+        assert n_coarse < 0 or todo.size <= 50, f"{todo.size} rays disagree with the coarse march"
+        chunk = max(1, int(4e6 / (diag / h)))  # bounded memory: rays x samples per march
         agree = np.zeros(todo.size, bool)
-        for lo in range(0, todo.size, 200):  # bounded memory
-            sl = todo[lo: lo + 200]
+        for lo in range(0, todo.size, chunk):
+            sl = todo[lo: lo + chunk]
             bd, bc = _march(lab, grid, origin, dirs[sl], h)
             d = dist[sl]
             both_miss = np.isnan(bd) & np.isnan(d)
             close = (d <= bd + 1e-4) & (d > bd - h - 1e-4)
-            agree[lo: lo + 200] = (bc == cls[sl]) & (both_miss | close)
+            agree[lo: lo + chunk] = (bc == cls[sl]) & (both_miss | close)
         todo = todo[~agree]
         if n_coarse < 0:
             n_coarse = int(todo.size)
@@ -335,7 +339,7 @@ def test_protocol_rays_on_the_real_label_equal_a_brute_force_march(real_occ3d_la
     dist, cls = first_hits(sem, origin[None], dirs)
     dist, cls = dist[0].astype(np.float64), cls[0]
     assert (cls != F).sum() > 1000
-    n_graze = _agree_with_march(sem, GRID, origin, dirs, dist, cls, (0.02, 0.0005, 0.00002))
+    n_graze = _agree_with_march(sem, GRID, origin, dirs, dist, cls, (0.02, 0.0005, 0.0001))
     assert n_graze < 0.03 * len(dirs)  # 27 of 2006 here: shallow ground hits clip voxel corners
 
 

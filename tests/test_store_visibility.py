@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 import shutil
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -78,7 +79,9 @@ def test_default_mode_only_fills_missing_masks(synth_store: Path, tmp_path: Path
     shutil.copytree(synth_store, store)
     assert compute_visibility(store, progress=False).computed == 0  # every sample ships a mask
     g = zarr.open_group(str(store), mode="r+")
-    g["labels/mask_camera"][1] = 0  # custom data without a camera mask
+    g["labels/mask_camera"][1] = 0  # custom data without a camera mask (checksum kept consistent: readers check it)
+    col = list(g.attrs["checksum_arrays"]).index("labels/mask_camera")
+    g["status/checksum"][1, col] = zlib.crc32(np.zeros(g["labels/mask_camera"].shape[1:], np.uint8).tobytes())
     report = compute_visibility(store, progress=False)
     assert report.computed == 1 and report.compared == 0
     assert g["visibility/present"][:].tolist() == [False, True] + [False] * (g["visibility/present"].shape[0] - 2)

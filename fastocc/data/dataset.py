@@ -7,6 +7,7 @@ Call `ds.set_epoch(e)` before each epoch (with persistent_workers=False, so work
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,6 +20,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 from fastocc.data.batch import Batch, collate
 from fastocc.data.order import Slot, sequential_batches, shuffle_units
 from fastocc.data.sample import SampleConfig, SampleMaker, StoreSamples
+from fastocc.data.workers import check_main_guard, default_worker_context
 from occdata.errors import OccDataError
 from occdata.store.layout import STATE_DONE
 from occdata.store.reader import open_store
@@ -52,6 +54,10 @@ class LoaderConfig:
     drop_last: bool = False
     skip_batches: int = 0  # start the epoch at this rank's batch k (exact resume); skipped ones are not decoded
 
+    def __post_init__(self) -> None:
+        if isinstance(self.batch_size, bool) or not isinstance(self.batch_size, int) or self.batch_size < 1:
+            raise OccDataError(f"batch_size must be an integer >= 1, got {self.batch_size!r}")
+
 
 class StoreDataset(IterableDataset):
     def __init__(self, config: LoaderConfig) -> None:
@@ -61,6 +67,10 @@ class StoreDataset(IterableDataset):
         self._samples: StoreSamples | None = None
         reader = open_store(config.store)  # fail fast in the main process on a bad path
         self.indices = self._select(reader)
+        if config.drop_last and 0 < len(self.indices) < config.batch_size:
+            # An epoch of zero batches is never what was meant: refuse rather than train on nothing.
+            raise OccDataError(f"drop_last with {len(self.indices)} samples and batch_size {config.batch_size} "
+                               "would yield no batch; lower batch_size or turn drop_last off")
 
     def _select(self, reader) -> np.ndarray:
         state = reader.small("status/state")
@@ -138,9 +148,12 @@ class StoreDataset(IterableDataset):
                 yield collate([make(r, self._rng(r.index)) for r in batch])
             batch.clear()
 
+        emitted = [0]
+
         def emit(raw) -> Iterator[Batch]:
             batch.append(raw)
             if len(batch) == c.batch_size:
+                emitted[0] += 1
                 yield from full()
 
         for unit in units:
@@ -157,12 +170,17 @@ class StoreDataset(IterableDataset):
             yield from emit(buffer[k])
         if batch and not c.drop_last:
             yield from full()
+        elif batch and not emitted[0]:
+            _warn_all_dropped(len(batch), c.batch_size, slot)
 
     def _iter_sequential(self, slot: Slot) -> Iterator[Batch]:
         c, s = self.config, self.samples()
         make = SampleMaker(s, c.sample)
         plan = sequential_batches(self.indices, s.scene_index, slot, c.batch_size, c.seed, self.epoch,
                                   c.segment_len)
+        dropped = sum(len(e) for e in plan if c.drop_last and len(e) < c.batch_size)
+        if dropped and dropped == sum(len(e) for e in plan):
+            _warn_all_dropped(dropped, c.batch_size, slot)
         for entries in plan[self._skip(slot):]:
             if c.drop_last and len(entries) < c.batch_size:
                 continue
@@ -173,18 +191,23 @@ class StoreDataset(IterableDataset):
             yield collate(out)
 
 
+def _warn_all_dropped(n: int, batch_size: int, slot: Slot) -> None:
+    warnings.warn(f"drop_last: rank {slot.rank} worker {slot.worker} got {n} samples, fewer than batch_size "
+                  f"{batch_size}, and yields no batch this epoch; use fewer workers or a smaller batch_size",
+                  RuntimeWarning, stacklevel=3)
+
+
 def make_loader(config: LoaderConfig, num_workers: int = 0, pin_memory: bool = False,
                 **kwargs) -> torch.utils.data.DataLoader:
     """A DataLoader over `StoreDataset(config)` (batching happens in the dataset).
 
-    Workers start from a forkserver, not a plain fork: zarr reads run on an asyncio IO thread and
-    a thread pool, and a fork taken while one of them holds a lock (e.g. right after a failed read
-    in the parent) can leave the child blocked forever. Pass multiprocessing_context to override.
+    Workers start from a forkserver unless `multiprocessing_context` is given (see workers.py for
+    why, and for the one-line error a script without `if __name__ == "__main__":` gets).
     """
-    if num_workers > 0 and "multiprocessing_context" not in kwargs:
-        ctx = torch.multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["torch", "zarr", "cv2", "fastocc.data"])  # cheap worker starts
-        kwargs["multiprocessing_context"] = ctx
+    if num_workers > 0:
+        if "multiprocessing_context" not in kwargs:
+            kwargs["multiprocessing_context"] = default_worker_context()
+        check_main_guard(kwargs["multiprocessing_context"])  # one clear line, not a dead worker
     ds = StoreDataset(config)
     return torch.utils.data.DataLoader(ds, batch_size=None, num_workers=num_workers, pin_memory=pin_memory,
                                        **kwargs)
@@ -196,9 +219,7 @@ def load_batch(store: str | Path, indices: list[int], sample: SampleConfig, seed
     make = SampleMaker(samples, sample)
     out = []
     for i in indices:
-        samples.reader._check_index(i)
-        if not samples.loadable(i):
-            raise OccDataError(f"sample {i} ({samples.reader.token(i)}) did not build (status != done)")
+        samples.reader.require_done(i)  # out of range, failed (with its reason) or pending: one line
         (raw,) = samples.read_run(i, i + 1)
         out.append(make(raw, np.random.default_rng([seed, epoch, i])))
     return collate(out)

@@ -22,10 +22,19 @@ from occdata.constants import GRID, NUM_CLASSES
 from occdata.depth_targets import DEPTH_MAX, DEPTH_MIN, depth_target
 from occdata.errors import OccDataError
 from occdata.image_ops import normalise_chw, normalise_lut
-from occdata.store.layout import N_CAM, STATE_DONE
+from occdata.store.layout import N_CAM, STATE_DONE, STATE_PENDING
 from occdata.store.reader import StoreReader
 
-__all__ = ["RawSample", "SampleConfig", "SampleMaker", "StoreSamples", "decode_augmented"]
+__all__ = [
+    "RawSample",
+    "SampleConfig",
+    "SampleMaker",
+    "StoreSamples",
+    "decode_augmented",
+    "decode_jpeg",
+    "warp_input",
+    "warp_normalise",
+]
 
 _REDUCE_FLAG = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
                 8: cv2.IMREAD_REDUCED_COLOR_8}
@@ -117,36 +126,62 @@ class StoreSamples:
             for name in _LABELS:
                 labels[name] = read(name, a, b)
         out = []
+        check = self.reader.integrity.check_rows  # a missing chunk reads as fill: compare with the checksums
         for i in idx:
             jo, uo = self.img_off[i], self.uvd_off[i]
             lab = {k: v[i - min(labelled)] for k, v in labels.items()} if self.present[i] else None
-            out.append(RawSample(
+            raw = RawSample(
                 index=i,
                 jpegs=[jpeg[int(s) - j0: int(s) - j0 + int(n)] for s, n in jo],
                 uvd=[uvd[int(s) - u0: int(s) - u0 + int(n)] for s, n in uo],
                 labels=lab,
-            ))
+            )
+            if self.state[i] != STATE_PENDING:
+                check("images/jpeg", [i], [b"".join(a.tobytes() for a in raw.jpegs)])
+                check("depth/uvd", [i], [b"".join(a.tobytes() for a in raw.uvd)])
+                for name, row in (lab or {}).items():
+                    check(name, [i], [row])
+            out.append(raw)
         return out
 
     def loadable(self, i: int) -> bool:
         return bool(self.state[i] == STATE_DONE)
 
 
+def decode_jpeg(jpeg: np.ndarray, reduce: int = 1) -> np.ndarray | None:
+    """JPEG bytes -> BGR `(h, w, 3) uint8` decoded at 1/`reduce` straight from the DCT, or None if unreadable."""
+    return cv2.imdecode(jpeg, _REDUCE_FLAG[reduce])
+
+
+def warp_input(img: np.ndarray, A: np.ndarray, orig_w: int, orig_h: int, width: int, height: int,
+               bgr: bool = True) -> np.ndarray:
+    """A camera image at any scale of its original `orig_w x orig_h` -> augmented RGB input
+    `(height, width, 3) uint8`: ONE warpAffine with A @ inv(T_decoded_from_original), so a decode
+    scale is folded into the warp, not into A. `img` is BGR (OpenCV's decode) unless `bgr` is False."""
+    dh, dw = img.shape[:2]
+    warp = A @ np.linalg.inv(T_decoded_from_original(orig_w, orig_h, dw, dh))
+    out = cv2.warpAffine(img, warp[:2], (width, height), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    return cv2.cvtColor(out, cv2.COLOR_BGR2RGB) if bgr else out
+
+
+def warp_normalise(img: np.ndarray, A: np.ndarray, orig_w: int, orig_h: int, lut: np.ndarray, out: np.ndarray,
+                   bgr: bool = True) -> None:
+    """The network's image preprocessing, shared by the loader and `fastocc.Predictor`: warp with the
+    augmentation A (`warp_input`), then normalise into `out (3, H, W) float32` (in place) with
+    `lut = normalise_lut()` (ImageNet mean/std, RGB)."""
+    normalise_chw(warp_input(img, A, orig_w, orig_h, out.shape[2], out.shape[1], bgr), lut, out)
+
+
 def decode_augmented(jpeg: np.ndarray, A: np.ndarray, scale: float, orig_w: int, orig_h: int, width: int,
                      height: int, stored_scale: float = 1.0, max_upsample: float = 1.1) -> np.ndarray | None:
     """JPEG bytes -> augmented RGB input `(height, width, 3) uint8`, or None if the JPEG is unreadable.
 
-    Decodes at 1/r straight from the DCT where that is cheap (`choose_reduce`), then ONE warpAffine
-    with A @ inv(T_decoded_from_original): the decode scale is folded into the warp, not into A.
+    Decodes at 1/r straight from the DCT where that is cheap (`choose_reduce`), then `warp_input`.
     """
-    r = choose_reduce(scale, stored_scale, max_upsample)
-    img = cv2.imdecode(jpeg, _REDUCE_FLAG[r])
+    img = decode_jpeg(jpeg, choose_reduce(scale, stored_scale, max_upsample))
     if img is None:
         return None
-    dh, dw = img.shape[:2]
-    warp = A @ np.linalg.inv(T_decoded_from_original(orig_w, orig_h, dw, dh))
-    out = cv2.warpAffine(img, warp[:2], (width, height), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    return cv2.cvtColor(out, cv2.COLOR_BGR2RGB)
+    return warp_input(img, A, orig_w, orig_h, width, height)
 
 
 class SampleMaker:
@@ -169,11 +204,10 @@ class SampleMaker:
             ow, oh = (int(x) for x in s.image_size[i, c])
             aug = sample_image_aug(cfg.image, ow, oh, rng)
             A = aug.matrix
-            out = decode_augmented(raw.jpegs[c], A, aug.scale, ow, oh, W, H, s.stored_scale,
-                                   cfg.image.max_upsample)
-            if out is None:
+            img = decode_jpeg(raw.jpegs[c], choose_reduce(aug.scale, s.stored_scale, cfg.image.max_upsample))
+            if img is None:
                 raise OccDataError(f"corrupt image data for sample {i} ({s.reader.token(i)}), camera {c}")
-            normalise_chw(out, self.lut, images[c])
+            warp_normalise(img, A, ow, oh, self.lut, images[c])
             img_aug[c] = A
             depth[c] = depth_target(raw.uvd[c], A, H, W, cfg.depth_stride, *cfg.depth_range)
         bev = sample_bev_aug(cfg.bev, rng)

@@ -19,6 +19,7 @@ from fastocc.data.dataset import load_batch
 from fastocc.data.sample import SampleConfig
 from occdata.constants import CLASS_COLORS, FREE_LABEL, GRID
 from occdata.image_ops import IMAGENET_MEAN, IMAGENET_STD
+from occdata.store.draw import check_image_path, write_image
 
 __all__ = ["ShowConfig", "lift_depth_targets", "render_batch", "show_batch"]
 
@@ -118,9 +119,8 @@ def render_batch(batch: Batch, k: int = 0) -> np.ndarray:
 
 
 def show_batch(cfg: ShowConfig) -> Path:
+    check_image_path(cfg.out)
     batch = load_batch(cfg.store, [cfg.index], cfg.sample, seed=cfg.seed)
     img = render_batch(batch)
-    cfg.out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(cfg.out), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
-        raise OSError(f"could not write {cfg.out}")
+    write_image(cfg.out, cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
     return cfg.out

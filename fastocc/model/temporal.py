@@ -11,7 +11,7 @@ from occdata.constants import OccGrid
 from .geometry import voxel_centres
 from .inputs import SceneInputs
 
-__all__ = ["TemporalFusion", "warp_bev"]
+__all__ = ["TemporalFusion", "warp_bev", "warp_bev_inverse"]
 
 
 def warp_bev(feat_prev: Tensor, T_curaug_from_prevaug: Tensor, grid: OccGrid) -> Tensor:
@@ -21,10 +21,14 @@ def warp_bev(feat_prev: Tensor, T_curaug_from_prevaug: Tensor, grid: OccGrid) ->
     Each current cell centre (z = 0 plane) is mapped back into the previous frame and sampled
     bilinearly (zeros outside). Returns `(B, C, X, Y)`.
     """
+    return warp_bev_inverse(feat_prev, torch.linalg.inv(T_curaug_from_prevaug), grid)
+
+
+def warp_bev_inverse(feat_prev: Tensor, T_prevaug_from_curaug: Tensor, grid: OccGrid) -> Tensor:
+    """`warp_bev` given the inverse transform `(B, 4, 4)` (no matrix inverse in the graph: ONNX export)."""
     centres = voxel_centres(grid, feat_prev.device)[:, :, 0, :2]
     pts = torch.cat([centres, torch.zeros_like(centres[..., :1]), torch.ones_like(centres[..., :1])], dim=-1)
-    T_prev_from_cur = torch.linalg.inv(T_curaug_from_prevaug)
-    prev = torch.einsum("bij,xyj->bxyi", T_prev_from_cur, pts)[..., :2]  # (B, X, Y, 2) metres
+    prev = torch.einsum("bij,xyj->bxyi", T_prevaug_from_curaug, pts)[..., :2]  # (B, X, Y, 2) metres
     lo = torch.tensor(grid.lower[:2], device=prev.device)
     hi = torch.tensor(grid.upper[:2], device=prev.device)
     norm = (prev - lo) / (hi - lo) * 2 - 1  # align_corners=False: cell centres at their normalised spots

@@ -7,8 +7,9 @@ tree fails early with one line naming the table and token.
 
 from __future__ import annotations
 
+import os
 import re
-from collections import defaultdict
+from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any
 
@@ -18,9 +19,9 @@ from occdata.constants import CAMERA_ORDER, LIDAR_CHANNEL
 from occdata.errors import OccDataError
 from occdata.nuscenes.records import CameraRecord, LidarRecord, NuScenesDataset, SampleRecord, SceneRecord
 from occdata.nuscenes.splits import official_split
-from occdata.nuscenes.tables import load_table
+from occdata.nuscenes.tables import load_table, usable_as_file_name
 
-__all__ = ["SPLIT_TAG", "find_version", "load_lidar_points", "load_nuscenes", "validate_sample"]
+__all__ = ["SPLIT_TAG", "confined_path", "find_version", "load_lidar_points", "load_nuscenes", "validate_sample"]
 
 # Non-official scenes (synthetic or custom data) may carry "split=<name>" in their description.
 SPLIT_TAG = re.compile(r"\bsplit=([A-Za-z0-9_]+)")
@@ -61,12 +62,43 @@ def _ref(rows: dict[str, dict[str, Any]], token: str, table: str, src: str) -> d
         raise OccDataError(f"dangling token: {src} refers to {table} {token!r}, not in {table}.json") from None
 
 
-def _rotation(q_wxyz: Any) -> np.ndarray:
-    """Rotation matrix of a quaternion. Rounding in the files is normalised away; a quaternion far
-    from unit length is kept as is, so `validate_sample` reports a non-orthonormal rotation."""
-    q = np.asarray(q_wxyz, dtype=np.float64).reshape(-1)
-    if q.shape != (4,):
-        return np.full((3, 3), np.nan)
+class _RowProblem(Exception):
+    """A value in one sample's rows that cannot be used; becomes `SampleRecord.problem`."""
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _floats(value: Any, shape: tuple[int, ...], where: str) -> np.ndarray:
+    """`value` as a float64 array of `shape`; NaN stays (validate_sample reports it)."""
+    if isinstance(value, (str, bytes)) or value is None:
+        raise _RowProblem(f"{where} is not numeric ({_short(value)})")
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise _RowProblem(f"{where} is not numeric ({_short(value)})") from None
+    if arr.shape != shape:
+        size = "x".join(map(str, shape)) if len(shape) > 1 else f"{shape[0]} values"
+        raise _RowProblem(f"{where} has shape {arr.shape}, expected {size}")
+    return arr
+
+
+def _integer(value: Any, where: str) -> int:
+    """A JSON integer (an integral float is accepted); anything else is a row problem."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise _RowProblem(f"{where} is not an integer ({_short(value)})")
+    if isinstance(value, float) and not value.is_integer():
+        raise _RowProblem(f"{where} is not an integer ({_short(value)})")
+    return int(value)
+
+
+def _rotation(q_wxyz: Any, where: str) -> np.ndarray:
+    """Rotation matrix of a (w, x, y, z) quaternion. Rounding in the files is normalised away; a
+    quaternion far from unit length is kept as is, so `validate_sample` reports a non-orthonormal
+    rotation. A value that is not 4 numbers raises `_RowProblem`."""
+    q = _floats(q_wxyz, (4,), f"{where} rotation (quaternion w, x, y, z)")
     n = np.linalg.norm(q)
     if np.isfinite(n) and abs(n - 1.0) < 1e-3:
         q = q / n
@@ -81,11 +113,26 @@ def _rotation(q_wxyz: Any) -> np.ndarray:
 
 
 def _pose(row: dict[str, Any], table: str) -> np.ndarray:
+    where = f"{table} {row.get('token', '?')!r}"
     T = np.eye(4)
-    T[:3, :3] = _rotation(_get(row, "rotation", table))
-    t = np.asarray(_get(row, "translation", table), dtype=np.float64).reshape(-1)
-    T[:3, 3] = t if t.shape == (3,) else np.nan
+    T[:3, :3] = _rotation(_get(row, "rotation", table), where)
+    T[:3, 3] = _floats(_get(row, "translation", table), (3,), f"{where} translation")
     return T
+
+
+def confined_path(root: Path, relative: Any, where: str) -> Path:
+    """`root / relative`, refused unless it stays inside `root` (DESIGN: paths from tables are data).
+
+    The check is lexical (`..` and absolute paths are refused); symlinks that the user placed in
+    the tree are followed as usual. Raises `OccDataError` naming `where` (the row).
+    """
+    if not isinstance(relative, str) or not relative or "\0" in relative:
+        raise OccDataError(f"{where}: path {_short(relative)} is not a non-empty string")
+    root = Path(os.path.abspath(root))
+    path = Path(os.path.normpath(root / relative))
+    if os.path.isabs(relative) or path == root or not path.is_relative_to(root):
+        raise OccDataError(f"{where}: path {relative!r} points outside {root}")
+    return path
 
 
 def load_nuscenes(root: Path | str, version: str | None = None, check_files: bool = False) -> NuScenesDataset:
@@ -94,8 +141,13 @@ def load_nuscenes(root: Path | str, version: str | None = None, check_files: boo
     Scenes come in table order, samples per scene in time order (following `next` links from
     `first_sample_token`). Each scene gets a split: the official one for nuScenes scene names
     (mini_train/mini_val for v1.0-mini), else a `split=NAME` tag in its description, else
-    "unassigned". With `check_files`, every keyframe sensor file must exist.
-    Raises `OccDataError` (one line, naming the file or token) on a broken tree.
+    "unassigned". With `check_files`, every keyframe sensor file must be a readable regular file.
+
+    Raises `OccDataError` (one line, naming the file or token) on a broken tree: a missing table,
+    a dangling token, a duplicate token with different content, a scene whose links do not reach
+    all of its samples. A problem confined to one sample's values (a non-numeric field, a file
+    path outside `root`, a missing file with `check_files`) does not raise: that sample's record
+    carries it in `problem` and `validate_sample` rejects it.
     """
     root = Path(root).resolve()
     version = find_version(root, version)
@@ -104,11 +156,12 @@ def load_nuscenes(root: Path | str, version: str | None = None, check_files: boo
         if not (vdir / f"{name}.json").is_file():
             raise OccDataError(f"missing table: {vdir / f'{name}.json'}")
 
-    sensors = load_table(vdir / "sensor.json")
-    calibs = load_table(vdir / "calibrated_sensor.json")
-    logs = load_table(vdir / "log.json")
-    scenes_raw = load_table(vdir / "scene.json")
-    samples_raw = load_table(vdir / "sample.json")
+    notes: list[str] = []
+    sensors = load_table(vdir / "sensor.json", warn=notes.append)
+    calibs = load_table(vdir / "calibrated_sensor.json", warn=notes.append)
+    logs = load_table(vdir / "log.json", warn=notes.append)
+    scenes_raw = load_table(vdir / "scene.json", warn=notes.append)
+    samples_raw = load_table(vdir / "sample.json", warn=notes.append)
 
     channel_of_calib: dict[str, str] = {}
     for tok, cs in calibs.items():
@@ -123,9 +176,9 @@ def load_nuscenes(root: Path | str, version: str | None = None, check_files: boo
             _ref(calibs, cs_tok, "calibrated_sensor", f"sample_data {row.get('token')!r}")
         return channel_of_calib[cs_tok] in _CHANNELS
 
-    sample_data = load_table(vdir / "sample_data.json", keep=keep_sd)
+    sample_data = load_table(vdir / "sample_data.json", keep=keep_sd, warn=notes.append)
     pose_tokens = {_get(sd, "ego_pose_token", "sample_data") for sd in sample_data.values()}
-    ego_poses = load_table(vdir / "ego_pose.json", keep=lambda r: r.get("token") in pose_tokens)
+    ego_poses = load_table(vdir / "ego_pose.json", keep=lambda r: r.get("token") in pose_tokens, warn=notes.append)
 
     by_sample: dict[str, dict[str, dict[str, Any]]] = defaultdict(dict)
     for tok, sd in sample_data.items():
@@ -137,9 +190,15 @@ def load_nuscenes(root: Path | str, version: str | None = None, check_files: boo
         by_sample[s_tok][channel] = sd
 
     def abs_path(sd: dict[str, Any]) -> Path:
-        path = root / _get(sd, "filename", "sample_data")
+        where = f"sample_data {sd['token']!r} filename"
+        try:
+            path = confined_path(root, _get(sd, "filename", "sample_data"), where)
+        except OccDataError as exc:
+            raise _RowProblem(str(exc)) from None
         if check_files and not path.is_file():
-            raise OccDataError(f"missing sensor file: {path} (sample_data {sd['token']!r})")
+            if os.path.lexists(path):  # a folder, a dangling link or a symlink loop
+                raise _RowProblem(f"sensor file {path} is not a readable regular file (sample_data {sd['token']!r})")
+            raise _RowProblem(f"missing sensor file: {path} (sample_data {sd['token']!r})")
         return path
 
     def pose_of(sd: dict[str, Any]) -> np.ndarray:
@@ -152,13 +211,23 @@ def load_nuscenes(root: Path | str, version: str | None = None, check_files: boo
         missing = [c for c in (*CAMERA_ORDER, LIDAR_CHANNEL) if c not in sds]
         if missing:
             raise OccDataError(f"sample {s_tok!r} has no keyframe sample_data for {', '.join(missing)}")
+        for sd in sds.values():  # foreign keys first: a dangling pose is a broken tree, not a row value
+            _ref(ego_poses, sd["ego_pose_token"], "ego_pose", f"sample_data {sd['token']!r}")
+        try:
+            return build_sample(s_tok, row, sds, scene_name, index)
+        except _RowProblem as exc:
+            return placeholder_sample(s_tok, row, sds, scene_name, index, str(exc))
+
+    def build_sample(
+        s_tok: str, row: dict[str, Any], sds: dict[str, dict[str, Any]], scene_name: str, index: int
+    ) -> SampleRecord:
         cams = []
         for channel in CAMERA_ORDER:
             sd = sds[channel]
             cs = calibs[sd["calibrated_sensor_token"]]
-            K = np.asarray(_get(cs, "camera_intrinsic", "calibrated_sensor"), dtype=np.float64)
-            if K.shape != (3, 3):
-                raise OccDataError(f"calibrated_sensor {cs['token']!r} ({channel}): camera_intrinsic is not 3x3")
+            where = f"calibrated_sensor {cs['token']!r} ({channel})"
+            K = _floats(_get(cs, "camera_intrinsic", "calibrated_sensor"), (3, 3), f"{where} camera_intrinsic")
+            sd_where = f"sample_data {sd['token']!r}"
             cams.append(
                 CameraRecord(
                     channel=channel,
@@ -167,9 +236,9 @@ def load_nuscenes(root: Path | str, version: str | None = None, check_files: boo
                     K=K,
                     T_ego_from_cam=_pose(cs, "calibrated_sensor"),
                     T_global_from_ego=pose_of(sd),
-                    timestamp=int(_get(sd, "timestamp", "sample_data")),
-                    width=int(_get(sd, "width", "sample_data")),
-                    height=int(_get(sd, "height", "sample_data")),
+                    timestamp=_integer(_get(sd, "timestamp", "sample_data"), f"{sd_where} timestamp"),
+                    width=_integer(_get(sd, "width", "sample_data"), f"{sd_where} width"),
+                    height=_integer(_get(sd, "height", "sample_data"), f"{sd_where} height"),
                 )
             )
         sd = sds[LIDAR_CHANNEL]
@@ -179,24 +248,48 @@ def load_nuscenes(root: Path | str, version: str | None = None, check_files: boo
             path=abs_path(sd),
             T_ego_from_lidar=_pose(calibs[sd["calibrated_sensor_token"]], "calibrated_sensor"),
             T_global_from_ego=pose_of(sd),
-            timestamp=int(_get(sd, "timestamp", "sample_data")),
+            timestamp=_integer(_get(sd, "timestamp", "sample_data"), f"sample_data {sd['token']!r} timestamp"),
         )
         return SampleRecord(
             token=s_tok,
             scene_token=_get(row, "scene_token", "sample"),
             scene_name=scene_name,
             index_in_scene=index,
-            timestamp=int(_get(row, "timestamp", "sample")),
+            timestamp=_integer(_get(row, "timestamp", "sample"), f"sample {s_tok!r} timestamp"),
             prev=row.get("prev", ""),
             next=row.get("next", ""),
             cameras=tuple(cams),
             lidar=lidar,
         )
 
+    def placeholder_sample(
+        s_tok: str, row: dict[str, Any], sds: dict[str, dict[str, Any]], scene_name: str, index: int, problem: str
+    ) -> SampleRecord:
+        nan4 = np.full((4, 4), np.nan)
+        cams = tuple(
+            CameraRecord(channel=c, token=sds[c]["token"], path=root, K=np.full((3, 3), np.nan),
+                         T_ego_from_cam=nan4, T_global_from_ego=nan4, timestamp=0, width=0, height=0)
+            for c in CAMERA_ORDER
+        )
+        lidar = LidarRecord(channel=LIDAR_CHANNEL, token=sds[LIDAR_CHANNEL]["token"], path=root,
+                            T_ego_from_lidar=nan4, T_global_from_ego=nan4, timestamp=0)
+        ts = row.get("timestamp")
+        return SampleRecord(
+            token=s_tok, scene_token=row["scene_token"], scene_name=scene_name, index_in_scene=index,
+            timestamp=ts if isinstance(ts, int) and not isinstance(ts, bool) else 0,
+            prev=row.get("prev", ""), next=row.get("next", ""), cameras=cams, lidar=lidar, problem=problem,
+        )
+
+    samples_per_scene = Counter(r.get("scene_token") for r in samples_raw.values())
     scenes: list[SceneRecord] = []
     samples: list[SampleRecord] = []
     for sc_tok, sc in scenes_raw.items():
         name = _get(sc, "name", "scene")
+        if not isinstance(name, str) or not usable_as_file_name(name):
+            # Scene names become folder names (gts/<scene>/..., prediction output): one component each.
+            raise OccDataError(
+                f"scene.json: scene {sc_tok!r} has a name that is not usable as a folder name ({_short(name)})"
+            )
         log = _ref(logs, _get(sc, "log_token", "scene"), "log", f"scene {name!r}")
         tok = _get(sc, "first_sample_token", "scene")
         chain: list[str] = []
@@ -211,6 +304,17 @@ def load_nuscenes(root: Path | str, version: str | None = None, check_files: boo
         last = _get(sc, "last_sample_token", "scene")
         if chain and chain[-1] != last:
             raise OccDataError(f"scene {name!r}: the next-links end at {chain[-1]!r}, not last_sample_token {last!r}")
+        nbr = sc.get("nbr_samples")
+        in_table = samples_per_scene[sc_tok]
+        if len(chain) < in_table:
+            # A blank first_sample_token or a cut next link would drop samples without a word.
+            raise OccDataError(
+                f"scene {name!r}: only {len(chain)} of its {in_table} samples in sample.json are reachable "
+                f"from first_sample_token through the next-links (nbr_samples {_short(nbr)}); "
+                "fix first_sample_token / next"
+            )
+        if nbr is not None and nbr != len(chain):
+            notes.append(f"scene {name!r}: nbr_samples is {_short(nbr)} but the tables hold {len(chain)} samples")
         description = str(sc.get("description", ""))
         split = official_split(name, version)
         if split is None:
@@ -228,7 +332,9 @@ def load_nuscenes(root: Path | str, version: str | None = None, check_files: boo
             )
         )
         samples.extend(make_sample(t, name, i) for i, t in enumerate(chain))
-    return NuScenesDataset(root=root, version=version, scenes=tuple(scenes), samples=tuple(samples))
+    return NuScenesDataset(
+        root=root, version=version, scenes=tuple(scenes), samples=tuple(samples), warnings=tuple(notes)
+    )
 
 
 def load_lidar_points(path: Path | str) -> np.ndarray:
@@ -238,6 +344,8 @@ def load_lidar_points(path: Path | str) -> np.ndarray:
         raw = path.read_bytes()
     except FileNotFoundError:
         raise OccDataError(f"missing sensor file: {path}") from None
+    except OSError as exc:  # a folder, a symlink loop, no permission, an I/O error
+        raise OccDataError(f"cannot read sensor file {path}: {exc.strerror or exc}") from None
     if len(raw) == 0 or len(raw) % 20:
         raise OccDataError(f"corrupt LiDAR file {path}: {len(raw)} bytes is not a positive multiple of 20")
     points = np.frombuffer(raw, dtype=np.float32).reshape(-1, 5)
@@ -247,7 +355,10 @@ def load_lidar_points(path: Path | str) -> np.ndarray:
 
 
 def validate_sample(sample: SampleRecord) -> None:
-    """Raise `OccDataError` if any calibration or pose of the sample is non-finite or not rigid."""
+    """Raise `OccDataError` if the sample's rows were unusable (`problem`), or any calibration or
+    pose is non-finite or not rigid, or an intrinsic matrix or image size is invalid."""
+    if sample.problem:
+        raise OccDataError(f"sample {sample.token!r}: {sample.problem}")
 
     def check_rigid(T: np.ndarray, what: str) -> None:
         if not np.isfinite(T).all():
@@ -262,5 +373,7 @@ def validate_sample(sample: SampleRecord) -> None:
         K = cam.K
         if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
             raise OccDataError(f"sample {sample.token!r}: {cam.channel} intrinsics are invalid")
+        if cam.width <= 0 or cam.height <= 0:
+            raise OccDataError(f"sample {sample.token!r}: {cam.channel} image size {cam.width}x{cam.height}")
     check_rigid(sample.lidar.T_ego_from_lidar, "LIDAR_TOP calibration")
     check_rigid(sample.lidar.T_global_from_ego, "LIDAR_TOP ego pose")

@@ -56,6 +56,10 @@ class SampleRecord:
     next: str
     cameras: tuple[CameraRecord, ...]
     lidar: LidarRecord
+    # Why the tables cannot describe this sample (a non-numeric field, a path outside the root, ...);
+    # "" when fine. Such a record holds NaN placeholders and `validate_sample` rejects it, so the
+    # problem stays with this one sample (and `--on-error skip` applies to it).
+    problem: str = ""
 
     @property
     def T_global_from_keyego(self) -> np.ndarray:
@@ -97,6 +101,7 @@ class NuScenesDataset:
     version: str
     scenes: tuple[SceneRecord, ...]
     samples: tuple[SampleRecord, ...]
+    warnings: tuple[str, ...] = ()  # one line each: identical duplicate rows, nbr_samples disagreeing
     _index: dict[str, int] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -115,5 +120,6 @@ class NuScenesDataset:
         scenes = tuple(sc for sc in self.scenes if sc.split in splits)
         keep = {sc.token for sc in scenes}
         return NuScenesDataset(
-            self.root, self.version, scenes, tuple(s for s in self.samples if s.scene_token in keep)
+            self.root, self.version, scenes, tuple(s for s in self.samples if s.scene_token in keep),
+            self.warnings,
         )

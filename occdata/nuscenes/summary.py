@@ -6,14 +6,27 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-from occdata.nuscenes.reader import load_nuscenes
+from occdata.errors import OccDataError
+from occdata.nuscenes.reader import load_nuscenes, validate_sample
 
 __all__ = ["scan_tree"]
 
 
 def scan_tree(root: Path, version: str | None, check_files: bool) -> dict[str, Any]:
-    """Read the tree (raising `OccDataError` on any broken reference) and summarise it."""
+    """Read the tree and summarise it. Raises `OccDataError` on any broken reference and on any
+    sample that `occdata build` would reject from its tables alone (unusable values, paths outside
+    the root, NaN or non-rigid calibration and poses, invalid intrinsics; missing files with
+    `check_files`): one line naming the first such sample and how many there are."""
     ds = load_nuscenes(root, version, check_files=check_files)
+    bad: list[str] = []
+    for s in ds.samples:
+        try:
+            validate_sample(s)
+        except OccDataError as exc:
+            bad.append(str(exc))
+    if bad:
+        more = f" (and {len(bad) - 1} more sample(s) with problems)" if len(bad) > 1 else ""
+        raise OccDataError(bad[0] + more)
     per_split: Counter[str] = Counter()
     for sc in ds.scenes:
         per_split[sc.split] += len(sc.sample_tokens)
@@ -25,4 +38,5 @@ def scan_tree(root: Path, version: str | None, check_files: bool) -> dict[str, A
         "samples_per_split": dict(sorted(per_split.items())),
         "scenes_per_split": dict(sorted(Counter(sc.split for sc in ds.scenes).items())),
         "files_checked": check_files,
+        "warnings": list(ds.warnings),
     }

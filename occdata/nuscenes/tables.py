@@ -14,7 +14,7 @@ from typing import Any
 
 from occdata.errors import OccDataError
 
-__all__ = ["TABLE_NAMES", "iter_table_rows", "load_table"]
+__all__ = ["TABLE_NAMES", "iter_table_rows", "load_table", "usable_as_file_name"]
 
 TABLE_NAMES: tuple[str, ...] = (
     "attribute",
@@ -121,15 +121,53 @@ def iter_table_rows(path: Path) -> Iterator[dict[str, Any]]:
 
 
 def load_table(
-    path: Path, keep: Callable[[dict[str, Any]], bool] | None = None
+    path: Path,
+    keep: Callable[[dict[str, Any]], bool] | None = None,
+    warn: Callable[[str], None] | None = None,
 ) -> dict[str, dict[str, Any]]:
-    """Rows of a table keyed by `token`, optionally filtered by `keep(row)`."""
+    """Rows of a table keyed by `token`, optionally filtered by `keep(row)`.
+
+    Tokens must be usable as file names (`usable_as_file_name`): the Occ3D layout and the
+    prediction writer use them as folder names. A token that appears twice among the
+    kept rows with different content is an error naming the table and the token (otherwise the
+    last row would silently win); identical duplicates are kept once and reported through `warn`
+    (one message per table).
+    """
     out: dict[str, dict[str, Any]] = {}
+    identical: list[str] = []
     for row in iter_table_rows(path):
         if keep is not None and not keep(row):
             continue
         token = row.get("token")
         if not isinstance(token, str):
             raise OccDataError(f"malformed table {path}: a row has no string 'token' field")
+        if not usable_as_file_name(token):
+            raise OccDataError(
+                f"malformed table {path}: token {token!r} is empty or not usable as a file name "
+                "(tokens name folders of label and prediction files: no '/', '\\', NUL, '.' or '..')"
+            )
+        seen = out.get(token)
+        if seen is not None:
+            if seen != row:
+                raise OccDataError(
+                    f"duplicate token in {path.name}: {token!r} appears twice with different content "
+                    f"(fields {_differing(seen, row)} differ); remove one of the rows"
+                )
+            identical.append(token)
+            continue
         out[token] = row
+    if identical and warn is not None:
+        warn(
+            f"{path.name}: {len(identical)} identical duplicate row(s) ignored (first token {identical[0]!r})"
+        )
     return out
+
+
+def usable_as_file_name(name: str) -> bool:
+    """True if `name` can be one path component as is: non-empty, no '/', '\\' or NUL, not '.'/'..'."""
+    return bool(name) and not any(ch in name for ch in "/\\\0") and name not in (".", "..")
+
+
+def _differing(a: dict[str, Any], b: dict[str, Any]) -> str:
+    keys = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+    return ", ".join(repr(k) for k in keys[:4]) + (", ..." if len(keys) > 4 else "")

@@ -9,8 +9,12 @@ sample and gives a store identical to an uninterrupted build.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import multiprocessing as mp
+import os
 import shutil
+import signal
+import threading
 import zlib
 from collections.abc import Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -26,6 +30,7 @@ from zarr.codecs import ZstdCodec
 from occdata.constants import CAMERA_ORDER, CLASS_COLORS, CLASS_NAMES, FREE_LABEL, GRID
 from occdata.errors import OccDataError
 from occdata.nuscenes import NuScenesDataset, load_nuscenes
+from occdata.nuscenes.reader import confined_path
 from occdata.store.layout import (
     FLAT_ARRAYS,
     FLAT_OF_OFFSETS,
@@ -35,11 +40,16 @@ from occdata.store.layout import (
     STATE_DONE,
     STATE_ERROR,
     STATE_PENDING,
+    TOKEN_ARRAYS,
     checksummed_names,
+    token_width,
 )
+from occdata.store.lock import store_lock
+from occdata.store.reader import StoreReader
 from occdata.store.sample import SampleOptions, SampleResult, process_sample, static_arrays, temporal_indices
 
-__all__ = ["BuildConfig", "BuildReport", "build_store", "sample_checksums"]
+__all__ = ["BuildConfig", "BuildReport", "build_store", "find_label_files", "identity_diff", "label_layouts",
+           "sample_checksums"]
 
 
 @dataclass(frozen=True)
@@ -48,6 +58,10 @@ class BuildConfig:
     out: Path
     version: str | None = None
     gts: Path | None = None
+    # With labels_required (an explicit --gts), a labels folder in which no sample finds its file
+    # is an error (a wrong folder would give a silently unlabelled store); off for the default
+    # <root>/gts, which may legitimately hold no labels for the selected split (test).
+    labels_required: bool = True
     splits: tuple[str, ...] = ()
     workers: int = 1
     resume: bool = False
@@ -65,6 +79,7 @@ class BuildReport:
     n_errors: int
     n_labelled: int
     processed_now: int
+    warnings: tuple[str, ...] = ()  # from reading the tables (identical duplicates, nbr_samples)
 
 
 def _identity(config: BuildConfig, ds: NuScenesDataset) -> dict[str, Any]:
@@ -80,16 +95,51 @@ def _identity(config: BuildConfig, ds: NuScenesDataset) -> dict[str, Any]:
     }
 
 
+# build_identity key -> what the user changes to change it
+_IDENTITY_OPTION = {
+    "source_root": "--root", "source_version": "--version", "gts": "--gts", "splits": "--split",
+    "block_samples": "--block-samples", "options.image_scale": "--image-scale",
+    "options.jpeg_quality": "--jpeg-quality", "options.min_depth": "min_depth",
+    "sample_tokens_crc32": "the sample list in the tables",
+}
+
+
+def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def identity_diff(stored: dict[str, Any], now: dict[str, Any]) -> list[str]:
+    """One phrase per differing input/option: `--image-scale: store 1.0, now 0.5`."""
+    a, b = _flatten(stored), _flatten(now)
+    out = []
+    for key in sorted(set(a) | set(b), key=lambda k: list(_IDENTITY_OPTION).index(k) if k in _IDENTITY_OPTION else 99):
+        if a.get(key, "<unset>") != b.get(key, "<unset>"):
+            if key == "sample_tokens_crc32":
+                out.append("the sample list in the tables differs (tables edited?)")
+            else:
+                was, now_ = a.get(key, "<unset>"), b.get(key, "<unset>")
+                out.append(f"{_IDENTITY_OPTION.get(key, key)}: store {was!r}, now {now_!r}")
+    return out
+
+
 def _compressor(name: str) -> Any:
     return None if name == "images/jpeg" else ZstdCodec(level=1)
 
 
-def _create(root: zarr.Group, n: int, block: int, attrs: dict[str, Any]) -> None:
+def _create(root: zarr.Group, n: int, block: int, attrs: dict[str, Any], tok_width: int) -> None:
     n_check = len(checksummed_names())
     for s in PER_SAMPLE:
         shape = (n, *s.shape)
         if s.name == "status/checksum":
             shape = (n, n_check)
+        if s.name in TOKEN_ARRAYS:  # tokens are stored whole, however long
+            shape = (*shape[:-1], tok_width)
         if s.sharded:
             chunks, shards = (1, *shape[1:]), (min(block, n), *shape[1:])
         else:
@@ -163,14 +213,14 @@ class _Writer:
         self.root = root
         self.arrays = {s.name: root[s.name] for s in PER_SAMPLE}
         self.flat = {name: root[name] for name in FLAT_ARRAYS}
-        self.initial_state = self.arrays["status/state"][:]  # what an earlier (killed) run committed
+        self.initial_state = _resume_state(root)  # what an earlier (killed) run committed
         self.cursor = {name: 0 for name in FLAT_ARRAYS}
         committed = self.initial_state != STATE_PENDING
         for off_name, flat_name in FLAT_OF_OFFSETS.items():
             if committed.any():
                 off = self.arrays[off_name][:][committed]
                 self.cursor[flat_name] = int((off[..., 0] + off[..., 1]).max(initial=0))
-        self.fill = {s.name: np.full(s.shape, s.fill, dtype=s.dtype) for s in PER_SAMPLE}
+        self.fill = {s.name: np.full(self.arrays[s.name].shape[1:], s.fill, dtype=s.dtype) for s in PER_SAMPLE}
 
     def commit(self, results: list[SampleResult]) -> None:
         if not results:
@@ -223,8 +273,9 @@ class _Writer:
         ])
         self.arrays["status/checksum"][i0:i1] = sums
         failed = [r for r in results if r.error]
-        if failed:
-            errors = [e for e in self.root.attrs.get("errors", []) if not i0 <= e["index"] < i1]
+        old_errors = self.root.attrs.get("errors", [])
+        if failed or any(i0 <= e["index"] < i1 for e in old_errors):  # a retried sample may now succeed
+            errors = [e for e in old_errors if not i0 <= e["index"] < i1]
             errors += [{"index": r.index, "token": r.token, "reason": r.error} for r in failed]
             self.root.attrs["errors"] = sorted(errors, key=lambda e: e["index"])
         self.arrays["status/state"][i0:i1] = np.array(
@@ -235,6 +286,23 @@ class _Writer:
         for flat_name, arr in self.flat.items():
             if arr.shape[0] != self.cursor[flat_name]:
                 arr.resize((self.cursor[flat_name], *arr.shape[1:]))
+
+
+def _resume_state(root: zarr.Group) -> np.ndarray:
+    """The commit flags as an earlier run left them; an absent chunk is pending (it is rebuilt)."""
+    arr = root["status/state"]
+    rows = int(arr.chunks[0])
+    out = np.zeros(arr.shape, dtype=np.uint8)
+    for i0 in range(0, arr.shape[0], rows):
+        try:
+            out[i0 : i0 + rows] = arr[i0 : i0 + rows]
+        except Exception as exc:  # noqa: BLE001 - a damaged chunk: say which file and how to recover
+            key = f"status/state/{arr.metadata.encode_chunk_key((i0 // rows,))}"
+            raise OccDataError(
+                f"cannot resume: the commit flags of samples {i0}..{min(i0 + rows, arr.shape[0]) - 1} are unreadable "
+                f"({type(exc).__name__}: {exc}); delete {key} inside the store and rerun --resume to rebuild them"
+            ) from None
+    return out
 
 
 def _row_bytes(flat_name: str) -> int:
@@ -252,10 +320,19 @@ def _open_or_create(config: BuildConfig, ds: NuScenesDataset, split_names: list[
             root = zarr.open_group(out, mode="r+")
         except Exception as exc:  # noqa: BLE001 - any unreadable store is reported the same way
             raise OccDataError(f"cannot resume {out}: not a readable zarr store ({exc})") from None
-        if root.attrs.get("schema") != SCHEMA_NAME or root.attrs.get("build_identity") != attrs["build_identity"]:
+        if root.attrs.get("schema") == SCHEMA_NAME:
+            try:
+                StoreReader(out)  # every array there with the schema's shape (edited zarr.json, ...)
+            except OccDataError as exc:
+                raise OccDataError(f"cannot resume: {exc}") from None
+        if root.attrs.get("schema") != SCHEMA_NAME:
+            raise OccDataError(f"cannot resume {out}: not an occdata store (no schema attribute)")
+        stored = root.attrs.get("build_identity")
+        if stored != attrs["build_identity"]:
+            diffs = identity_diff(stored if isinstance(stored, dict) else {}, attrs["build_identity"])
             raise OccDataError(
-                f"cannot resume {out}: it was built from other inputs or options (compare `occdata info`); "
-                "use a new --out"
+                f"cannot resume {out}: it was built from other inputs or options: {'; '.join(diffs)}. "
+                "Rerun with the store's values, or use a new --out"
             )
         for partial in out.rglob("*.partial"):  # atomic-write leftovers of a killed run
             partial.unlink(missing_ok=True)
@@ -264,9 +341,16 @@ def _open_or_create(config: BuildConfig, ds: NuScenesDataset, split_names: list[
     tmp = out.with_name(out.name + ".creating")
     shutil.rmtree(tmp, ignore_errors=True)
     root = zarr.open_group(tmp, mode="w")
-    _create(root, len(ds.samples), config.block_samples, attrs)
+    _create(root, len(ds.samples), config.block_samples, attrs, token_width(_all_tokens(ds)))
     tmp.rename(out)  # the store appears only once its layout is complete
     return zarr.open_group(out, mode="r+")
+
+
+def _all_tokens(ds: NuScenesDataset) -> Iterator[str]:
+    for s in ds.samples:
+        yield s.token
+        yield s.lidar.token
+        yield from (c.token for c in s.cameras)
 
 
 def _work(args: tuple[Any, ...]) -> SampleResult:
@@ -280,63 +364,86 @@ def build_store(config: BuildConfig) -> BuildReport:
         raise OccDataError("--workers and --block-samples must be >= 1")
     if not 0.05 <= config.options.image_scale <= 1.0:
         raise OccDataError("--image-scale must be in [0.05, 1]")
+    if not 1 <= config.options.jpeg_quality <= 100:
+        raise OccDataError(f"--jpeg-quality must be in [1, 100], got {config.options.jpeg_quality}")
     ds = load_nuscenes(config.root, config.version).select(config.splits or None)
     if not ds.samples:
         raise OccDataError(f"no samples selected under {config.root} (splits: {list(config.splits) or 'all'})")
     if config.gts is not None and not Path(config.gts).is_dir():
         raise OccDataError(f"labels folder not found: {config.gts}")
+    labels: list[Path | None] = [None] * len(ds.samples)
+    if config.gts is not None:
+        labels, ds = find_label_files(Path(config.gts), ds, config.labels_required)
     split_names = sorted({sc.split for sc in ds.scenes})
     scene_pos = {sc.token: i for i, sc in enumerate(ds.scenes)}
     scene_index = np.array([scene_pos[s.scene_token] for s in ds.samples])
     in_scene = np.array([s.index_in_scene for s in ds.samples])
     prev_index, prev_valid = temporal_indices(scene_index, in_scene)
     split_code = {name: i for i, name in enumerate(split_names)}
+    with store_lock(config.out, "build"):
+        try:
+            return _build_locked(config, ds, labels, split_names, split_code, scene_index, prev_index, prev_valid)
+        except OSError as exc:  # a full disk, a read-only folder: committed samples are kept
+            where = f" ({exc.filename})" if exc.filename else ""
+            raise OccDataError(
+                f"cannot write the store {config.out}: {exc.strerror or exc}{where}. Everything committed so far "
+                "is kept; fix the cause and rerun with --resume"
+            ) from None
 
+
+def _build_locked(config: BuildConfig, ds: NuScenesDataset, labels: list[Path | None], split_names: list[str],
+                  split_code: dict[str, int], scene_index: np.ndarray, prev_index: np.ndarray,
+                  prev_valid: np.ndarray) -> BuildReport:
     root = _open_or_create(config, ds, split_names)
     writer = _Writer(root)
-    pending = np.flatnonzero(writer.initial_state == STATE_PENDING)
-
-    def label_path(i: int) -> Path | None:
-        if config.gts is None:
-            return None
-        s = ds.samples[i]
-        return Path(config.gts) / s.scene_name / s.token / "labels.npz"
+    # Pending samples, and those that failed before (their input may have been fixed since).
+    pending = np.flatnonzero(writer.initial_state != STATE_DONE)
+    if len(pending) and root.attrs.get("complete"):
+        root.attrs["complete"] = False  # until this run has committed them again
+    tok_width = int(root["sample/token"].shape[-1])
 
     def tasks() -> Iterator[tuple[Any, ...]]:
         for i in pending:
             s = ds.samples[i]
             static = static_arrays(
-                s, int(scene_index[i]), split_code[ds.scenes[scene_index[i]].split], prev_index[i], prev_valid[i]
+                s, int(scene_index[i]), split_code[ds.scenes[scene_index[i]].split], prev_index[i], prev_valid[i],
+                tok_width,
             )
-            yield (int(i), s, static, label_path(int(i)), config.options)
+            yield (int(i), s, static, labels[int(i)], config.options)
 
     block = config.block_samples
     run: list[SampleResult] = []
     processed = 0
     bar = tqdm(total=len(pending), desc="build", unit="sample", disable=not config.progress, dynamic_ncols=True)
+    stop = _DeferredInterrupt()
     try:
-        for result in _results(tasks(), config.workers):
-            if result.error and config.on_error == "fail":
-                writer.commit(run)
-                writer.finish()
-                raise OccDataError(
-                    f"sample {result.index} ({result.token}) failed: {result.error}. "
-                    f"Everything before it is committed; fix the input and rerun with --resume "
-                    f"(or use --on-error skip)."
-                )
-            if run and result.index != run[-1].index + 1:
-                writer.commit(run)
-                run = []
-            run.append(result)
-            processed += 1
-            bar.update(1)
-            if (result.index + 1) % block == 0 or result.index == len(ds.samples) - 1:
-                writer.commit(run)
-                run = []
-        writer.commit(run)
-        writer.finish()
+        with stop:
+            for result in _results(tasks(), config.workers, stop):
+                if result.error and config.on_error == "fail":
+                    writer.commit(run)
+                    writer.finish()
+                    raise OccDataError(
+                        f"sample {result.index} ({result.token}) failed: {result.error}. "
+                        f"Everything before it is committed; fix the input and rerun with --resume "
+                        f"(or use --on-error skip)."
+                    )
+                if run and result.index != run[-1].index + 1:
+                    writer.commit(run)
+                    run = []
+                run.append(result)
+                processed += 1
+                bar.update(1)
+                if (result.index + 1) % block == 0 or result.index == len(ds.samples) - 1:
+                    writer.commit(run)
+                    run = []
+                if stop.hit:
+                    break
+            writer.commit(run)  # results already received are kept, also on Ctrl-C
+            writer.finish()
     finally:
         bar.close()
+    if stop.hit:
+        raise KeyboardInterrupt
     final_state = root["status/state"][:]
     complete = bool((final_state != STATE_PENDING).all())
     root.attrs["complete"] = complete
@@ -348,21 +455,101 @@ def build_store(config: BuildConfig) -> BuildReport:
         n_errors=int((final_state == STATE_ERROR).sum()),
         n_labelled=int(root["labels/present"][:].sum()),
         processed_now=processed,
+        warnings=ds.warnings,
     )
 
 
-def _results(tasks: Iterator[tuple[Any, ...]], workers: int) -> Iterator[SampleResult]:
+def label_layouts(scene_name: str, token: str) -> tuple[str, str]:
+    """The two accepted places of a sample's labels, relative to `gts`: Occ3D-nuScenes nests them
+    by scene name, the flat layout (e.g. a single downloaded example) does not."""
+    return f"{scene_name}/{token}/labels.npz", f"{token}/labels.npz"
+
+
+def find_label_files(
+    gts: Path, ds: NuScenesDataset, required: bool
+) -> tuple[list[Path | None], NuScenesDataset]:
+    """Per sample, its `labels.npz` under `gts` (nested `<scene>/<token>/` first, then flat
+    `<token>/`), or None. Scene names and tokens come from the tables: a label path that would leave
+    `gts` marks that sample with a problem (the sample fails, naming the row). With `required`, no
+    match for any sample is an error that shows the expected layout and one expected path.
+    """
+    found: list[Path | None] = []
+    samples = []
+    for s in ds.samples:
+        where = f"scene {s.scene_name!r} / sample {s.token!r} (labels path under --gts)"
+        path: Path | None = None
+        try:
+            candidates = [confined_path(gts, rel, where) for rel in label_layouts(s.scene_name, s.token)]
+            path = next((c for c in candidates if os.path.lexists(c)), None)
+        except OccDataError as exc:
+            s = dataclasses.replace(s, problem=s.problem or str(exc))
+        found.append(path)
+        samples.append(s)
+    if required and ds.samples and not any(found):
+        s = ds.samples[0]
+        nested, flat = label_layouts(s.scene_name, s.token)
+        raise OccDataError(
+            f"no label file under {gts} matches any of the {len(ds.samples)} samples; expected "
+            f"{gts}/<scene name>/<sample token>/labels.npz or {gts}/<sample token>/labels.npz, "
+            f"e.g. {gts / nested} (check --gts; leave it out for samples without labels, e.g. the test split)"
+        )
+    if any(s.problem for s in samples):
+        ds = NuScenesDataset(ds.root, ds.version, ds.scenes, tuple(samples), ds.warnings)
+    return found, ds
+
+
+class _DeferredInterrupt:
+    """Ctrl-C sets a flag that the build loop checks after each sample (a commit is never cut in
+    half); a second Ctrl-C interrupts at once. Only in the main thread (signals live there)."""
+
+    def __init__(self) -> None:
+        self.hit = False
+        self._prev: Any = None
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        self.hit = True
+        signal.signal(signal.SIGINT, self._prev)
+
+    def __enter__(self) -> _DeferredInterrupt:
+        if threading.current_thread() is threading.main_thread():
+            self._prev = signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._prev is not None:
+            signal.signal(signal.SIGINT, self._prev)
+            self._prev = None
+
+
+def _ignore_sigint() -> None:
+    """Worker initializer: Ctrl-C in a terminal reaches the whole process group; only the main
+    process acts on it (no KeyboardInterrupt tracebacks from workers, no half-dead pool)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _results(tasks: Iterator[tuple[Any, ...]], workers: int, stop: _DeferredInterrupt) -> Iterator[SampleResult]:
     """Results in task order; at most a few tasks in flight per worker, so memory stays bounded."""
     if workers == 1:
         for t in tasks:
             yield _work(t)
+            if stop.hit:
+                return
         return
     window: collections.deque[Future[SampleResult]] = collections.deque()
-    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_ignore_sigint)
+    try:
         for t in tasks:
+            if stop.hit:
+                return
             window.append(pool.submit(_work, t))
             if len(window) >= 3 * workers:
                 yield window.popleft().result()
-        while window:
+        while window and not stop.hit:
             yield window.popleft().result()
+    finally:
+        # Interrupted or failed: cancel what no worker has started; the few tasks in flight finish
+        # (workers ignore SIGINT) and the pool shuts down cleanly. Terminating workers instead can
+        # hang the shutdown (a killed worker may hold the call queue's lock), and so can
+        # `concurrent.futures.wait` on futures that the shutdown cancels (never counted as done).
+        pool.shutdown(wait=True, cancel_futures=True)
 

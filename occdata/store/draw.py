@@ -7,9 +7,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from occdata.errors import OccDataError
 from occdata.store.reader import StoreReader
 
-__all__ = ["depth_colors", "draw_projection"]
+__all__ = ["check_image_path", "depth_colors", "draw_projection", "write_image"]
 
 
 def depth_colors(depth: np.ndarray, max_depth: float = 60.0) -> np.ndarray:
@@ -21,6 +22,8 @@ def depth_colors(depth: np.ndarray, max_depth: float = 60.0) -> np.ndarray:
 
 def draw_projection(reader: StoreReader, index: int, out: Path, reduce: int = 2) -> Path:
     """A 2x3 mosaic (front row, back row) of the images with their LiDAR depth points."""
+    check_image_path(out)
+    reader.require_done(index)
     images = reader.images(index, reduce=reduce)
     sizes = reader.small("cam/image_size")[index]
     tiles = []
@@ -38,7 +41,27 @@ def draw_projection(reader: StoreReader, index: int, out: Path, reduce: int = 2)
     w = min(t.shape[1] for t in tiles)
     tiles = [t[:h, :w] for t in tiles]
     mosaic = np.vstack([np.hstack(tiles[:3]), np.hstack(tiles[3:])])
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), cv2.cvtColor(mosaic, cv2.COLOR_RGB2BGR)):
-        raise OSError(f"cannot write {out}")
+    write_image(out, cv2.cvtColor(mosaic, cv2.COLOR_RGB2BGR))
     return out
+
+
+def check_image_path(out: Path) -> None:
+    """Refuse an output name OpenCV has no writer for (e.g. `x.jpgg`) before any work is done."""
+    if not out.suffix or not cv2.haveImageWriter(str(out)):
+        raise OccDataError(f"cannot write {out}: unknown image type {out.suffix!r} (use .png or .jpg)")
+
+
+def write_image(out: Path, bgr: np.ndarray) -> None:
+    """Write an image atomically: a full disk leaves neither a partial file nor a traceback."""
+    check_image_path(out)
+    tmp = out.with_name(f".{out.name}.tmp{out.suffix}")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        ok, buf = cv2.imencode(out.suffix, bgr)
+        if not ok:
+            raise OccDataError(f"cannot encode {out}")
+        tmp.write_bytes(buf.tobytes())
+        tmp.replace(out)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise OccDataError(f"cannot write {out}: {exc.strerror or exc}") from None

@@ -9,6 +9,7 @@ import numpy as np
 
 from occdata.bev import unpack_bev
 from occdata.constants import CAMERA_ORDER
+from occdata.errors import OccDataError
 from occdata.store.layout import FLAT_ARRAYS, PER_SAMPLE, STATE_DONE, STATE_ERROR, STATE_PENDING
 from occdata.store.reader import StoreReader
 
@@ -61,7 +62,12 @@ DUMP_KEYS = {
 
 
 def dump_sample(reader: StoreReader, index: int, out: Path) -> list[str]:
-    """Write one sample as a plain `.npz` (no pickles); returns the keys written."""
+    """Write one sample as a plain `.npz` (no pickles); returns the keys written.
+
+    Failed or pending samples raise `OccDataError`; a failed write (e.g. a full disk) leaves no
+    partial file behind.
+    """
+    reader.require_done(index)
     a = reader.sample_arrays(index)
     images = reader.images(index)
     data: dict[str, np.ndarray] = {
@@ -90,8 +96,12 @@ def dump_sample(reader: StoreReader, index: int, out: Path) -> list[str]:
     if a["visibility/present"]:
         data["visibility_camera"] = a["visibility/camera"]
         data["visibility_lidar"] = a["visibility/lidar"]
-    out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".tmp.npz")
-    np.savez_compressed(tmp, **data)
-    tmp.replace(out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(tmp, **data)
+        tmp.replace(out)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise OccDataError(f"cannot write {out}: {exc.strerror or exc}") from None
     return sorted(data)

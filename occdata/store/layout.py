@@ -8,19 +8,24 @@ offsets per (sample, camera).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
 
 from occdata.constants import GRID
+from occdata.errors import OccDataError
 
 __all__ = [
     "FLAT_ARRAYS",
     "FLAT_OF_OFFSETS",
+    "MIN_TOKEN_BYTES",
     "N_CAM",
+    "TOKEN_ARRAYS",
     "checksummed_names",
     "token_bytes",
     "token_str",
+    "token_width",
     "PER_SAMPLE",
     "SCHEMA_NAME",
     "SCHEMA_VERSION",
@@ -53,6 +58,7 @@ class ArraySpec:
 
 _G = GRID.shape
 PER_SAMPLE: tuple[ArraySpec, ...] = (
+    # Token arrays: the last axis is widened to the longest token of the store (`token_width`).
     ArraySpec("sample/token", (32,), "uint8"),
     ArraySpec("sample/scene_index", (), "int32"),
     ArraySpec("sample/split", (), "uint8"),  # index into attrs["splits"]
@@ -99,13 +105,28 @@ def checksummed_names() -> tuple[str, ...]:
     return tuple(s.name for s in PER_SAMPLE if s.checksummed) + tuple(FLAT_ARRAYS)
 
 
-def token_bytes(token: str) -> np.ndarray:
-    """A 32-char token as `(32,) uint8` ASCII (zero padded)."""
-    raw = token.encode("ascii")[:32]
-    out = np.zeros(32, dtype=np.uint8)
+TOKEN_ARRAYS = ("sample/token", "sample/lidar_token", "cam/token")
+MIN_TOKEN_BYTES = 32  # nuScenes tokens: 32 hex characters
+
+
+def token_width(tokens: Iterable[str]) -> int:
+    """Bytes per token in a store holding `tokens`: the longest UTF-8 encoding, at least 32."""
+    return max([MIN_TOKEN_BYTES, *(len(t.encode("utf-8")) for t in tokens)])
+
+
+def token_bytes(token: str, width: int = MIN_TOKEN_BYTES) -> np.ndarray:
+    """A token as `(width,) uint8` UTF-8 bytes, zero padded (lossless: tokens hold no NUL).
+
+    Raises `OccDataError` if it does not fit, rather than cutting it (cut tokens collide).
+    """
+    raw = token.encode("utf-8")
+    if len(raw) > width or b"\0" in raw:
+        raise OccDataError(f"token {token!r} does not fit the store's {width}-byte token arrays")
+    out = np.zeros(width, dtype=np.uint8)
     out[: len(raw)] = np.frombuffer(raw, dtype=np.uint8)
     return out
 
 
 def token_str(arr: np.ndarray) -> str:
-    return bytes(np.asarray(arr, dtype=np.uint8)).rstrip(b"\0").decode("ascii")
+    """The token stored in a `(W,) uint8` row (any W)."""
+    return bytes(np.asarray(arr, dtype=np.uint8)).rstrip(b"\0").decode("utf-8", "replace")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import urllib.parse
 from pathlib import Path
 from typing import Any
 
@@ -10,16 +11,42 @@ import numpy as np
 import zarr
 
 from occdata.errors import OccDataError
-from occdata.store.layout import PER_SAMPLE, SCHEMA_NAME, SCHEMA_VERSION, STATE_DONE, token_str
+from occdata.store.integrity import CorruptStoreError, StoreIntegrity
+from occdata.store.layout import (
+    FLAT_ARRAYS,
+    MIN_TOKEN_BYTES,
+    PER_SAMPLE,
+    SCHEMA_NAME,
+    SCHEMA_VERSION,
+    STATE_DONE,
+    STATE_ERROR,
+    STATE_PENDING,
+    TOKEN_ARRAYS,
+    checksummed_names,
+    token_str,
+)
 
-__all__ = ["StoreReader", "open_store"]
+__all__ = ["StoreReader", "open_store", "store_location"]
+
+
+def store_location(path: str | Path) -> str:
+    """A store path or fsspec URL as zarr should get it: `file://` URLs (and the `file:/x` that
+    some tools make of them) become plain local paths, so local stores are written with ordinary
+    file operations; other URLs (s3://, gs://, memory://, ...) are passed on unchanged."""
+    text = str(path)
+    if text.startswith("file:"):
+        parsed = urllib.parse.urlparse(text)
+        if parsed.netloc not in ("", "localhost"):
+            raise OccDataError(f"cannot open {text}: only local file:// URLs are supported")
+        return urllib.parse.unquote(parsed.path)
+    return text
 
 
 class StoreReader:
     """A thin reader over one store. `root` may be a local path or an fsspec URL."""
 
     def __init__(self, root: str | Path) -> None:
-        self.path = str(root)
+        self.path = store_location(root)
         try:
             self.group = zarr.open_group(self.path, mode="r")
         except Exception as exc:  # noqa: BLE001 - every failure to open reads the same to a user
@@ -33,21 +60,95 @@ class StoreReader:
                 f"{SCHEMA_VERSION}; rebuild it with this version of occdata"
             )
         self.attrs: dict[str, Any] = attrs
-        self.n_samples: int = int(attrs["n_samples"])
+        self.n_samples: int = self._check_layout()
+        self.integrity = StoreIntegrity(self.group, attrs)
         self._cache: dict[str, np.ndarray] = {}
+
+    def _check_layout(self) -> int:
+        """Every array exists with the schema's shape and dtype, and agrees on the sample count.
+
+        Returns the sample count. An edited or damaged `zarr.json` gives one line naming the array.
+        """
+        n = self.attrs.get("n_samples")
+        if not isinstance(n, int) or isinstance(n, bool) or n < 0:
+            raise OccDataError(f"store {self.path}: attribute n_samples is {n!r}, not a sample count")
+        n_check = len(checksummed_names())
+        expected = {s.name: ((n, n_check) if s.name == "status/checksum" else (n, *s.shape), s.dtype)
+                    for s in PER_SAMPLE}
+        for name, (row, dtype, _) in FLAT_ARRAYS.items():
+            expected[name] = ((None, *row), dtype)
+        # Token arrays are as wide as the store's longest token (>= 32 bytes), the same for all three.
+        try:
+            width = int(self.group["sample/token"].shape[-1])
+        except Exception:  # noqa: BLE001 - reported below as a missing/unreadable array
+            width = MIN_TOKEN_BYTES
+        if width >= MIN_TOKEN_BYTES:
+            for name in TOKEN_ARRAYS:
+                shape, dtype = expected[name]
+                expected[name] = ((*shape[:-1], width), dtype)
+        for name, (shape, dtype) in expected.items():
+            try:
+                arr = self.group[name]
+            except Exception as exc:  # noqa: BLE001 - missing array, invalid zarr.json, ...
+                raise OccDataError(
+                    f"store {self.path}: array {name} is missing or its zarr.json is unreadable "
+                    f"({type(exc).__name__})"
+                ) from None
+            got = tuple(arr.shape)
+            if str(arr.dtype) != dtype or len(got) != len(shape) or any(
+                e is not None and g != e for g, e in zip(got, shape, strict=True)
+            ):
+                want = tuple("*" if e is None else e for e in shape)
+                raise OccDataError(
+                    f"store {self.path}: array {name} has shape {got} {arr.dtype}, the schema (n_samples={n}) "
+                    f"says {want} {dtype}; the store metadata was edited or damaged"
+                )
+        return n
 
     def array(self, name: str) -> zarr.Array:
         return self.group[name]
 
     def small(self, name: str) -> np.ndarray:
-        """A whole small per-sample array, read once and cached (state, offsets, tokens, poses)."""
+        """A whole small per-sample array, read once and cached (state, offsets, tokens, poses).
+
+        Checked: a chunk that went missing under a committed sample raises `CorruptStoreError`.
+        """
         if name not in self._cache:
-            self._cache[name] = self.group[name][:]
+            if name == "status/state":
+                self._cache[name] = self.integrity.read_state()
+            else:
+                state = self.small("status/state")
+                try:
+                    data = np.asarray(self.group[name][:])
+                except Exception as exc:  # noqa: BLE001 - codec errors surface as many types
+                    raise CorruptStoreError(f"store array {name} is unreadable ({type(exc).__name__}: {exc})") \
+                        from None
+                self.integrity.check_present(name, state)
+                self._cache[name] = data
         return self._cache[name]
 
     @property
     def state(self) -> np.ndarray:
-        return self.group["status/state"][:]
+        """`(N,) uint8` commit flags (0 pending, 1 done, 2 error), checked for missing chunks."""
+        return self.small("status/state")
+
+    def require_done(self, index: int) -> None:
+        """One clear line for a sample that cannot be read: out of range, failed, or not built yet."""
+        self._check_index(index)
+        st = int(self.state[index])
+        if st == STATE_DONE:
+            return
+        token = self.token(index)
+        if st == STATE_ERROR:
+            reason = next((e["reason"] for e in self.attrs.get("errors", []) if e.get("index") == index),
+                          "reason not recorded")
+            raise OccDataError(f"sample {index} ({token}) failed to build: {reason}")
+        if st == STATE_PENDING:
+            raise OccDataError(
+                f"sample {index} ({token}) is pending: the build has not reached it yet "
+                "(finish it with `occdata build ... --resume`)"
+            )
+        raise CorruptStoreError(f"corrupt store: sample {index} ({token}) has an unknown state {st}")
 
     def done_indices(self) -> np.ndarray:
         return np.flatnonzero(self.state == STATE_DONE)
@@ -60,25 +161,34 @@ class StoreReader:
         self._check_index(index)
         names = names or tuple(s.name for s in PER_SAMPLE)
         out = {}
+        committed = self.state[index] != STATE_PENDING
+        checked = set(checksummed_names())
         for name in names:
             try:
                 out[name] = np.asarray(self.group[name][index])
             except Exception as exc:  # noqa: BLE001 - codec errors surface as many types
-                raise OccDataError(
+                raise CorruptStoreError(
                     f"corrupt store data in {name} for sample {index} ({self.token(index)}): {exc}"
                 ) from None
+            if committed and name in checked:  # a missing chunk reads as fill: the checksum tells
+                self.integrity.check_rows(name, [index], [out[name]])
         return out
 
     def _flat_slice(self, flat: str, offsets_name: str, index: int) -> list[np.ndarray]:
         off = self.small(offsets_name)[index]
-        lo = int(off[:, 0].min()) if off[:, 1].any() else 0
+        if not off[:, 1].any():  # a failed sample: empty ranges
+            return [self.group[flat][0:0] for _ in off]
+        lo = int(off[:, 0].min())
         hi = int((off[:, 0] + off[:, 1]).max())
         try:
             data = np.asarray(self.group[flat][lo:hi])
         except Exception as exc:  # noqa: BLE001
             where = f"{flat} for sample {index} ({self.token(index)})"
-            raise OccDataError(f"corrupt store data in {where}: {exc}") from None
-        return [data[int(s) - lo : int(s) - lo + int(n)] for s, n in off]
+            raise CorruptStoreError(f"corrupt store data in {where}: {exc}") from None
+        parts = [data[int(s) - lo : int(s) - lo + int(n)] for s, n in off]
+        if self.state[index] != STATE_PENDING:
+            self.integrity.check_rows(flat, [index], [b"".join(p.tobytes() for p in parts)])
+        return parts
 
     def jpeg_bytes(self, index: int) -> list[bytes]:
         """The 6 stored JPEG streams of a sample, in camera order."""
@@ -108,6 +218,8 @@ class StoreReader:
 
 
 def open_store(path: str | Path) -> StoreReader:
-    if "://" not in str(path) and not Path(path).exists():
+    """Open a store for reading: a local path or an fsspec URL (`file:///x.zarr`, `s3://...`)."""
+    path = store_location(path)
+    if "://" not in path and not Path(path).exists():
         raise OccDataError(f"store not found: {path}")
     return StoreReader(path)

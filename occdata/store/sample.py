@@ -6,6 +6,7 @@ Pure with respect to the store: reads the sample's files, returns arrays. Bad in
 
 from __future__ import annotations
 
+import os
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,9 +17,10 @@ import numpy as np
 from occdata.bev import bev_bits
 from occdata.constants import FREE_LABEL, GRID
 from occdata.errors import OccDataError
+from occdata.jpeg_check import decode_jpeg_checked
 from occdata.nuscenes import SampleRecord, load_lidar_points, validate_sample
 from occdata.projection import project_to_cameras
-from occdata.store.layout import N_PREV, token_bytes
+from occdata.store.layout import MIN_TOKEN_BYTES, N_PREV, token_bytes
 
 __all__ = ["SampleError", "SampleOptions", "SampleResult", "jpeg_size", "load_occ3d_labels", "process_sample"]
 
@@ -74,20 +76,22 @@ def _read_jpeg(path: Path, width: int, height: int, options: SampleOptions) -> b
         data = path.read_bytes()
     except FileNotFoundError:
         raise SampleError(f"missing image file: {path}") from None
+    except OSError as exc:  # a folder, a symlink loop, no permission, an I/O error
+        raise SampleError(f"cannot read image file {path}: {exc.strerror or exc}") from None
     size = jpeg_size(data)
     if size is None or not data.rstrip(b"\0").endswith(b"\xff\xd9"):
         raise SampleError(f"corrupt JPEG {path}: not a complete JPEG stream")
     if size != (width, height):
         raise SampleError(f"corrupt JPEG {path}: {size[0]}x{size[1]} but sample_data says {width}x{height}")
     buf = np.frombuffer(data, dtype=np.uint8)
+    # A 1/8-scale decode still walks the whole entropy-coded stream: cheap full validation. Any
+    # libjpeg warning (damaged data it papered over with grey) rejects the image.
+    flag = cv2.IMREAD_REDUCED_GRAYSCALE_8 if options.image_scale == 1.0 else cv2.IMREAD_COLOR
+    img, warning = decode_jpeg_checked(buf, flag)
+    if img is None or warning:
+        raise SampleError(f"corrupt JPEG {path}: {warning or 'decoder rejected the data'}")
     if options.image_scale == 1.0:
-        # A 1/8-scale decode still walks the whole entropy-coded stream: cheap full validation.
-        if cv2.imdecode(buf, cv2.IMREAD_REDUCED_GRAYSCALE_8) is None:
-            raise SampleError(f"corrupt JPEG {path}: decoder rejected the data")
         return data
-    img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
-    if img is None:
-        raise SampleError(f"corrupt JPEG {path}: decoder rejected the data")
     new_size = (round(width * options.image_scale), round(height * options.image_scale))
     img = cv2.resize(img, new_size, interpolation=cv2.INTER_AREA)
     ok, enc = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, options.jpeg_quality])
@@ -103,8 +107,13 @@ def load_occ3d_labels(path: Path) -> dict[str, np.ndarray]:
     `occdata visibility` fills in. Raises `SampleError` naming the file for unreadable files, a
     missing `semantics`, wrong shapes or out-of-range values. Never unpickles.
     """
+    if Path(path).is_dir():
+        raise SampleError(f"bad labels {path}: a folder, not an .npz file")
     try:
-        with np.load(path, allow_pickle=False) as npz:
+        loaded = np.load(path, allow_pickle=False)
+        if not isinstance(loaded, np.lib.npyio.NpzFile):
+            raise SampleError(f"bad labels {path}: not an .npz archive")
+        with loaded as npz:
             if "semantics" not in npz.files:
                 raise SampleError(f"bad labels {path}: missing keys ['semantics'] (has {sorted(npz.files)})")
             out = {k: np.asarray(npz[k]) for k in LABEL_KEYS if k in npz.files}
@@ -128,18 +137,25 @@ def load_occ3d_labels(path: Path) -> dict[str, np.ndarray]:
 
 
 def static_arrays(
-    sample: SampleRecord, scene_index: int, split_code: int, prev_index: np.ndarray, prev_valid: np.ndarray
+    sample: SampleRecord,
+    scene_index: int,
+    split_code: int,
+    prev_index: np.ndarray,
+    prev_valid: np.ndarray,
+    token_width: int = MIN_TOKEN_BYTES,
 ) -> dict[str, np.ndarray]:
-    """Tokens, calibration, poses and temporal indices: cheap, valid even for failed samples."""
+    """Tokens (`token_width` bytes each), calibration, poses and temporal indices: cheap, valid
+    even for failed samples."""
     cams = sample.cameras
+    w = token_width
     return {
-        "sample/token": token_bytes(sample.token),
+        "sample/token": token_bytes(sample.token, w),
         "sample/scene_index": np.int32(scene_index),
         "sample/split": np.uint8(split_code),
         "sample/index_in_scene": np.int32(sample.index_in_scene),
         "sample/timestamp": np.int64(sample.timestamp),
-        "sample/lidar_token": token_bytes(sample.lidar.token),
-        "cam/token": np.stack([token_bytes(c.token) for c in cams]),
+        "sample/lidar_token": token_bytes(sample.lidar.token, w),
+        "cam/token": np.stack([token_bytes(c.token, w) for c in cams]),
         "cam/timestamp": np.array([c.timestamp for c in cams], dtype=np.int64),
         "cam/image_size": np.array([[c.width, c.height] for c in cams], dtype=np.int32),
         "calib/K": np.stack([c.K for c in cams]),
@@ -171,7 +187,7 @@ def process_sample(
         uvd_all, counts = project_to_cameras(points, T_cam_from_lidar, K, sizes, options.min_depth)
         uvd = tuple(uvd_all[c, : counts[c]].copy() for c in range(len(counts)))
         arrays = dict(static)
-        if label_path is not None and label_path.is_file():
+        if label_path is not None and os.path.lexists(label_path):
             labels = load_occ3d_labels(label_path)
             arrays["labels/present"] = np.bool_(True)
             arrays["labels/semantics"] = labels["semantics"]
@@ -183,6 +199,9 @@ def process_sample(
         return SampleResult(index=index, token=sample.token, arrays=arrays, jpeg=jpeg, uvd=uvd)
     except OccDataError as exc:  # SampleError, or a calibration rejected by validate_sample
         return SampleResult(index=index, token=sample.token, arrays=dict(static), jpeg=(), uvd=(), error=str(exc))
+    except Exception as exc:  # noqa: BLE001 - anything else about this sample's input stays with it
+        reason = f"unexpected {type(exc).__name__}: {exc}"
+        return SampleResult(index=index, token=sample.token, arrays=dict(static), jpeg=(), uvd=(), error=reason)
 
 
 def temporal_indices(scene_index: np.ndarray, index_in_scene: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -14,6 +14,7 @@ import numpy as np
 import zarr
 from tqdm import tqdm
 
+from occdata.store.integrity import StoreIntegrity
 from occdata.store.layout import STATE_DONE, checksummed_names
 
 __all__ = ["update_samples"]
@@ -36,7 +37,8 @@ def update_samples(
     `select` is an `(N,) bool` mask. Returns the number of samples updated.
     """
     names = checksummed_names()
-    state = group["status/state"][:]
+    integrity = StoreIntegrity(group)
+    state = integrity.read_state()
     todo = np.flatnonzero(select & (state == STATE_DONE))
     n_done = 0
     with tqdm(total=len(todo), desc=desc, unit="sample", disable=not progress, dynamic_ncols=True) as bar:
@@ -46,6 +48,9 @@ def update_samples(
                 continue
             i0, i1 = int(idx[0]), int(idx[-1]) + 1
             data = {name: group[name][i0:i1] for name in inputs}
+            for name in inputs:  # never recompute from (and re-checksum) a chunk that went missing
+                if name in names:
+                    integrity.check_rows(name, idx, [data[name][i - i0] for i in idx])
             outs: dict[str, np.ndarray] = {}
             touched: list[int] = []
             for i in idx:

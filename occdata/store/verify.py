@@ -1,4 +1,4 @@
-"""`occdata verify`: recompute every committed sample's checksums and report mismatches."""
+"""`occdata verify`: every committed sample's chunks present and its checksums recomputed."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from occdata.errors import OccDataError
-from occdata.store.layout import FLAT_ARRAYS, FLAT_OF_OFFSETS, STATE_PENDING, checksummed_names
+from occdata.store.layout import FLAT_ARRAYS, FLAT_OF_OFFSETS, PER_SAMPLE, STATE_PENDING, checksummed_names
 from occdata.store.reader import StoreReader
 
-__all__ = ["Problem", "verify_store"]
+__all__ = ["Problem", "pending_samples", "verify_store"]
 
 
 @dataclass(frozen=True)
@@ -28,9 +28,13 @@ def _crc_rows(data: np.ndarray) -> list[int]:
 
 
 def verify_store(reader: StoreReader, block: int = 32, progress: Callable[[int], None] | None = None) -> list[Problem]:
-    """Checksum mismatches and unreadable chunks, each with the sample it belongs to."""
+    """Missing chunks, checksum mismatches and unreadable chunks, each with the sample it belongs to.
+
+    Raises `OccDataError` when the commit flags themselves are missing or unreadable (then no
+    sample can be judged). Pending samples are not problems: see `pending_samples`.
+    """
+    state = reader.state  # checked: a missing state chunk in a complete store raises
     try:
-        state = reader.group["status/state"][:]
         stored = reader.group["status/checksum"][:]
     except Exception as exc:  # noqa: BLE001
         raise OccDataError(f"status arrays of {reader.path} are unreadable: {exc}") from None
@@ -38,6 +42,14 @@ def verify_store(reader: StoreReader, block: int = 32, progress: Callable[[int],
     if stored.shape[1] != len(names):
         raise OccDataError(f"{reader.path}: checksum table has {stored.shape[1]} columns, expected {len(names)}")
     problems: list[Problem] = []
+    # Every array's chunks: an absent one must hold only fill values for each committed sample.
+    for name in [s.name for s in PER_SAMPLE if s.name != "status/state"] + list(FLAT_ARRAYS):
+        try:
+            absent = reader.integrity.problems_absent(name, state)
+        except OccDataError as exc:
+            problems.append(Problem(-1, "?", name, str(exc)))
+            continue
+        problems += [Problem(i, _token(reader, i), name, why) for i, why in absent]
     committed = state != STATE_PENDING
     offsets = {}
     for off_name in FLAT_OF_OFFSETS:
@@ -92,3 +104,8 @@ def _token(reader: StoreReader, i: int) -> str:
         return reader.token(i)
     except Exception:  # noqa: BLE001 - the token array itself may be the corrupt one
         return "?"
+
+
+def pending_samples(reader: StoreReader) -> np.ndarray:
+    """Indices of samples the build has not committed yet (an interrupted or running build)."""
+    return np.flatnonzero(reader.state == STATE_PENDING)

@@ -20,7 +20,8 @@ from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES
 from occdata.errors import OccDataError
 from occdata.geometry import invert_rigid
 from occdata.store.layout import STATE_DONE
-from occdata.store.reader import open_store
+from occdata.store.lock import store_lock
+from occdata.store.reader import open_store, store_location
 from occdata.store.update import update_samples
 from occdata.visibility import camera_mask, lidar_mask
 
@@ -95,12 +96,17 @@ def sample_visibility(
 
 
 def compute_visibility(
-    store: Path, recompute: bool = False, block: int = 32, progress: bool = True
+    store: str | Path, recompute: bool = False, block: int = 32, progress: bool = True
 ) -> VisibilityReport:
     """Masks for labelled samples that ship no camera mask (every labelled sample with `recompute`,
     comparing with the shipped masks per class)."""
+    with store_lock(store_location(store), "visibility"):  # one writer at a time
+        return _compute_visibility(store, recompute, block, progress)
+
+
+def _compute_visibility(store: str | Path, recompute: bool, block: int, progress: bool) -> VisibilityReport:
     reader = open_store(store)
-    group = zarr.open_group(str(store), mode="r+")
+    group = zarr.open_group(reader.path, mode="r+")
     present = group["labels/present"][:]
     done = reader.state == STATE_DONE
     if not present[done].any():

@@ -1,0 +1,83 @@
+"""Loader worker start-up: which start method, and a clear error for scripts that a re-importing
+start method would run twice.
+
+What can deadlock a forked worker: zarr runs its IO on an asyncio loop in a background thread; a
+forked child that used the parent's loop object waits forever, because the loop's thread does not
+exist in the child (tests/test_loader_start_method.py shows it). zarr >= 3.0.3 resets the loop,
+its IO thread and its executor in the child (`os.register_at_fork`, zarr PR #2815), which removes
+that cause. A plain fork was still not adopted: 30 standalone trials of fork-after-failed-read passed, but
+under heavy load a forked-worker pytest run timed out
+twice (stack: parent waiting on the workers) and the cause was not pinned down in time, so
+workers keep starting from a forkserver (fork-safe by construction: the server forks before any
+zarr IO thread exists).
+
+With 'spawn' or 'forkserver' every worker imports the main script again; one that builds its
+loader at module level without `if __name__ == "__main__":` used to fail deep inside torch
+("DataLoader worker exited unexpectedly"). `check_main_guard` says so upfront, in one line.
+"""
+
+from __future__ import annotations
+
+import ast
+import multiprocessing
+import sys
+from typing import Any
+
+from occdata.errors import OccDataError
+
+__all__ = ["check_main_guard", "default_worker_context"]
+
+
+def default_worker_context() -> Any:
+    """A forkserver context with the heavy modules preloaded (cheap worker starts)."""
+    import torch
+
+    ctx = torch.multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(["torch", "zarr", "cv2", "fastocc.data"])
+    return ctx
+
+
+def _is_main_guard(node: ast.stmt) -> bool:
+    if not isinstance(node, ast.If) or not isinstance(node.test, ast.Compare):
+        return False
+    parts = [node.test.left, *node.test.comparators]
+    names = {p.id for p in parts if isinstance(p, ast.Name)}
+    consts = {p.value for p in parts if isinstance(p, ast.Constant)}
+    return names == {"__name__"} and consts == {"__main__"}
+
+
+def _unguarded_main_line() -> int | None:
+    """Line of the main script's module-level code that (indirectly) calls us, if it is not under
+    `if __name__ == "__main__":`; None when called from a function only, or under the guard."""
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    frame = sys._getframe(1)
+    while frame is not None and not (frame.f_code.co_name == "<module>" and frame.f_globals is vars(main)):
+        frame = frame.f_back
+    if frame is None or not path:
+        return None
+    try:
+        tree = ast.parse(open(path, encoding="utf-8").read())
+    except (OSError, SyntaxError, ValueError):
+        return None
+    line = frame.f_lineno
+    for node in tree.body:
+        if _is_main_guard(node) and node.lineno <= line <= (node.end_lineno or node.lineno):
+            return None
+    return line
+
+
+def check_main_guard(context: Any) -> None:
+    """Raise `OccDataError` when workers started with `context` would re-run the main script's loader code."""
+    method = context.get_start_method() if hasattr(context, "get_start_method") else \
+        (context or multiprocessing.get_start_method())
+    if method == "fork":
+        return
+    line = _unguarded_main_line()
+    if line is not None:
+        script = getattr(sys.modules["__main__"], "__file__", "the main script")
+        raise OccDataError(
+            f"{script}:{line} creates a data loader with workers at module level, without "
+            f"`if __name__ == \"__main__\":`; with the '{method}' start method every worker re-runs the "
+            "script. Move that code under the guard (or use num_workers=0)"
+        )

@@ -1,0 +1,72 @@
+"""Issue #12 item 15: the commands exactly as users type them, in a folder that holds `nuscenes/`.
+
+    occdata build --root nuscenes/
+    occdata bev-gt
+    fastocc train --store data.zarr      (added by the integrator once `fastocc train` exists)
+
+Each runs in a fresh process (`python -m cli.occdata_cli` is the `occdata` entry point of this
+checkout) with that folder as the working directory.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from occdata.store.layout import STATE_DONE
+from occdata.store.reader import open_store
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def occdata(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    return subprocess.run([sys.executable, "-m", "cli.occdata_cli", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture
+def user_folder(synth_root: Path, tmp_path: Path) -> Path:
+    shutil.copytree(synth_root, tmp_path / "nuscenes", symlinks=False)  # gts/ inside, as in Occ3D-nuScenes
+    return tmp_path
+
+
+def test_the_commands_verbatim(user_folder: Path) -> None:
+    r = occdata(user_folder, "build", "--root", "nuscenes/")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "Traceback" not in r.stderr
+    labels_lines = [ln for ln in r.stdout.splitlines() if ln.startswith("labels:")]
+    assert labels_lines == [f"labels: {Path('nuscenes') / 'gts'} (found in the dataset root)"], r.stdout
+    assert (user_folder / "data.zarr").is_dir()
+    reader = open_store(user_folder / "data.zarr")
+    assert (reader.state == STATE_DONE).all()
+    assert int(reader.small("labels/present").sum()) == reader.n_samples
+
+    r = occdata(user_folder, "bev-gt")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert f"BEV GT written for {reader.n_samples} labelled samples" in r.stdout
+
+    for cmd in (["info"], ["verify", "--no-progress"]):  # every store reader defaults to data.zarr
+        r = occdata(user_folder, *cmd)
+        assert r.returncode == 0, (cmd, r.stdout + r.stderr)
+
+
+def test_build_without_labels_folder_says_so(user_folder: Path) -> None:
+    shutil.rmtree(user_folder / "nuscenes" / "gts")
+    r = occdata(user_folder, "build", "--root", "nuscenes/")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert [ln for ln in r.stdout.splitlines() if ln.startswith("labels:")] == [
+        f"labels: none (no --gts, and {Path('nuscenes') / 'gts'} does not exist): the store will be unlabelled"
+    ]
+    assert "0 labelled" in r.stdout
+
+
+def test_store_commands_without_a_store_say_which_one(tmp_path: Path) -> None:
+    r = occdata(tmp_path, "info")
+    assert r.returncode == 1
+    assert r.stderr.strip().splitlines() == ["Error: store not found: data.zarr"]

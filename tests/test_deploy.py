@@ -1,0 +1,294 @@
+"""Deployment: ONNX export parity (ONNX Runtime vs the PyTorch network), a standard-operator graph, the
+streaming Predictor (shared preprocessing with the loader, fixed-size state) and clear errors on bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from fastocc.checkpoint import CheckpointError, save_checkpoint
+from fastocc.deploy import DeployError, ExportConfig, Predictor, export_model, export_onnx, load_rig, synthetic_rig
+from fastocc.deploy.export import custom_domain_ops
+from fastocc.model import FastOcc, HeadKind, preset
+from occdata.constants import CAMERA_ORDER, CLASS_NAMES
+
+REPO = Path(__file__).resolve().parents[1]
+
+pytest.importorskip("onnxruntime")
+
+
+def _checkpoint(path: Path, name: str = "nano", seed: int = 0, **overrides: object) -> Path:
+    torch.manual_seed(seed)
+    cfg = preset(name, **overrides)
+    return save_checkpoint(path, cfg, FastOcc(cfg).state_dict())
+
+
+def _frames(rig, n: int, seed: int = 0) -> list[list[np.ndarray]]:  # noqa: ANN001
+    rng = np.random.default_rng(seed)
+    return [[rng.integers(0, 256, (int(h), int(w), 3), dtype=np.uint8) for w, h in rig.image_size] for _ in range(n)]
+
+
+def _poses(n: int) -> list[np.ndarray]:
+    out = []
+    for t in range(n):
+        T = np.eye(4)
+        a = 0.03 * t
+        T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+        T[:3, 3] = [500.0 + 1.2 * t, -300.0 + 0.1 * t, 0.0]
+        out.append(T)
+    return out
+
+
+@pytest.fixture(scope="module")
+def nano_export(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, str]:
+    """nano / FastOcc head exported through the CLI: (checkpoint, onnx, stdout)."""
+    d = tmp_path_factory.mktemp("export")
+    ckpt = _checkpoint(d / "nano.pt")
+    out = d / "nano.onnx"
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "cli.fastocc_cli", "export", "--checkpoint", str(ckpt), "--out",
+                           str(out)], cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert time.perf_counter() - t0 < 300
+    return ckpt, out, proc.stdout
+
+
+def test_cli_export_writes_a_parity_checked_standard_graph(nano_export: tuple[Path, Path, str]) -> None:
+    import onnx
+
+    ckpt, out, stdout = nano_export
+    assert "PASS" in stdout and "parity" in stdout
+    assert custom_domain_ops(out) == []
+    ops = {n.op_type for n in onnx.load(str(out)).graph.node}
+    assert {"ScatterND", "Gather", "Conv"} <= ops  # LSS pooling and interpolation sampling, standard ops
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert meta["inputs"] == {"images": {"shape": [1, 6, 3, 128, 352], "dtype": "float32"}}
+    assert meta["outputs"]["semantics"]["shape"] == [1, 200, 200, 16]
+    assert meta["camera_order"] == list(CAMERA_ORDER) and meta["class_names"] == list(CLASS_NAMES)
+    assert len(meta["class_colors"]) == 18 and meta["normalisation"]["colour_order"] == "RGB"
+    assert meta["rig_hash"] == synthetic_rig().hash((128, 352))
+    p = meta["parity"]
+    assert p["passed"] and p["max_abs_diff"] <= 1e-3 and p["min_agreement"] >= 0.999
+
+
+@pytest.mark.parametrize("head", [HeadKind.FCN3D, HeadKind.DECONV])
+def test_export_parity_baseline_heads_nano(tmp_path: Path, head: HeadKind) -> None:
+    rep = export_onnx(ExportConfig(checkpoint=_checkpoint(tmp_path / "c.pt", head=head), out=tmp_path / "m.onnx"))
+    assert rep.parity.passed and rep.parity.max_abs_diff <= 1e-3 and rep.parity.min_agreement >= 0.999
+    assert custom_domain_ops(rep.out) == []
+
+
+def test_export_refuses_a_graph_that_fails_parity(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Corrupt the baked interpolation weights: ONNX Runtime no longer matches PyTorch, nothing is written."""
+    import fastocc.deploy.static as static
+
+    real = static._slot_sampling
+
+    def wrong(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        return [(rows, wts * 3.0, scatter) for rows, wts, scatter in real(*args, **kwargs)]
+
+    monkeypatch.setattr(static, "_slot_sampling", wrong)
+    torch.manual_seed(0)
+    model = FastOcc(preset("nano"))
+    with pytest.raises(DeployError, match="parity check failed"):
+        export_model(model, synthetic_rig(), ExportConfig(checkpoint=Path("x"), out=tmp_path / "m.onnx", frames=1))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_custom_domain_ops_are_found(tmp_path: Path) -> None:
+    import onnx
+    from onnx import TensorProto, helper
+
+    node = helper.make_node("Inverse", ["x"], ["y"], domain="com.microsoft")
+    graph = helper.make_graph([node], "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [4, 4])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, [4, 4])])
+    onnx.save(helper.make_model(graph), str(tmp_path / "c.onnx"))
+    assert custom_domain_ops(tmp_path / "c.onnx") == ["com.microsoft::Inverse"]
+
+
+def test_predictor_onnx_matches_checkpoint(nano_export: tuple[Path, Path, str]) -> None:
+    ckpt, onnx_path, _ = nano_export
+    p_torch, p_onnx = Predictor(ckpt), Predictor(onnx_path)
+    assert p_onnx.camera_order == CAMERA_ORDER
+    for images in _frames(synthetic_rig(), 2):
+        a = p_torch(images)
+        b, probs = p_onnx(images, with_probs=True)
+        assert a.shape == b.shape == (200, 200, 16) and a.dtype == b.dtype == np.uint8
+        assert len(np.unique(a)) > 1  # a constant prediction would make agreement meaningless
+        assert (a == b).mean() >= 0.999
+        assert probs.shape == (18, 200, 200, 16)
+        np.testing.assert_allclose(probs.sum(0), 1.0, atol=1e-5)
+        assert (probs.argmax(0) == b).mean() >= 0.999
+
+
+def test_temporal_stream_parity_and_fixed_state(tmp_path: Path) -> None:
+    """A temporal nano: exported step with the queue as inputs/outputs; the Predictor keeps it. ONNX and
+    PyTorch agree over a moving stream, and the state keeps its size whatever the stream length."""
+    ckpt = _checkpoint(tmp_path / "t.pt", num_history=2)
+    rep = export_onnx(ExportConfig(checkpoint=ckpt, out=tmp_path / "t.onnx", frames=3))
+    assert rep.parity.passed and rep.parity.frames == 3
+    meta = json.loads(rep.sidecar.read_text())
+    assert meta["inputs"]["history"]["shape"] == [1, 2, 16 * 8, 100, 100]
+    assert set(meta["inputs"]) == {"images", "history", "T_prev_from_cur", "seq_start"}
+    p_torch, p_onnx = Predictor(ckpt), Predictor(rep.out)
+    with pytest.raises(DeployError, match="ego_pose"):
+        p_onnx(_frames(synthetic_rig(), 1)[0])
+    from fastocc.checkpoint import load_model
+
+    p_static = Predictor.from_model(load_model(ckpt)[0], runtime="static")  # the export wrapper in PyTorch
+    frames, poses = _frames(synthetic_rig(), 3, seed=1), _poses(5)
+    sizes = []
+    for t, pose in enumerate(poses):
+        a = p_torch(frames[t % 3], pose)
+        b = p_onnx(frames[t % 3], pose)
+        assert (a == b).mean() >= 0.999, t
+        assert (a == p_static(frames[t % 3], pose)).mean() >= 0.999, t
+        st = p_onnx._backend.state
+        q = p_torch._backend.model.temporal._feats
+        sizes.append((st.history.shape, len(st.poses), tuple(q.shape)))
+    assert len(set(sizes)) == 1 and sizes[0][1] == 2
+
+
+def test_loader_and_predictor_share_preprocessing(synth_store: Path) -> None:
+    """The Predictor's input equals the loader's test-transform input bit for bit (same store images)."""
+    from fastocc.data.augment import BevAugConfig, ImageAugConfig
+    from fastocc.data.sample import SampleConfig, SampleMaker, StoreSamples
+    from occdata.store.reader import open_store
+
+    reader = open_store(synth_store)
+    samples = StoreSamples(reader)
+    test_cfg = SampleConfig(image=ImageAugConfig(128, 352, train=False), bev=BevAugConfig(train=False))
+    maker = SampleMaker(samples, test_cfg)
+    torch.manual_seed(0)
+    rig = load_rig(synth_store)
+    np.testing.assert_array_equal(rig.K.astype(np.float32), samples.K[0])
+    np.testing.assert_array_equal(rig.T_keyego_from_cam.astype(np.float32), samples.T_keyego_from_cam[0])
+    pred = Predictor.from_model(FastOcc(preset("nano")), rig)
+    for i in (0, 2):
+        loader = maker(samples.read_run(i, i + 1)[0], None)
+        mine = pred.preprocess(reader.images(i))[0]
+        np.testing.assert_array_equal(mine, loader["images"])
+        np.testing.assert_allclose(pred.img_aug, loader["img_aug"])
+    bgr = Predictor.from_model(FastOcc(preset("nano")), rig, bgr=True)
+    np.testing.assert_array_equal(bgr.preprocess([im[..., ::-1] for im in reader.images(0)])[0],
+                                  maker(samples.read_run(0, 1)[0], None)["images"])
+
+
+def test_rig_from_tree_matches_rig_from_store(synth_root: Path, synth_store: Path) -> None:
+    a, b = load_rig(synth_root), load_rig(synth_store)
+    np.testing.assert_allclose(a.K, b.K)
+    np.testing.assert_allclose(a.T_keyego_from_cam, b.T_keyego_from_cam, atol=1e-9)
+    np.testing.assert_array_equal(a.image_size, b.image_size)
+    assert a.cameras == b.cameras == CAMERA_ORDER
+    assert a.hash((128, 352)) == b.hash((128, 352)) != synthetic_rig().hash((128, 352))
+
+
+def test_bad_inputs_are_one_clear_error_each(tmp_path: Path, nano_export: tuple[Path, Path, str],
+                                             synth_store: Path) -> None:
+    ckpt, onnx_path, _ = nano_export
+    bare = tmp_path / "bare.pt"
+    torch.save(FastOcc(preset("nano")).state_dict(), bare)
+    with pytest.raises(CheckpointError, match="not a fastocc checkpoint"):
+        Predictor(bare)
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="not a readable fastocc checkpoint"):
+        export_onnx(ExportConfig(checkpoint=junk, out=tmp_path / "x.onnx"))
+    with pytest.raises(DeployError, match="has 5 cameras but the model expects 6"):
+        Predictor.from_model(FastOcc(preset("nano")), synthetic_rig(5))
+    with pytest.raises(DeployError, match="has 6 cameras but the model expects 5"):
+        export_model(FastOcc(preset("nano", num_cams=5)), synthetic_rig(), ExportConfig(Path("c"), tmp_path / "y.onnx"))
+    with pytest.raises(DeployError, match="must end in .onnx"):
+        export_model(FastOcc(preset("nano")), synthetic_rig(), ExportConfig(Path("c"), tmp_path / "y.bin"))
+    with pytest.raises(DeployError, match="exported for another rig"):
+        Predictor(onnx_path, rig=synth_store)
+    pred = Predictor(onnx_path)
+    images = _frames(synthetic_rig(), 1)[0]
+    with pytest.raises(DeployError, match="expected 6 camera images"):
+        pred(images[:5])
+    with pytest.raises(DeployError, match=r"expected a \(900, 1600, 3\) image"):
+        pred([*images[:5], images[5][:450, :800]])
+    with pytest.raises(DeployError, match="must be uint8"):
+        pred([*images[:5], images[5].astype(np.float32)])
+    (tmp_path / "lonely.onnx").write_bytes(onnx_path.read_bytes())
+    with pytest.raises(DeployError, match="no sidecar"):
+        Predictor(tmp_path / "lonely.onnx")
+    assert list(tmp_path.glob("*.onnx")) == [tmp_path / "lonely.onnx"]  # no failed export left a file
+
+
+def test_cli_export_bad_checkpoint_is_one_line(tmp_path: Path) -> None:
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"nope")
+    proc = subprocess.run([sys.executable, "-m", "cli.fastocc_cli", "export", "--checkpoint", str(junk), "--out",
+                           str(tmp_path / "m.onnx")], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 1
+    assert proc.stderr.strip().startswith("Error:") and "Traceback" not in proc.stderr
+    assert "not a readable fastocc checkpoint" in proc.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("head", list(HeadKind))
+def test_export_parity_tiny(tmp_path: Path, head: HeadKind) -> None:
+    t0 = time.perf_counter()
+    rep = export_onnx(ExportConfig(checkpoint=_checkpoint(tmp_path / "c.pt", "tiny", head=head),
+                                   out=tmp_path / "m.onnx"))
+    assert rep.parity.passed and rep.parity.max_abs_diff <= 1e-3 and rep.parity.min_agreement >= 0.999
+    assert custom_domain_ops(rep.out) == []
+    assert time.perf_counter() - t0 < 600  # generous: the 2-minute target is measured in docs/deploy.md
+
+
+@pytest.mark.slow
+def test_runtime_bench_all_runtimes_nano() -> None:
+    from fastocc.bench import RuntimeBenchConfig, format_runtime_report, run_runtime_benchmark
+
+    res = run_runtime_benchmark(RuntimeBenchConfig(preset="nano", repeats=1, warmup=0))
+    assert set(res["runtimes"]) == {"torch", "compile", "onnx"}
+    for r in res["runtimes"].values():
+        assert r["ms"] > 0 and r["argmax_agreement_with_first"] >= 0.999
+    assert "onnx" in format_runtime_report(res)
+
+
+def test_predictor_is_exported_from_the_package() -> None:
+    import fastocc
+
+    assert fastocc.Predictor is Predictor and "Predictor" in fastocc.__all__
+
+
+def test_rig_from_the_real_nuscenes_sample(real_nuscenes_root: Path) -> None:
+    """K per camera against calibrated_sensor.json read directly; the real front camera looks forward."""
+    rig = load_rig(real_nuscenes_root)
+    tables = real_nuscenes_root / "v1.0-mini"
+    channel = {s["token"]: s["channel"] for s in json.loads((tables / "sensor.json").read_text())}
+    K = {channel[c["sensor_token"]]: c["camera_intrinsic"] for c in json.loads((tables / "calibrated_sensor.json")
+                                                                               .read_text())}
+    assert rig.cameras == CAMERA_ORDER
+    for n, cam in enumerate(rig.cameras):
+        np.testing.assert_allclose(rig.K[n], K[cam])
+    front = rig.T_keyego_from_cam[CAMERA_ORDER.index("CAM_FRONT")]
+    assert front[:3, 2] @ np.array([1.0, 0.0, 0.0]) > 0.99  # optical axis along ego +x
+    assert rig.image_size.tolist() == [[1600, 900]] * 6
+
+
+def test_export_for_a_store_rig_and_stream_its_frames(tmp_path: Path, synth_store: Path) -> None:
+    """The issue's user story: export for the store's rig, then run the Predictor on the store's frames."""
+    from occdata.store.reader import open_store
+
+    ckpt = _checkpoint(tmp_path / "c.pt")
+    rep = export_onnx(ExportConfig(checkpoint=ckpt, out=tmp_path / "store.onnx", rig=synth_store, frames=1))
+    meta = json.loads(rep.sidecar.read_text())
+    assert meta["rig"]["image_size"] == [[400, 225]] * 6 and "store" in meta["rig"]["source"]
+    reader = open_store(synth_store)
+    p_onnx, p_torch = Predictor(rep.out, rig=synth_store), Predictor(ckpt, rig=synth_store)
+    poses = reader.small("pose/T_global_from_keyego")
+    for i in reader.done_indices():
+        a = p_onnx(reader.images(int(i)), poses[i])
+        assert (a == p_torch(reader.images(int(i)), poses[i])).mean() >= 0.999
+    with pytest.raises(DeployError, match=r"expected a \(225, 400, 3\) image"):
+        p_onnx(_frames(synthetic_rig(), 1)[0])

@@ -1,0 +1,91 @@
+"""Issue 12 item 14: loader worker start method and scripts without a `__main__` guard.
+
+The first test shows the fork hazard's mechanism: a forked child that uses the parent's zarr IO
+loop waits forever (zarr >= 3.0.3 resets the loop in the child). The others: a script without
+`if __name__ == "__main__":` gets one clear line where the start method re-imports it (the
+forkserver default, or spawn), and a guarded script works.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def bad_store(synth_store: Path, tmp_path: Path) -> Path:
+    out = tmp_path / "bad.zarr"
+    shutil.copytree(synth_store, out)
+    (shard,) = [p for p in (out / "labels/semantics/c").rglob("*") if p.is_file()]
+    shard.write_bytes(shard.read_bytes()[:100])  # any read of it fails (shard index checksum)
+    return out
+
+
+def _run(code: str, tmp_path: Path, name: str = "script.py", timeout: int = 240) -> subprocess.CompletedProcess:
+    script = tmp_path / name
+    script.write_text(textwrap.dedent(code))
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    return subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
+def test_mechanism_child_using_parents_zarr_loop_hangs(synth_store: Path, bad_store: Path, tmp_path: Path) -> None:
+    r = _run(f"""
+        import os, signal, zarr, zarr.core.sync as zs
+        g = zarr.open_group({str(bad_store)!r}, mode="r")
+        try:
+            g["labels/semantics"][0]
+        except Exception:
+            pass
+        parent_loop = zs.loop[0]
+        for undo in (False, True):
+            pid = os.fork()
+            if pid == 0:
+                if undo:
+                    zs.loop[0] = parent_loop  # a zarr without its after-fork reset
+                signal.alarm(3)
+                zarr.open_group({str(synth_store)!r}, mode="r")["labels/semantics"][1]
+                os._exit(0)
+            _, status = os.waitpid(pid, 0)
+            print("undo" if undo else "reset", "hung" if os.WIFSIGNALED(status) else "ok")
+    """, tmp_path)
+    assert r.stdout.split("\n")[:2] == ["reset ok", "undo hung"], r.stdout + r.stderr
+
+
+SCRIPT = """
+    from fastocc.data import ImageAugConfig, LoaderConfig, SampleConfig, make_loader
+    cfg = SampleConfig(image=ImageAugConfig(height=96, width=160))
+    {body}
+"""
+LOOP = """loader = make_loader(LoaderConfig(store={store!r}, batch_size=2, sample=cfg), num_workers=2{ctx})
+    print("samples", sum(len(b.sample_index) for b in loader))"""
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("ctx", ["", ', multiprocessing_context="spawn"'])
+def test_unguarded_script_gets_one_clear_line(synth_store: Path, tmp_path: Path, ctx: str) -> None:
+    """Was: 'DataLoader worker (pid(s) ...) exited unexpectedly' after the workers re-ran the script."""
+    r = _run(SCRIPT.format(body=LOOP.format(store=str(synth_store), ctx=ctx)), tmp_path)
+    assert r.returncode == 1
+    last = r.stderr.strip().splitlines()[-1]
+    assert "script.py:4 creates a data loader with workers at module level" in last, r.stderr
+    assert "if __name__ == \"__main__\":" in last and ("'spawn'" in last or "'forkserver'" in last)
+    assert "exited unexpectedly" not in r.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_guarded_script_works(synth_store: Path, tmp_path: Path) -> None:
+    body = "def main():\n        " + LOOP.format(store=str(synth_store), ctx="") \
+        .replace("\n    ", "\n        ") + "\n    if __name__ == \"__main__\":\n        main()"
+    r = _run(SCRIPT.format(body=body), tmp_path)
+    assert r.returncode == 0 and "samples 6" in r.stdout, r.stderr[-2000:]
