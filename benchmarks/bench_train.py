@@ -123,7 +123,7 @@ def plot(curves: list[dict], baseline_miou: float | None, path: Path) -> None:
         x0, y0, x1, y1 = panel
         return (int(x0 + (x1 - x0) * x / xmax), int(y1 - (y1 - y0) * (y - ylo) / max(yhi - ylo, 1e-9)))
 
-    for panel, title, (ylo, yhi) in zip(panels, ("train loss (mean of 10 steps)", "val mIoU % (camera mask)"),
+    for panel, title, (ylo, yhi) in zip(panels, ("train loss (one step every 10)", "val mIoU % (camera mask)"),
                                         ((lmin, lmax), (0, mmax)), strict=True):
         x0, y0, x1, y1 = panel
         cv2.rectangle(img, (x0, y0), (x1, y1), (0, 0, 0), 1)
