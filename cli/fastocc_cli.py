@@ -135,6 +135,47 @@ def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height
     click.echo(f"wrote {path}")
 
 
+@main.command()
+@click.option("--store", default=None, help="Store path (default data.zarr, or the config file's).")
+@click.option("--config", "config_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="TOML file of TrainConfig fields (a [train] table or top level); options below override it.")
+@click.option("--preset", "preset_name", type=click.Choice(["nano", "tiny", "small", "base"]), default=None,
+              help="Model preset (default nano).")
+@click.option("--head", type=click.Choice(["fastocc", "3dfcn", "deconv"]), default=None, help="3D-side head.")
+@click.option("--epochs", type=click.IntRange(min=1), default=None, help="Epochs over the training split.")
+@click.option("--batch-size", type=click.IntRange(min=1), default=None,
+              help="GLOBAL batch size (all processes); each process gets batch-size / world size.")
+@click.option("--lr", type=float, default=None,
+              help="Learning rate at lr_base_batch (16); scaled to the global batch by lr_scaling (linear).")
+@click.option("--workers", type=click.IntRange(min=0), default=None, help="Loader worker processes per process.")
+@click.option("--pretrained", type=click.Path(dir_okay=False), default=None,
+              help="torchvision ResNet state dict for the backbone (e.g. resnet50.pth).")
+@click.option("--out", default=None, help="Run folder (default runs/fastocc).")
+@click.option("--resume", is_flag=True, help="Continue the run in --out exactly where it stopped.")
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="Default: cuda if available.")
+@click.option("--val-every", type=click.IntRange(min=0), default=None, help="Validate every N epochs (0 = never).")
+@click.option("--no-progress", is_flag=True, help="Hide the progress bar.")
+@friendly_errors
+def train(config_file: Path | None, resume: bool, no_progress: bool, **options: object) -> None:
+    """Train FastOcc on a store: AdamW + warm-up/cosine by samples, EMA, validation, exact resume.
+
+    Single process: `fastocc train --store data.zarr --out runs/nano`. Several GPUs or CPU processes:
+    `torchrun --nproc_per_node N -m cli.fastocc_cli train ...` (DDP; only rank 0 writes). Ctrl-C saves
+    `last.pt`; `--resume` continues it. See docs/training.md for the config file and the recipe.
+    """
+    from fastocc.train import load_config
+    from fastocc.train import train as run_training
+
+    names = {"preset_name": "preset", "batch_size": "batch_size", "val_every": "val_every"}
+    overrides = {names.get(k, k): v for k, v in options.items()}
+    cfg = load_config(config_file, overrides)
+    result = run_training(cfg, resume=resume, progress=not no_progress)
+    if result.interrupted:
+        raise SystemExit(130)
+    best = "-" if result.best_miou is None else f"{100 * result.best_miou:.2f}%"
+    click.echo(f"done: {result.epochs_done} epochs, {result.opt_steps} steps; best val mIoU {best}; {result.out}")
+
+
 _STORE = click.option("--store", default="data.zarr", show_default=True, help="Store path or fsspec URL.")
 _CKPT = click.option("--checkpoint", "checkpoint", required=True, type=click.Path(path_type=Path),
                      help="A checkpoint written by fastocc (carries its model config; no preset flags).")

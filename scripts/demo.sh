@@ -15,4 +15,8 @@ occdata visibility --store "$OUT/data.zarr" --recompute
 occdata check-projection --store "$OUT/data.zarr" --index 0 --out "$OUT/check_projection.png"
 fastocc show-batch --store "$OUT/data.zarr" --index 3 --train --out "$OUT/batch.png"
 fastocc bench --preset nano --head all --repeats 2
-echo "demo done: store $OUT/data.zarr; pictures $OUT/check_projection.png, $OUT/batch.png"
+# A few minutes of CPU training (nano, 64x176, 3 epochs of the 6 training samples), then score and draw it.
+fastocc train --store "$OUT/data.zarr" --config scripts/demo_train.toml --out "$OUT/run"
+fastocc eval --checkpoint "$OUT/run/last.pt" --store "$OUT/data.zarr" --split val
+fastocc predict --checkpoint "$OUT/run/last.pt" --store "$OUT/data.zarr" --split val --out "$OUT/pred" --png 2
+echo "demo done: store $OUT/data.zarr; run $OUT/run; pictures $OUT/check_projection.png, $OUT/batch.png, $OUT/pred/pictures"

@@ -36,6 +36,8 @@ class LoaderConfig:
     shuffled. splits: split names to keep (empty = all). rank/world_size: None = from
     torch.distributed when initialised, else 0/1. pad: top up shuffled slots to equal counts
     (order.py). sample: image/BEV augmentation (train flags there) and depth-target settings.
+    skip_batches: the first k batches of the epoch (as this rank would yield them) are planned but not
+    decoded; worker roles rotate by k so that a DataLoader's round robin continues the original order.
     """
 
     store: str | Path
@@ -50,6 +52,7 @@ class LoaderConfig:
     world_size: int | None = None
     pad: bool = False
     drop_last: bool = False
+    skip_batches: int = 0  # start the epoch at this rank's batch k (exact resume); skipped ones are not decoded
 
     def __post_init__(self) -> None:
         if isinstance(self.batch_size, bool) or not isinstance(self.batch_size, int) or self.batch_size < 1:
@@ -100,7 +103,12 @@ class StoreDataset(IterableDataset):
                 rank, world = 0, 1
         info = get_worker_info()
         worker, n_workers = (info.id, info.num_workers) if info is not None else (0, 1)
-        return Slot(rank, world, worker, n_workers)
+        # The DataLoader asks worker 0 first; after k batches the original order continues with role k % W.
+        return Slot(rank, world, (worker + c.skip_batches) % n_workers, n_workers)
+
+    def _skip(self, slot: Slot) -> int:
+        """How many of this slot's batches fall among the rank's first `skip_batches` (t = worker + j W)."""
+        return max(0, -(-(self.config.skip_batches - slot.worker) // slot.num_workers))
 
     def samples(self) -> StoreSamples:
         if self._samples is None:  # opened lazily: once per worker process
@@ -130,16 +138,23 @@ class StoreDataset(IterableDataset):
         units = shuffle_units(self.indices, s.block, slot, c.seed, self.epoch, pad=c.pad)
         rng = np.random.default_rng([c.seed, self.epoch, slot.rank, slot.worker, 2])
         buffer: list = []
-        batch: list[dict] = []
+        batch: list = []
+        skip = [self._skip(slot)]
+
+        def full() -> Iterator[Batch]:
+            if skip[0] > 0:  # planned, never decoded
+                skip[0] -= 1
+            else:
+                yield collate([make(r, self._rng(r.index)) for r in batch])
+            batch.clear()
 
         emitted = [0]
 
         def emit(raw) -> Iterator[Batch]:
-            batch.append(make(raw, self._rng(raw.index)))
+            batch.append(raw)
             if len(batch) == c.batch_size:
                 emitted[0] += 1
-                yield collate(batch)
-                batch.clear()
+                yield from full()
 
         for unit in units:
             # Padding repeats may repeat an index inside a unit: read each once, yield each occurrence.
@@ -154,7 +169,7 @@ class StoreDataset(IterableDataset):
         for k in order:
             yield from emit(buffer[k])
         if batch and not c.drop_last:
-            yield collate(batch)
+            yield from full()
         elif batch and not emitted[0]:
             _warn_all_dropped(len(batch), c.batch_size, slot)
 
@@ -166,7 +181,7 @@ class StoreDataset(IterableDataset):
         dropped = sum(len(e) for e in plan if c.drop_last and len(e) < c.batch_size)
         if dropped and dropped == sum(len(e) for e in plan):
             _warn_all_dropped(dropped, c.batch_size, slot)
-        for entries in plan:
+        for entries in plan[self._skip(slot):]:
             if c.drop_last and len(entries) < c.batch_size:
                 continue
             out = []

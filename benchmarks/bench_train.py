@@ -1,0 +1,197 @@
+"""Does `fastocc train` learn? Image-free baseline, checkpoint evaluation and the learning-curve PNG (issue #11).
+
+    # 1. the best image-free baseline: per-voxel most frequent TRAINING label, scored on val (camera mask)
+    python benchmarks/bench_train.py baseline --store data.zarr --json baseline.json
+    # 2. val mIoU of every checkpoint of runs (snap_*.pt, epoch_*.pt, last.pt), with the shared evaluation;
+    #    a run trained with noise_images = true is scored with noise images too; PNG of loss and mIoU
+    python benchmarks/bench_train.py curve --store data.zarr --run runs/img --run runs/noise \\
+        --baseline baseline.json --png docs/train_curve.png --json curve.json
+
+The metric code is the project's (`occdata.metrics`, `fastocc.infer.evaluate`); nothing is re-implemented.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from occdata.constants import NUM_CLASSES  # noqa: E402
+from occdata.store.layout import STATE_DONE  # noqa: E402
+from occdata.store.reader import open_store  # noqa: E402
+
+
+def split_indices(reader, split: str) -> np.ndarray:
+    names = list(reader.attrs["splits"])
+    keep = (reader.small("status/state") == STATE_DONE) & (reader.small("sample/split") == names.index(split))
+    return np.flatnonzero(keep & reader.small("labels/present"))
+
+
+def baseline(store: str, train_split: str = "train", val_split: str = "val") -> dict:
+    """Per-voxel most frequent training label (ties: the lower label), scored on the val split."""
+    from occdata.metrics import MIoUAccumulator
+
+    reader = open_store(store)
+    sem, cam = reader.array("labels/semantics"), reader.array("labels/mask_camera")
+    tr, va = split_indices(reader, train_split), split_indices(reader, val_split)
+    shape = tuple(sem.shape[1:])
+    counts = np.zeros((int(np.prod(shape)), NUM_CLASSES), dtype=np.int32)
+    rows = np.arange(counts.shape[0])
+    for i in tr:
+        counts[rows, np.asarray(sem[int(i)]).reshape(-1)] += 1
+    pred = counts.argmax(axis=1).astype(np.uint8).reshape(shape)
+    masked, unmasked = MIoUAccumulator(), MIoUAccumulator()
+    for i in va:
+        gt = np.asarray(sem[int(i)])
+        masked.update(gt, pred, np.asarray(cam[int(i)]))
+        unmasked.update(gt, pred, None)
+    m, u = masked.result(), unmasked.result()
+    return {"store": str(store), "train_samples": int(len(tr)), "val_samples": int(len(va)),
+            "miou_camera_mask": float(m.miou), "miou_no_mask": float(u.miou),
+            "per_class_iou_camera_mask": [None if np.isnan(x) else float(x) for x in m.per_class_iou]}
+
+
+def evaluate_checkpoint(path: Path, store: str, noise: bool, rayiou: bool, workers: int) -> dict:
+    import torch
+
+    from fastocc.checkpoint import load_model
+    from fastocc.infer.evaluate import evaluate
+    from fastocc.infer.predict import PredictConfig
+    from fastocc.train.loop import _noise_hook
+
+    model, ckpt = load_model(path, "cpu", prefer_ema=True)
+    if noise:
+        model.backbone.register_forward_pre_hook(_noise_hook(12345))
+    torch.manual_seed(0)
+    rep = evaluate(model, ckpt.model_config, PredictConfig(store=store, split="val", workers=workers),
+                   rayiou=rayiou, progress=False)
+    return {"checkpoint": path.name, "opt_steps": int(ckpt.meta.get("opt_steps", 0)),
+            "samples_seen": int(ckpt.meta.get("samples_seen", 0)), "ema": ckpt.ema is not None,
+            "miou": float(rep.miou.miou), "rayiou": None if rep.rayiou is None else float(rep.rayiou.rayiou)}
+
+
+def run_curve(run: Path, store: str, rayiou: bool, workers: int) -> dict:
+    cfg = json.loads((run / "config.json").read_text())
+    noise = bool(cfg.get("noise_images"))
+    ckpts = {}
+    for p in sorted(run.glob("snap_*.pt")) + sorted(run.glob("epoch_*.pt")) + [run / "last.pt"]:
+        if p.is_file():
+            from fastocc.checkpoint import load_checkpoint
+
+            step = int(load_checkpoint(p).meta.get("opt_steps", 0))
+            ckpts.setdefault(step, p)  # one checkpoint per step count
+    cache_path = run / "bench_eval.json"  # results per (checkpoint name, step): re-runs only score new ones
+    cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
+    points = []
+    for step, p in sorted(ckpts.items()):
+        key = f"{p.name}@{step}@{store}@{rayiou}"
+        if key not in cache:
+            cache[key] = evaluate_checkpoint(p, store, noise, rayiou, workers)
+            cache_path.write_text(json.dumps(cache, indent=1))
+        points.append(cache[key])
+    records = [json.loads(ln) for ln in (run / "metrics.jsonl").read_text().splitlines() if ln.strip()]
+    train = [r for r in records if r["kind"] == "train"]
+    epochs = [r for r in records if r["kind"] == "epoch"]
+    return {"run": str(run), "noise_images": noise, "config": cfg, "points": points,
+            "loss": [(r["samples_seen"], r["loss"]) for r in train],
+            "data_wait": [r["data_wait"] for r in train], "epochs": epochs}
+
+
+def plot(curves: list[dict], baseline_miou: float | None, path: Path) -> None:
+    """Loss (left) and val mIoU (right) against samples seen; drawn with OpenCV (no plotting dependency)."""
+    W, H, pad = 1200, 480, 60
+    img = np.full((H, W, 3), 255, np.uint8)
+    colours = [(200, 80, 0), (0, 0, 200), (0, 150, 0), (150, 0, 150)]
+    panels = [(pad, pad, W // 2 - pad, H - pad), (W // 2 + pad, pad, W - pad, H - pad)]
+    xs = [x for c in curves for x, _ in c["loss"]] + [p["samples_seen"] for c in curves for p in c["points"]]
+    xmax = max(xs) if xs else 1
+    losses = [v for c in curves for _, v in c["loss"]]
+    lmin, lmax = (min(losses), max(losses)) if losses else (0, 1)
+    mious = [100 * p["miou"] for c in curves for p in c["points"]] + ([100 * baseline_miou] if baseline_miou else [])
+    mmax = max(mious + [1.0]) * 1.15
+
+    def to_px(panel, x, y, ylo, yhi):
+        x0, y0, x1, y1 = panel
+        return (int(x0 + (x1 - x0) * x / xmax), int(y1 - (y1 - y0) * (y - ylo) / max(yhi - ylo, 1e-9)))
+
+    for panel, title, (ylo, yhi) in zip(panels, ("train loss (one step every 10)", "val mIoU % (camera mask)"),
+                                        ((lmin, lmax), (0, mmax)), strict=True):
+        x0, y0, x1, y1 = panel
+        cv2.rectangle(img, (x0, y0), (x1, y1), (0, 0, 0), 1)
+        cv2.putText(img, title, (x0, y0 - 12), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(img, "samples seen", (x1 - 110, y1 + 35), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
+        for k in range(5):
+            v = ylo + (yhi - ylo) * k / 4
+            _, py = to_px(panel, 0, v, ylo, yhi)
+            cv2.putText(img, f"{v:.1f}", (x0 - 50, py + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
+            px, _ = to_px(panel, xmax * k / 4, ylo, ylo, yhi)
+            cv2.putText(img, f"{xmax * k / 4:.0f}", (px - 10, y1 + 16), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
+    for c, colour in zip(curves, colours, strict=False):
+        name = "noise images" if c["noise_images"] else "camera images"
+        pts = [to_px(panels[0], x, v, lmin, lmax) for x, v in c["loss"]]
+        if len(pts) > 1:
+            cv2.polylines(img, [np.array(pts, np.int32)], False, colour, 2, cv2.LINE_AA)
+        mp = [to_px(panels[1], p["samples_seen"], 100 * p["miou"], 0, mmax) for p in c["points"]]
+        if len(mp) > 1:
+            cv2.polylines(img, [np.array(mp, np.int32)], False, colour, 2, cv2.LINE_AA)
+        for q in mp:
+            cv2.circle(img, q, 4, colour, -1)
+        k = curves.index(c)
+        cv2.putText(img, name, (panels[1][0] + 10, panels[1][1] + 20 + 18 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                    colour, 1, cv2.LINE_AA)
+    if baseline_miou is not None:
+        _, py = to_px(panels[1], 0, 100 * baseline_miou, 0, mmax)
+        cv2.line(img, (panels[1][0], py), (panels[1][2], py), (120, 120, 120), 1, cv2.LINE_AA)
+        cv2.putText(img, f"image-free baseline {100 * baseline_miou:.2f}%", (panels[1][0] + 10, py - 6),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.45, (90, 90, 90), 1, cv2.LINE_AA)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), img)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    b = sub.add_parser("baseline", help="image-free baseline val mIoU")
+    b.add_argument("--store", required=True)
+    b.add_argument("--json", type=Path)
+    c = sub.add_parser("curve", help="evaluate run checkpoints and draw the curve")
+    c.add_argument("--store", required=True)
+    c.add_argument("--run", type=Path, action="append", required=True)
+    c.add_argument("--baseline", type=Path, help="JSON written by the baseline command")
+    c.add_argument("--png", type=Path, default=Path("train_curve.png"))
+    c.add_argument("--rayiou", action="store_true", help="also RayIoU (slower)")
+    c.add_argument("--workers", type=int, default=1)
+    c.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    t0 = time.perf_counter()
+    if args.cmd == "baseline":
+        out = baseline(args.store)
+        print(f"image-free baseline (per-voxel most frequent training label): val mIoU "
+              f"{100 * out['miou_camera_mask']:.2f}% (camera mask), {100 * out['miou_no_mask']:.2f}% (no mask); "
+              f"{out['train_samples']} train / {out['val_samples']} val samples")
+    else:
+        base = json.loads(args.baseline.read_text())["miou_camera_mask"] if args.baseline else None
+        curves = [run_curve(r, args.store, args.rayiou, args.workers) for r in args.run]
+        plot(curves, base, args.png)
+        out = {"baseline_miou_camera_mask": base, "runs": curves}
+        for cv in curves:
+            pts = ", ".join(f"{p['samples_seen']}: {100 * p['miou']:.2f}%" for p in cv["points"])
+            print(f"{cv['run']} ({'noise' if cv['noise_images'] else 'images'}): val mIoU by samples seen {pts}")
+        print(f"wrote {args.png}")
+    out["machine"] = {"platform": platform.platform(), "cpus": __import__("os").cpu_count()}
+    out["seconds"] = time.perf_counter() - t0
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=1, default=str) + "\n")
+
+
+if __name__ == "__main__":
+    main()

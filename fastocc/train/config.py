@@ -1,0 +1,253 @@
+"""`TrainConfig`: every knob of a training run, frozen; read from TOML, overridden by CLI options.
+
+Precedence: dataclass defaults < TOML file (`[train]` table or top level) < command-line options.
+The resolved config is written to the run folder as `config.toml` and `config.json`; `--resume` checks
+that the stored one is compatible (same model, data and schedule) and names the fields that differ.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from fastocc.model.config import PRESETS, HeadKind, ModelConfig, preset
+from occdata.errors import OccDataError
+
+__all__ = [
+    "RESUME_MAY_CHANGE",
+    "ConfigError",
+    "TrainConfig",
+    "config_from_dict",
+    "config_to_toml",
+    "incompatible_fields",
+    "load_config",
+]
+
+
+class ConfigError(OccDataError):
+    """A bad training config (unknown key, wrong type, bad value); printed as one line by the CLI."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """A training run. Defaults follow the paper's recipe (DESIGN §9); see docs/training.md.
+
+    Batch and schedule: `batch_size` is the GLOBAL batch (all ranks, all accumulation micro-steps);
+    each optimizer step consumes exactly `batch_size` samples whatever the number of processes, and
+    the schedule (warm-up, cosine) is a function of samples seen, so changing GPU count or batch size
+    does not change how many samples are seen. The learning rate actually used is
+    `lr * scale(batch_size / lr_base_batch)` with scale = identity ("linear"), sqrt ("sqrt") or 1 ("none").
+    """
+
+    # data
+    store: str = "data.zarr"
+    train_split: str = "train"
+    val_split: str = "val"
+    workers: int = 2
+    limit_train_samples: int = 0  # > 0: only the first N training samples (smoke runs, tests)
+    augment: bool = True  # image (resize/crop/flip/rotate) + BEV (flip) augmentation
+    noise_images: bool = False  # ablation: replace every camera image by Gaussian noise (train and val)
+    # model
+    preset: str = "nano"
+    head: str = "fastocc"
+    input_hw: tuple[int, int] | None = None  # None = the preset's input size
+    num_history: int | None = None  # None = the preset's (temporal models train scene-sequentially)
+    pretrained: str | None = None  # torchvision ResNet state dict for the backbone
+    checkpoint_backbone: bool = False  # activation checkpointing of the image backbone (saves memory)
+    # optimisation
+    epochs: int = 24
+    batch_size: int = 1
+    micro_batch: int = 0  # per-process samples per forward pass; 0 = batch_size / world size
+    lr: float = 2e-4
+    lr_base_batch: int = 16
+    lr_scaling: str = "linear"  # linear | sqrt | none
+    weight_decay: float = 1e-2
+    warmup_epochs: float = 0.2
+    min_lr_ratio: float = 1e-3  # cosine floor as a fraction of the peak learning rate
+    grad_clip: float = 5.0  # max global grad norm; 0 = off
+    ema: bool = True
+    ema_decay: float = 0.999  # ramps as min(decay, (1 + n) / (10 + n)) over optimizer steps n
+    # losses (DESIGN §8)
+    camera_mask: bool = True  # voxel losses on mask_camera = 1 only (matches Occ3D mIoU; see docs)
+    class_weights: bool = True  # focal weights 1 / ln(f_c + 0.001) from the training split's counts
+    w_focal: float = 1.0
+    w_sem_scal: float = 1.0
+    w_geo_scal: float = 1.0
+    w_dice: float = 1.0
+    w_lovasz: float = 1.0
+    w_depth: float = 1.0
+    w_bev: float = 1.0
+    # run
+    out: str = "runs/fastocc"
+    device: str = "auto"  # auto | cpu | cuda
+    amp: bool = True  # bf16 autocast on CUDA (ignored on CPU)
+    seed: int = 0
+    deterministic: bool = False  # torch.use_deterministic_algorithms (exact resume on GPU)
+    threads: int = 0  # torch CPU threads per process; 0 = torch's default
+    val_every: int = 1  # epochs; 0 = never
+    val_rayiou: bool = True
+    keep_epochs: int = 3  # epoch checkpoints kept besides last/best
+    save_every_steps: int = 0  # also write `last` every N optimizer steps (0 = at epoch ends only)
+    max_nonfinite: int = 5  # stop after this many non-finite losses in a row
+    log_every: int = 10  # optimizer steps between metrics.jsonl records
+
+    def __post_init__(self) -> None:
+        bad = []
+        if self.preset not in PRESETS:
+            bad.append(f"preset {self.preset!r} (choose from {sorted(PRESETS)})")
+        if self.head not in {h.value for h in HeadKind}:
+            bad.append(f"head {self.head!r} (choose from {[h.value for h in HeadKind]})")
+        if self.lr_scaling not in ("linear", "sqrt", "none"):
+            bad.append(f"lr_scaling {self.lr_scaling!r} (linear, sqrt or none)")
+        if self.device not in ("auto", "cpu", "cuda"):
+            bad.append(f"device {self.device!r} (auto, cpu or cuda)")
+        for name in ("epochs", "batch_size", "lr_base_batch"):
+            if getattr(self, name) < 1:
+                bad.append(f"{name} = {getattr(self, name)} (must be >= 1)")
+        for name in ("workers", "micro_batch", "limit_train_samples", "val_every", "keep_epochs",
+                     "save_every_steps", "threads"):
+            if getattr(self, name) < 0:
+                bad.append(f"{name} = {getattr(self, name)} (must be >= 0)")
+        if self.max_nonfinite < 1:
+            bad.append(f"max_nonfinite = {self.max_nonfinite} (must be >= 1)")
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            bad.append(f"lr = {self.lr} (must be > 0)")
+        if not 0.0 <= self.ema_decay < 1.0:
+            bad.append(f"ema_decay = {self.ema_decay} (must be in [0, 1))")
+        if self.warmup_epochs < 0 or self.warmup_epochs > self.epochs:
+            bad.append(f"warmup_epochs = {self.warmup_epochs} (must be in [0, epochs])")
+        if self.input_hw is not None and any(v <= 0 or v % 16 for v in self.input_hw):
+            bad.append(f"input_hw = {self.input_hw} (positive multiples of 16)")
+        if bad:
+            raise ConfigError("bad training config: " + "; ".join(bad))
+
+    # -- derived -------------------------------------------------------------------------------
+    def model_config(self) -> ModelConfig:
+        changes: dict[str, Any] = {"head": HeadKind(self.head)}
+        if self.input_hw is not None:
+            changes["input_hw"] = tuple(self.input_hw)
+        if self.num_history is not None:
+            changes["num_history"] = self.num_history
+        return preset(self.preset, **changes)
+
+    def lr_factor(self) -> float:
+        """The scaling applied to `lr` for the global batch size (printed at start)."""
+        r = self.batch_size / self.lr_base_batch
+        return {"linear": r, "sqrt": math.sqrt(r), "none": 1.0}[self.lr_scaling]
+
+    def peak_lr(self) -> float:
+        return self.lr * self.lr_factor()
+
+    def lr_at(self, samples_seen: int, samples_per_epoch: int) -> float:
+        """Linear warm-up to the peak over `warmup_epochs`, then cosine to `min_lr_ratio * peak` at the end."""
+        peak = self.peak_lr()
+        total = max(1, self.epochs * samples_per_epoch)
+        warm = self.warmup_epochs * samples_per_epoch
+        if warm > 0 and samples_seen < warm:
+            return peak * (samples_seen + 1) / (warm + 1)  # never exactly 0 at the first step
+        t = min(1.0, (samples_seen - warm) / max(1.0, total - warm))
+        return peak * (self.min_lr_ratio + (1 - self.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
+
+    def to_dict(self) -> dict[str, Any]:
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+
+# Fields that may differ between a run and its --resume (they change neither the model nor the
+# sample stream nor the optimisation): where things run and how often things are logged/saved.
+RESUME_MAY_CHANGE = frozenset({"store", "workers", "device", "out", "threads", "val_every", "val_rayiou",
+                               "keep_epochs", "save_every_steps", "max_nonfinite", "log_every", "pretrained"})
+
+
+def _coerce(field: dataclasses.Field, value: Any) -> Any:
+    """TOML value -> the field's type, with a clear error naming the key."""
+    name, default = field.name, field.default
+    if field.name == "input_hw":
+        if value is None:
+            return None
+        if not (isinstance(value, list | tuple) and len(value) == 2 and all(isinstance(v, int) for v in value)):
+            raise ConfigError(f"config key {name!r}: expected [height, width] integers, got {value!r}")
+        return (int(value[0]), int(value[1]))
+    if name in ("num_history", "pretrained"):
+        ok = value is None or isinstance(value, int if name == "num_history" else str)
+        if not ok or isinstance(value, bool):
+            raise ConfigError(f"config key {name!r}: bad value {value!r}")
+        return value
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ConfigError(f"config key {name!r}: expected true/false, got {value!r}")
+        return value
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"config key {name!r}: expected an integer, got {value!r}")
+        return value
+    if isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(f"config key {name!r}: expected a number, got {value!r}")
+        return float(value)
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise ConfigError(f"config key {name!r}: expected a string, got {value!r}")
+        return value
+    return value
+
+
+def config_from_dict(d: dict[str, Any], base: TrainConfig | None = None) -> TrainConfig:
+    """Apply `d` on top of `base` (default TrainConfig()); an unknown key is an error naming it."""
+    fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
+    unknown = sorted(set(d) - set(fields))
+    if unknown:
+        raise ConfigError(f"unknown config key(s) {unknown}; known keys: {', '.join(sorted(fields))}")
+    changes = {k: _coerce(fields[k], v) for k, v in d.items()}
+    return dataclasses.replace(base or TrainConfig(), **changes)
+
+
+def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None) -> TrainConfig:
+    """Defaults < TOML file < overrides (None values in overrides mean "not given")."""
+    cfg = TrainConfig()
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"{path}: no such config file")
+        try:
+            data = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+        if set(data) == {"train"} and isinstance(data["train"], dict):
+            data = data["train"]
+        try:
+            cfg = config_from_dict(data, cfg)
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: {exc}") from None
+    given = {k: v for k, v in (overrides or {}).items() if v is not None}
+    return config_from_dict(given, cfg) if given else cfg
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)  # a JSON string is a valid TOML basic string
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(v)
+
+
+def config_to_toml(cfg: TrainConfig) -> str:
+    """The resolved config as a `[train]` TOML table (None fields are left out = "the preset's")."""
+    lines = ["# resolved by fastocc train; reuse with --config", "[train]"]
+    lines += [f"{k} = {_toml_value(v)}" for k, v in cfg.to_dict().items() if v is not None]
+    return "\n".join(lines) + "\n"
+
+
+def incompatible_fields(saved: dict[str, Any], cfg: TrainConfig) -> list[str]:
+    """Fields whose values differ between a saved config dict and `cfg`, other than RESUME_MAY_CHANGE."""
+    now = cfg.to_dict()
+    return sorted(k for k in set(saved) | set(now)
+                  if k not in RESUME_MAY_CHANGE and saved.get(k) != now.get(k))

@@ -1,0 +1,81 @@
+"""Distributed set-up: torchrun environment -> process group (gloo on CPU, nccl on CUDA), or one process.
+
+`torchrun --nproc_per_node N -m cli.fastocc_cli train ...` sets RANK / WORLD_SIZE / LOCAL_RANK and the
+rendezvous address; multi-node runs use torchrun's `--nnodes`, `--node_rank` / `--rdzv_endpoint`
+(docs/training.md). Without those variables everything runs in one process and the helpers are no-ops.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import torch
+import torch.distributed as dist
+
+__all__ = ["DistInfo", "all_reduce_sum", "barrier", "broadcast_object", "setup", "teardown"]
+
+
+@dataclass(frozen=True)
+class DistInfo:
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+    device: torch.device = torch.device("cpu")
+
+    @property
+    def enabled(self) -> bool:
+        return self.world_size > 1
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+
+def setup(device: str) -> DistInfo:
+    """Resolve the device ("auto" = cuda when available) and join the process group when under torchrun."""
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local = int(os.environ.get("LOCAL_RANK", "0"))
+    if device == "cuda":
+        if not torch.cuda.is_available():
+            from occdata.errors import OccDataError
+
+            raise OccDataError("--device cuda but no CUDA device is available (use --device cpu)")
+        torch.cuda.set_device(local)
+        dev = torch.device("cuda", local)
+    else:
+        dev = torch.device("cpu")
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if dev.type == "cuda" else "gloo")
+    return DistInfo(rank=rank, world_size=world, local_rank=local, device=dev)
+
+
+def teardown(info: DistInfo) -> None:
+    if info.enabled and dist.is_initialized():
+        dist.destroy_process_group()
+
+
+def barrier(info: DistInfo) -> None:
+    if info.enabled:
+        dist.barrier()
+
+
+def all_reduce_sum(values: torch.Tensor, info: DistInfo) -> torch.Tensor:
+    """Sum a tensor over ranks (in place on a copy); identity in one process."""
+    if not info.enabled:
+        return values
+    out = values.detach().clone().to(info.device)
+    dist.all_reduce(out, op=dist.ReduceOp.SUM)
+    return out.cpu()
+
+
+def broadcast_object(obj: object, info: DistInfo) -> object:
+    """Rank 0's object on every rank."""
+    if not info.enabled:
+        return obj
+    box = [obj]
+    dist.broadcast_object_list(box, src=0)
+    return box[0]

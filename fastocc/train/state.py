@@ -1,0 +1,130 @@
+"""Training state that must survive a restart: EMA weights, RNG states, class weights, checkpoint files.
+
+A training checkpoint is a `fastocc.checkpoint` file (so `fastocc eval/predict` read it with no flags)
+with extra keys for exact resume: optimizer, samples seen (the schedule is a pure function of it),
+epoch and step inside the epoch, RNG states, the temporal queue and the resolved train config.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from fastocc.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from fastocc.model.config import ModelConfig
+from occdata.constants import FREE_LABEL, NUM_CLASSES
+from occdata.errors import OccDataError
+from occdata.store.layout import STATE_DONE
+from occdata.store.reader import open_store
+
+__all__ = ["EMA", "class_counts", "get_rng_state", "load_resume", "save_train_checkpoint", "set_rng_state"]
+
+
+class EMA:
+    """Exponential moving average of the weights (floating tensors; integer buffers are copied).
+
+    decay_n = min(decay, (1 + n) / (10 + n)) at update n, so early averages are not dominated by the
+    random initialisation."""
+
+    def __init__(self, model: nn.Module, decay: float) -> None:
+        self.decay = decay
+        self.updates = 0
+        self.state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+    @torch.no_grad()
+    def update(self, model: nn.Module) -> None:
+        self.updates += 1
+        d = min(self.decay, (1 + self.updates) / (10 + self.updates))
+        for k, v in model.state_dict().items():
+            ema = self.state[k]
+            if ema.dtype.is_floating_point:
+                ema.mul_(d).add_(v.detach(), alpha=1 - d)
+            else:
+                ema.copy_(v)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"updates": self.updates, "decay": self.decay}
+
+
+def get_rng_state() -> dict[str, Any]:
+    """Python, numpy and torch (CPU, CUDA) generator states as tensors/primitives (weights_only-safe)."""
+    py = random.getstate()
+    np_state = np.random.get_state()  # noqa: NPY002 - the legacy global generator third-party code may use
+    state = {
+        "python": [py[0], list(py[1]), py[2]],
+        "numpy": [np_state[0], torch.from_numpy(np_state[1].astype(np.int64)), int(np_state[2]), int(np_state[3]),
+                  float(np_state[4])],
+        "torch": torch.get_rng_state(),
+    }
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict[str, Any]) -> None:
+    py = state["python"]
+    random.setstate((py[0], tuple(py[1]), py[2]))
+    n = state["numpy"]
+    np.random.set_state((n[0], n[1].numpy().astype(np.uint32), n[2], n[3], n[4]))  # noqa: NPY002
+    torch.set_rng_state(state["torch"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def class_counts(store: str | Path, split: str, use_camera_mask: bool, cache: Path | None = None) -> np.ndarray:
+    """Voxel count per class `(18,) int64` over the training split (inside the camera mask when the
+    losses use it). Computed once and cached as JSON in the run folder (`cache`)."""
+    if cache is not None and cache.is_file():
+        saved = json.loads(cache.read_text())
+        if saved.get("split") == split and saved.get("camera_mask") == use_camera_mask:
+            return np.asarray(saved["counts"], dtype=np.int64)
+    reader = open_store(store)
+    names = list(reader.attrs["splits"])
+    if split not in names:
+        raise OccDataError(f"the store has no {split!r} split (it has {names})")
+    keep = (reader.small("status/state") == STATE_DONE) & (reader.small("sample/split") == names.index(split))
+    idx = np.flatnonzero(keep)
+    if not len(idx):
+        raise OccDataError(f"the store has no built samples in the {split!r} split")
+    unlabelled = idx[~reader.small("labels/present")[idx]]
+    if len(unlabelled):
+        raise OccDataError(f"{len(unlabelled)} sample(s) of the training split {split!r} have no labels "
+                           f"(e.g. {reader.token(int(unlabelled[0]))}); training needs Occ3D labels (--gts)")
+    sem, cam = reader.array("labels/semantics"), reader.array("labels/mask_camera")
+    counts = np.zeros(NUM_CLASSES, dtype=np.int64)
+    block = int(sem.chunks[0])
+    for lo in range(int(idx[0]) // block * block, int(idx[-1]) + 1, block):  # one read per chunk
+        mine = idx[(idx >= lo) & (idx < lo + block)]
+        if not len(mine):
+            continue
+        s = np.asarray(sem[lo: lo + block])[mine - lo]
+        if use_camera_mask:
+            s = s[np.asarray(cam[lo: lo + block])[mine - lo].astype(bool)]
+        counts += np.bincount(s.reshape(-1), minlength=NUM_CLASSES)[:NUM_CLASSES]
+    if cache is not None:
+        cache.write_text(json.dumps({"split": split, "camera_mask": use_camera_mask, "counts": counts.tolist(),
+                                     "free_label": FREE_LABEL}))
+    return counts
+
+
+def save_train_checkpoint(path: Path, model_cfg: ModelConfig, model: nn.Module, ema: EMA | None,
+                          meta: dict[str, Any], **train_state: Any) -> Path:
+    """Atomic write (fastocc.checkpoint): the previous file at `path` survives any failure."""
+    return save_checkpoint(path, model_cfg, {k: v.detach().cpu() for k, v in model.state_dict().items()},
+                           None if ema is None else {k: v.cpu() for k, v in ema.state.items()}, meta=meta,
+                           **train_state)
+
+
+def load_resume(path: Path) -> dict[str, Any]:
+    """The payload of a training checkpoint, checked to carry the resume keys."""
+    ckpt = load_checkpoint(path)
+    missing = [k for k in ("optimizer", "train_config", "progress", "rng") if k not in ckpt.payload]
+    if missing:
+        raise CheckpointError(f"{path}: not a training checkpoint (missing {missing}); cannot resume from it")
+    return ckpt.payload
