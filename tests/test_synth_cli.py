@@ -93,15 +93,16 @@ def test_official_devkit_loads_synthetic_tree(synth_root: Path, tmp_path: Path) 
 
 
 def test_write_atomic_never_leaves_a_half_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from occdata.synth import tables
+    from occdata import fileio
 
     target = tmp_path / "d" / "x.bin"
-    tables.write_atomic(target, b"old")
+    fileio.write_atomic(target, b"old")
 
     def crash(src: object, dst: object) -> None:
         raise OSError("simulated crash before the rename")
 
-    monkeypatch.setattr(tables.os, "replace", crash)
+    monkeypatch.setattr(fileio.os, "replace", crash)
     with pytest.raises(OSError):
-        tables.write_atomic(target, b"new content")
+        fileio.write_atomic(target, b"new content")
     assert target.read_bytes() == b"old"  # readers see the old file or the new one, never a mix
+    assert [p.name for p in target.parent.iterdir()] == ["x.bin"]  # and no temporary file is left

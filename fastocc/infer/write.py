@@ -9,8 +9,6 @@ a truncated file behind (files already written stay valid). `occdata eval --pred
 
 from __future__ import annotations
 
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +24,7 @@ from fastocc.infer.common import check_device, split_indices
 from fastocc.infer.predict import PredictConfig, predict_split
 from fastocc.model.config import ModelConfig
 from occdata.errors import OccDataError
+from occdata.fileio import write_atomic
 from occdata.render import prediction_picture
 from occdata.store.reader import StoreReader, open_store
 
@@ -52,18 +51,6 @@ class PredictSummary:
     files: int
     pictures: tuple[Path, ...] = field(default_factory=tuple)
     seconds: float = 0.0
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _npz_bytes(semantics: np.ndarray) -> bytes:
@@ -94,7 +81,7 @@ def _write_picture(reader: StoreReader, path: Path, index: int, pred: np.ndarray
     ok, data = cv2.imencode(".png", cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
     if not ok:
         raise OSError(f"cannot encode {path}")
-    _atomic_write(path, data.tobytes())
+    write_atomic(path, data.tobytes())
 
 
 def write_predictions(model: nn.Module, model_cfg: ModelConfig, out: Path, cfg: PredictConfig, png: int = 0,
@@ -118,7 +105,7 @@ def write_predictions(model: nn.Module, model_cfg: ModelConfig, out: Path, cfg: 
             for b in range(len(batch)):
                 idx = int(batch.sample_index[b])
                 token, scene = reader.token(idx), _scene_name(reader, idx)
-                _atomic_write(out / scene / token / "labels.npz", _npz_bytes(pred[b]))
+                write_atomic(out / scene / token / "labels.npz", _npz_bytes(pred[b]))
                 files += 1
                 if idx in wanted:
                     has = bool(batch.has_labels[b])

@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -13,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from occdata.constants import CAMERA_ORDER, LIDAR_CHANNEL
+from occdata.fileio import write_atomic
 
 __all__ = [
     "TABLE_NAMES",
@@ -65,15 +65,6 @@ def static_tables(seed: int) -> dict[str, list[dict[str, Any]]]:
         "instance": [],
         "sample_annotation": [],
     }
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write bytes to `path` via a temporary name and a rename, so readers never see a half file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
 
 
 def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
