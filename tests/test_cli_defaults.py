@@ -2,7 +2,8 @@
 
     occdata build --root nuscenes/
     occdata bev-gt
-    fastocc train --store data.zarr      (added by the integrator once `fastocc train` exists)
+    fastocc train --store data.zarr      (started verbatim, then stopped with Ctrl-C: a full default
+                                          run is 24 epochs)
 
 Each runs in a fresh process (`python -m cli.occdata_cli` is the `occdata` entry point of this
 checkout) with that folder as the working directory.
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -54,6 +56,25 @@ def test_the_commands_verbatim(user_folder: Path) -> None:
     for cmd in (["info"], ["verify", "--no-progress"]):  # every store reader defaults to data.zarr
         r = occdata(user_folder, *cmd)
         assert r.returncode == 0, (cmd, r.stdout + r.stderr)
+
+    # fastocc train --store data.zarr, verbatim: it starts training with the paper's defaults; Ctrl-C
+    # then saves and exits cleanly (status 130), leaving a resumable run folder.
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    proc = subprocess.Popen([sys.executable, "-m", "cli.fastocc_cli", "train", "--store", "data.zarr"],
+                            cwd=user_folder, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines = []
+    for line in proc.stdout:  # the start-up report ends with the CPU time estimate, just before step 1
+        lines.append(line)
+        if line.startswith("estimated time per epoch"):
+            break
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=300)
+    text = "".join(lines) + out + err
+    assert lines and lines[0].startswith("fastocc train: preset nano"), text
+    assert proc.returncode == 130, text
+    assert "Traceback" not in err, text
+    run = user_folder / "runs" / "fastocc"
+    assert (run / "config.toml").is_file() and (run / "last.pt").is_file(), sorted(p.name for p in run.iterdir())
 
 
 def test_build_without_labels_folder_says_so(user_folder: Path) -> None:
