@@ -169,7 +169,11 @@ def train(config_file: Path | None, resume: bool, no_progress: bool, **options: 
     names = {"preset_name": "preset", "batch_size": "batch_size", "val_every": "val_every"}
     overrides = {names.get(k, k): v for k, v in options.items()}
     cfg = load_config(config_file, overrides)
-    result = run_training(cfg, resume=resume, progress=not no_progress)
+    try:
+        result = run_training(cfg, resume=resume, progress=not no_progress)
+    except KeyboardInterrupt:  # Ctrl-C during start-up, before the loop (which saves) has begun
+        click.echo("\ninterrupted during start-up, before the first training step: nothing to save", err=True)
+        raise SystemExit(130) from None
     if result.interrupted:
         raise SystemExit(130)
     best = "-" if result.best_miou is None else f"{100 * result.best_miou:.2f}%"
