@@ -79,7 +79,7 @@ def evaluate_checkpoint(path: Path, store: str, noise: bool, rayiou: bool, worke
             "miou": float(rep.miou.miou), "rayiou": None if rep.rayiou is None else float(rep.rayiou.rayiou)}
 
 
-def run_curve(run: Path, store: str, rayiou: bool, workers: int) -> dict:
+def run_curve(run: Path, store: str, rayiou: bool, workers: int, every: int = 1) -> dict:
     cfg = json.loads((run / "config.json").read_text())
     noise = bool(cfg.get("noise_images"))
     ckpts = {}
@@ -91,8 +91,12 @@ def run_curve(run: Path, store: str, rayiou: bool, workers: int) -> dict:
             ckpts.setdefault(step, p)  # one checkpoint per step count
     cache_path = run / "bench_eval.json"  # results per (checkpoint name, step): re-runs only score new ones
     cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
+    steps = sorted(ckpts)
+    keep = set(steps[every - 1::every]) | set(steps[-1:])  # every k-th checkpoint, and always the last
     points = []
     for step, p in sorted(ckpts.items()):
+        if step not in keep:
+            continue
         key = f"{p.name}@{step}@{store}@{rayiou}"
         if key not in cache:
             cache[key] = evaluate_checkpoint(p, store, noise, rayiou, workers)
@@ -170,6 +174,7 @@ def main() -> None:
     c.add_argument("--png", type=Path, default=Path("train_curve.png"))
     c.add_argument("--rayiou", action="store_true", help="also RayIoU (slower)")
     c.add_argument("--workers", type=int, default=1)
+    c.add_argument("--every", type=int, default=1, help="score every k-th checkpoint (and the last)")
     c.add_argument("--json", type=Path)
     args = ap.parse_args()
     t0 = time.perf_counter()
@@ -180,7 +185,7 @@ def main() -> None:
               f"{out['train_samples']} train / {out['val_samples']} val samples")
     else:
         base = json.loads(args.baseline.read_text())["miou_camera_mask"] if args.baseline else None
-        curves = [run_curve(r, args.store, args.rayiou, args.workers) for r in args.run]
+        curves = [run_curve(r, args.store, args.rayiou, args.workers, max(1, args.every)) for r in args.run]
         plot(curves, base, args.png)
         out = {"baseline_miou_camera_mask": base, "runs": curves}
         for cv in curves:

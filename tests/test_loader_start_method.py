@@ -89,3 +89,26 @@ def test_guarded_script_works(synth_store: Path, tmp_path: Path) -> None:
         .replace("\n    ", "\n        ") + "\n    if __name__ == \"__main__\":\n        main()"
     r = _run(SCRIPT.format(body=body), tmp_path)
     assert r.returncode == 0 and "samples 6" in r.stdout, r.stderr[-2000:]
+
+
+def test_forkserver_workers_ignore_sigint_and_the_parent_does_not(tmp_path: Path) -> None:
+    """A terminal's Ctrl-C reaches the whole process group; a worker hit while starting printed a traceback."""
+    r = _run("""
+        import signal
+        from fastocc.data.workers import default_worker_context
+
+        def handler(q):
+            q.put(signal.getsignal(signal.SIGINT) == signal.SIG_IGN)
+
+        if __name__ == "__main__":
+            import fastocc._worker_signals  # imported outside the forkserver: no effect
+            ctx = default_worker_context()
+            q = ctx.Queue()
+            p = ctx.Process(target=handler, args=(q,))
+            p.start()
+            print("worker", q.get(timeout=120))
+            p.join()
+            print("parent", signal.getsignal(signal.SIGINT) == signal.SIG_IGN)
+    """, tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.splitlines() == ["worker True", "parent False"]

@@ -312,3 +312,48 @@ def test_masked_voxel_selection_equals_masked_losses() -> None:
         assert torch.allclose(ref_terms[k], got_terms[k], atol=1e-6), k
     assert torch.allclose(g_ref, g_got, atol=1e-7)
     assert float(g_got[~mask.unsqueeze(1).expand_as(logits)].abs().max()) == 0.0
+
+
+def test_ctrl_c_while_loader_workers_start_is_held_until_they_have_started() -> None:
+    """Was: Ctrl-C inside `iter(loader)` left started workers unjoined; they printed FileNotFoundError tracebacks."""
+    from fastocc.train.loop import _data_iter
+
+    events: list[str] = []
+
+    class Iter:
+        def __next__(self):
+            raise StopIteration
+
+        def __del__(self):
+            events.append("iterator released")
+
+    class Loader:  # a Ctrl-C arrives while the workers start
+        def __iter__(self):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+            events.append("workers started")
+            return Iter()
+
+    gen = _data_iter(Loader())
+    with pytest.raises(KeyboardInterrupt):
+        next(gen)
+    assert events == ["workers started", "iterator released"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+    events.clear()  # Ctrl-C in the loop body: closing the generator releases the iterator at once
+
+    class Iter2:
+        def __next__(self):
+            return 1
+
+        def __del__(self):
+            events.append("iterator released")
+
+    class Loader2:
+        def __iter__(self):
+            return Iter2()
+
+    gen = _data_iter(Loader2())
+    assert next(gen)[0] == 1 and events == []
+    gen.close()
+    assert events == ["iterator released"]

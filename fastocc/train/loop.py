@@ -13,6 +13,8 @@ import dataclasses
 import json
 import math
 import os
+import signal
+import threading
 import time
 import warnings
 from collections.abc import Iterator
@@ -195,19 +197,24 @@ class _Run:
         return total
 
     def estimate_step_seconds(self, model: nn.Module, loss_cfg: LossConfig) -> float:
-        """Time one forward + backward of a synthetic micro-batch; weights and buffers are restored."""
+        """Time one forward + backward of a synthetic micro-batch; weights and buffers are restored.
+
+        The first pass only warms up (allocator, lazy caches: it took 2-3x a training step); the second is timed.
+        """
         saved = {k: v.clone() for k, v in model.state_dict().items()}
         inputs = synthetic_inputs(self.micro, self.model_cfg.input_hw, self.model_cfg.num_cams, seed=0,
                                   device=str(self.info.device))
         X, Y, Z = self.model_cfg.fine_grid.shape
         targets = LossTargets(voxel_labels=torch.full((self.micro, X, Y, Z), 17, device=self.info.device),
                               mask_camera=torch.ones(self.micro, X, Y, Z, dtype=torch.bool, device=self.info.device))
-        t0 = time.perf_counter()
-        out = model(inputs)
-        loss, _ = occupancy_loss(out.voxel_logits.float(), targets, loss_cfg, None, out.bev_logits)
-        loss.backward()
-        dt = time.perf_counter() - t0
-        model.zero_grad(set_to_none=True)
+        dt = 0.0
+        for _ in range(2):
+            t0 = time.perf_counter()
+            out = model(inputs)
+            loss, _ = occupancy_loss(out.voxel_logits.float(), targets, loss_cfg, None, out.bev_logits)
+            loss.backward()
+            dt = time.perf_counter() - t0
+            model.zero_grad(set_to_none=True)
         model.load_state_dict(saved)
         model.clear_caches()
         return dt
@@ -244,16 +251,43 @@ def _cpu_seconds() -> float:
     return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
 
 
+@contextlib.contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Hold a Ctrl-C that arrives inside the block and raise it (KeyboardInterrupt) when the block ends."""
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield  # signals can only be handled in the main thread; keep any handler the caller installed
+        return
+    caught: list[int] = []
+    signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    if caught:
+        raise KeyboardInterrupt
+
+
 def _data_iter(loader) -> Iterator[tuple[Batch, float]]:
-    """Batches with the seconds spent waiting for each."""
-    it = iter(loader)
-    while True:
-        t0 = time.perf_counter()
-        try:
-            batch = next(it)
-        except StopIteration:
-            return
-        yield batch, time.perf_counter() - t0
+    """Batches with the seconds spent waiting for each.
+
+    Ctrl-C is held back while `iter` starts the workers: interrupted half-way, torch's iterator could
+    not stop the workers already started, and each found its parent's semaphores gone and printed a
+    traceback. Closing the generator (Ctrl-C in the loop body) shuts the workers down at once.
+    """
+    it = None
+    try:
+        with _sigint_deferred():
+            it = iter(loader)
+        while True:
+            t0 = time.perf_counter()
+            try:
+                batch = next(it)
+            except StopIteration:
+                return
+            yield batch, time.perf_counter() - t0
+    finally:
+        del it  # the only reference: torch's iterator joins (or terminates) its workers now
 
 
 class _Logger:
@@ -419,6 +453,7 @@ def _train(cfg: TrainConfig, info: D.DistInfo, resume: bool, progress: bool) -> 
     interrupted = False
     grad_ctx = contextlib.nullcontext
     micro_i = 0
+    data: Iterator[tuple[Batch, float]] | None = None
     try:
         while epoch < cfg.epochs:
             loader = run.make_epoch_loader(epoch, pos)
@@ -430,7 +465,8 @@ def _train(cfg: TrainConfig, info: D.DistInfo, resume: bool, progress: bool) -> 
             t_log, wait_log, samples_log = time.perf_counter(), 0.0, 0
             micro_i, acc_loss, acc_terms, acc_n, acc_idx = 0, 0.0, {}, 0, []
             acc_finite = True
-            for batch, wait in _data_iter(loader):
+            data = _data_iter(loader)
+            for batch, wait in data:
                 wait_epoch += wait
                 wait_log += wait
                 batch = batch.to(info.device, non_blocking=True)
@@ -541,6 +577,8 @@ def _train(cfg: TrainConfig, info: D.DistInfo, resume: bool, progress: bool) -> 
                         old.unlink()
     except KeyboardInterrupt:
         interrupted = True
+        if data is not None:
+            data.close()  # stop the loader workers before saving and exiting
         # The position is the last optimizer-step boundary: the partial accumulation is redone on resume.
         if micro_i:
             pos -= micro_i
