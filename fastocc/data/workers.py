@@ -19,13 +19,19 @@ loader at module level without `if __name__ == "__main__":` used to fail deep in
 from __future__ import annotations
 
 import ast
+import contextlib
 import multiprocessing
+import signal
 import sys
-from typing import Any
+import threading
+from collections.abc import Iterable, Iterator
+from typing import Any, TypeVar
 
 from occdata.errors import OccDataError
 
-__all__ = ["check_main_guard", "default_worker_context"]
+__all__ = ["check_main_guard", "default_worker_context", "start_iteration"]
+
+T = TypeVar("T")
 
 
 def default_worker_context() -> Any:
@@ -83,3 +89,30 @@ def check_main_guard(context: Any) -> None:
             f"`if __name__ == \"__main__\":`; with the '{method}' start method every worker re-runs the "
             "script. Move that code under the guard (or use num_workers=0)"
         )
+
+
+@contextlib.contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Hold a Ctrl-C that arrives inside the block and raise it (KeyboardInterrupt) when the block ends."""
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield  # signals can only be handled in the main thread; keep any handler the caller installed
+        return
+    caught: list[int] = []
+    signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    if caught:
+        raise KeyboardInterrupt
+
+
+def start_iteration(loader: Iterable[T]) -> Iterator[T]:
+    """`iter(loader)` with Ctrl-C held back until the workers have started.
+
+    Interrupted half-way, torch's iterator could not stop the workers it had already started; each
+    then found its parent's semaphores gone and printed a traceback of its own (FileNotFoundError).
+    """
+    with _sigint_deferred():
+        return iter(loader)

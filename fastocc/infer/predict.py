@@ -16,6 +16,7 @@ from torch import Tensor, nn
 
 from fastocc.data import BevAugConfig, ImageAugConfig, LoaderConfig, SampleConfig, make_loader
 from fastocc.data.batch import Batch
+from fastocc.data.workers import start_iteration
 from fastocc.model.config import ModelConfig
 from fastocc.model.inputs import SceneInputs
 
@@ -85,7 +86,7 @@ def predict_split(
     for m in models:
         m.clear_caches()
     try:
-        for batch in loader:
+        for batch in start_iteration(loader):  # a Ctrl-C while workers start: no worker tracebacks
             inputs = batch.inputs().to(device)
             variants = bev_flip_variants(inputs) if cfg.tta else [((False, False), inputs)]
             probs = None

@@ -13,8 +13,6 @@ import dataclasses
 import json
 import math
 import os
-import signal
-import threading
 import time
 import warnings
 from collections.abc import Iterator
@@ -30,6 +28,7 @@ from torch import nn
 from fastocc.data import BevAugConfig, ImageAugConfig, LoaderConfig, SampleConfig, make_loader
 from fastocc.data.batch import Batch
 from fastocc.data.order import Slot, sequential_batches, shuffle_units
+from fastocc.data.workers import start_iteration
 from fastocc.losses import LossConfig, LossTargets, class_weights_from_counts, occupancy_loss
 from fastocc.model import FastOcc
 from fastocc.model.config import DepthBins, ModelConfig
@@ -251,34 +250,15 @@ def _cpu_seconds() -> float:
     return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
 
 
-@contextlib.contextmanager
-def _sigint_deferred() -> Iterator[None]:
-    """Hold a Ctrl-C that arrives inside the block and raise it (KeyboardInterrupt) when the block ends."""
-    if threading.current_thread() is not threading.main_thread() or \
-            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
-        yield  # signals can only be handled in the main thread; keep any handler the caller installed
-        return
-    caught: list[int] = []
-    signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-    if caught:
-        raise KeyboardInterrupt
-
-
 def _data_iter(loader) -> Iterator[tuple[Batch, float]]:
     """Batches with the seconds spent waiting for each.
 
-    Ctrl-C is held back while `iter` starts the workers: interrupted half-way, torch's iterator could
-    not stop the workers already started, and each found its parent's semaphores gone and printed a
-    traceback. Closing the generator (Ctrl-C in the loop body) shuts the workers down at once.
+    Ctrl-C is held back while the workers start (`start_iteration`). Closing the generator (Ctrl-C in
+    the loop body) shuts the workers down at once.
     """
     it = None
     try:
-        with _sigint_deferred():
-            it = iter(loader)
+        it = start_iteration(loader)
         while True:
             t0 = time.perf_counter()
             try:
