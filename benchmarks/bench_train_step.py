@@ -82,7 +82,9 @@ def worker(config: str, store: str, steps: int, warmup: int, threads: int) -> di
     loss_fn = _loss_fn()
     it = iter(_loader(store, hw, batch))
     rows = []
+    cpu = []
     for k in range(warmup + steps):
+        c0 = time.process_time()
         t = [time.perf_counter()]
         b = next(it)
         t.append(time.perf_counter())
@@ -104,6 +106,7 @@ def worker(config: str, store: str, steps: int, warmup: int, threads: int) -> di
         opt.zero_grad(set_to_none=True)
         t.append(time.perf_counter())
         if k >= warmup:
+            cpu.append(time.process_time() - c0)
             parts = ("data_wait", "backbone", "view_transform", "head_3d", "losses", "backward", "optimizer")
             rows.append({p: t[i + 1] - t[i] for i, p in enumerate(parts)})
     terms = {}
@@ -118,6 +121,7 @@ def worker(config: str, store: str, steps: int, warmup: int, threads: int) -> di
     step = [sum(r.values()) for r in rows]
     return {"config": config, "fastocc": str(Path(fastocc.__file__).parents[1]), "threads": threads,
             "steps": [round(s, 4) for s in step], "step_median_s": statistics.median(step),
+            "cpu_steps": [round(s, 4) for s in cpu], "cpu_median_s": statistics.median(cpu),
             "samples_per_s": batch / statistics.median(step), "stages_median_s": med, "loss_terms_forward_s": terms,
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
@@ -188,10 +192,13 @@ def _measure(checkouts: dict[str, Path], args: argparse.Namespace) -> dict:
             steps = [s for r in rs for s in r["steps"]]
             stages = {p: statistics.median(r["stages_median_s"][p] for r in rs) for p in rs[0]["stages_median_s"]}
             terms = {p: statistics.median(r["loss_terms_forward_s"][p] for r in rs) for p in TERMS}
+            cpu = [s for r in rs for s in r["cpu_steps"]]
             entry[key] = {"step_median_s": statistics.median(steps), "steps": steps, "stages_median_s": stages,
+                          "cpu_median_s": statistics.median(cpu), "cpu_steps": cpu,
                           "loss_terms_forward_s": terms, "peak_rss_mb": max(r["peak_rss_mb"] for r in rs)}
         if "ref" in entry:
             entry["speedup"] = entry["ref"]["step_median_s"] / entry["this"]["step_median_s"]
+            entry["cpu_speedup"] = entry["ref"]["cpu_median_s"] / entry["this"]["cpu_median_s"]
         results[config] = entry
         _print(config, entry)
     return results
@@ -207,9 +214,10 @@ def _print(config: str, entry: dict) -> None:
     for t in TERMS:
         print(f"  {'  loss ' + t:<16}" + "".join(f"{entry[k]['loss_terms_forward_s'][t]:>10.3f}" for k in keys))
     print(f"  {'step':<16}" + "".join(f"{entry[k]['step_median_s']:>10.3f}" for k in keys))
+    print(f"  {'step CPU-s':<16}" + "".join(f"{entry[k]['cpu_median_s']:>10.3f}" for k in keys))
     print(f"  {'peak RSS (MB)':<16}" + "".join(f"{entry[k]['peak_rss_mb']:>10.0f}" for k in keys))
     if "speedup" in entry:
-        print(f"  samples/s ratio this / ref: {entry['speedup']:.2f}x")
+        print(f"  samples/s ratio this / ref: {entry['speedup']:.2f}x wall, {entry['cpu_speedup']:.2f}x CPU time")
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -14,7 +15,7 @@ from .geometry import project_points_to_feature, voxel_centres
 from .inputs import SceneInputs
 from .view_transform import CalibrationCache
 
-__all__ = ["InterpolationSampler", "SamplingIndex"]
+__all__ = ["InterpolationSampler", "PairIndex", "SamplingIndex"]
 
 
 @dataclass(frozen=True)
@@ -29,6 +30,54 @@ class SamplingIndex:
     rows: Tensor
     weights: Tensor
     offsets: Tensor
+
+
+@dataclass(frozen=True)
+class PairIndex:
+    """The same sparse matrix for the CPU kernels (`sampling_kernels`): offsets `(B*V + 1,) int64`,
+    rows `(E, 4) int64`, weights `(E, 4) float32` (numpy), and the number of feature-table rows."""
+
+    offsets: np.ndarray
+    rows: np.ndarray
+    weights: np.ndarray
+    n_rows: int
+
+
+class _BagSumCPU(torch.autograd.Function):
+    """out = S table and grad_table = S^T grad_out with the numba kernels (S = the PairIndex)."""
+
+    @staticmethod
+    def forward(ctx, table: Tensor, index: PairIndex) -> Tensor:  # noqa: ANN001
+        from .sampling_kernels import bag_forward
+
+        ctx.index = index
+        out = bag_forward(table.detach().contiguous().numpy(), index.offsets, index.rows, index.weights)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, grad_out: Tensor) -> tuple[Tensor, None]:  # noqa: ANN001
+        from .sampling_kernels import bag_backward
+
+        index: PairIndex = ctx.index
+        chunks = max(1, min(torch.get_num_threads(), numba_threads()))
+        grad = bag_backward(grad_out.contiguous().numpy(), index.offsets, index.rows, index.weights, index.n_rows,
+                            chunks)
+        return torch.from_numpy(grad), None
+
+
+def numba_threads() -> int:
+    """Threads the numba kernels may use: torch's setting, within numba's own limit."""
+    import numba
+
+    n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(n)
+    return n
+
+
+def _use_cpu_kernels(feat: Tensor) -> bool:
+    """The numba path: CPU float32 tensors in eager mode (tracing/export and other devices use torch)."""
+    tracing = torch.jit.is_tracing() or torch.onnx.is_in_onnx_export() or torch.compiler.is_compiling()
+    return feat.device.type == "cpu" and feat.dtype == torch.float32 and not tracing
 
 
 class InterpolationSampler(nn.Module):
@@ -46,9 +95,32 @@ class InterpolationSampler(nn.Module):
         self.input_hw = input_hw
         self.stride = stride
         self._cache: CalibrationCache[SamplingIndex] = CalibrationCache()
+        self._pairs: CalibrationCache[PairIndex] = CalibrationCache()
 
     def clear_cache(self) -> None:
         self._cache.clear()
+        self._pairs.clear()
+
+    def pair_index(self, inputs: SceneInputs, feat_hw: tuple[int, int]) -> PairIndex:
+        """The sampling matrix for the CPU kernels, cached like `index`."""
+        return self._pairs.get(inputs, lambda device: self._build_pairs(inputs, feat_hw))
+
+    def _build_pairs(self, inputs: SceneInputs, feat_hw: tuple[int, int]) -> PairIndex:
+        from .sampling_kernels import bilinear_pairs
+
+        numba_threads()
+        h, w = feat_hw
+        B, N = inputs.batch_size, inputs.num_cams
+        points = voxel_centres(self.grid).reshape(-1, 3).numpy()
+        T_cam_from_aug = torch.linalg.inv(inputs.bev_aug[:, None] @ inputs.T_keyego_from_cam)[..., :3, :]
+        proj = inputs.img_aug @ inputs.K
+        parts = [bilinear_pairs(points, T_cam_from_aug[b].float().cpu().numpy(), proj[b].float().cpu().numpy(),
+                                self.input_hw, self.stride, feat_hw, row0=b * N * h * w) for b in range(B)]
+        starts = np.cumsum([0] + [len(p[1]) for p in parts[:-1]])
+        offsets = np.concatenate([p[0][:-1] + s for p, s in zip(parts, starts, strict=True)]
+                                 + [[sum(len(p[1]) for p in parts)]]).astype(np.int64)
+        return PairIndex(offsets=offsets, rows=np.concatenate([p[1] for p in parts]),
+                         weights=np.concatenate([p[2] for p in parts]), n_rows=B * N * h * w)
 
     def index(self, inputs: SceneInputs, feat_hw: tuple[int, int]) -> SamplingIndex:
         return self._cache.get(inputs, lambda device: self._build(inputs, feat_hw, device))
@@ -83,7 +155,10 @@ class InterpolationSampler(nn.Module):
     def forward(self, feat: Tensor, inputs: SceneInputs) -> Tensor:
         """feat `(B*N, C, h, w)` -> P `(B, X, Y, Z, C)` (channels last)."""
         _, C, h, w = feat.shape
-        index = self.index(inputs, (h, w))
         table = feat.permute(0, 2, 3, 1).reshape(-1, C)
+        if _use_cpu_kernels(feat):
+            out = _BagSumCPU.apply(table, self.pair_index(inputs, (h, w)))
+            return out.view(inputs.batch_size, *self.grid.shape, C)
+        index = self.index(inputs, (h, w))
         out = F.embedding_bag(index.rows, table, index.offsets, mode="sum", per_sample_weights=index.weights)
         return out.view(inputs.batch_size, *self.grid.shape, C)
