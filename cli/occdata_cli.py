@@ -71,6 +71,10 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
     click.echo(f"{summary['root']} [{summary['version']}]: {summary['scenes']} scenes, {summary['samples']} samples")
     for split, n in summary["samples_per_split"].items():
         click.echo(f"  {split:>12}: {summary['scenes_per_split'][split]:5d} scenes {n:7d} samples")
+    sw = summary["sweeps"]
+    files = f"; {sw['files_present']} of their files present" if "files_present" in sw else ""
+    click.echo(f"  LIDAR_TOP sweeps between keyframes: {sw['per_keyframe_mean']:.2f} per keyframe "
+               f"(min {sw['per_keyframe_min']}, max {sw['per_keyframe_max']}), {sw['total']} in all{files}")
 
 
 @main.command()

@@ -494,7 +494,7 @@ def find_label_files(
             f"e.g. {gts / nested} (check --gts; leave it out for samples without labels, e.g. the test split)"
         )
     if any(s.problem for s in samples):
-        ds = NuScenesDataset(ds.root, ds.version, ds.scenes, tuple(samples), ds.warnings)
+        ds = dataclasses.replace(ds, samples=tuple(samples))
     return found, ds
 
 
