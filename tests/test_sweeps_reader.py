@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import SHARED_DATA
+
 from occdata.errors import OccDataError
 from occdata.nuscenes import load_nuscenes
 

@@ -190,7 +190,9 @@ def load_nuscenes(
     sample_data = load_table(vdir / "sample_data.json", keep=keep_sd, warn=notes.append)
     pose_tokens = {_get(sd, "ego_pose_token", "sample_data") for sd in sample_data.values()}
     ego_poses = load_table(vdir / "ego_pose.json", keep=lambda r: r.get("token") in pose_tokens, warn=notes.append)
-    lidar_rows = {t: sd for t, sd in sample_data.items() if channel_of_calib[sd["calibrated_sensor_token"]] == LIDAR_CHANNEL}
+    lidar_rows = {
+        t: sd for t, sd in sample_data.items() if channel_of_calib[sd["calibrated_sensor_token"]] == LIDAR_CHANNEL
+    }
 
     by_sample: dict[str, dict[str, dict[str, Any]]] = defaultdict(dict)
     for tok, sd in sample_data.items():
