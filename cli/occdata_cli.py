@@ -100,11 +100,14 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
               help="1.0 stores the original JPEG bytes; < 1 re-encodes the images at that scale.")
 @click.option("--jpeg-quality", type=click.IntRange(1, 100), default=90, show_default=True,
               help="Quality (1-100) when re-encoding.")
+@click.option("--lidar-sweeps", type=click.IntRange(0, 100), default=0, show_default=True, metavar="N",
+              help="Depth targets from the keyframe LiDAR sweep plus up to N previous sweeps (20 Hz, "
+                   "motion-compensated to each camera; needs the sweeps/ files). 0: the keyframe alone.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
 def build(root: str, version: str | None, out: str, gts: str | None, splits: tuple[str, ...], workers: int,
           resume: bool, on_error: str, block_samples: int, image_scale: float, jpeg_quality: int,
-          no_progress: bool) -> None:
+          lidar_sweeps: int, no_progress: bool) -> None:
     """Convert a nuScenes-format tree (+ Occ3D labels) into one chunked zarr store.
 
     Stores per keyframe: the 6 camera images, calibrations and poses, LiDAR depth targets,
@@ -129,7 +132,8 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
             root=root_path, out=out_path, version=version, gts=gts_path,
             labels_required=gts is not None, splits=splits, workers=workers, resume=resume,
             on_error=on_error,  # type: ignore[arg-type]
-            block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality),
+            block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality,
+                                                                 lidar_sweeps=lidar_sweeps),
             progress=not no_progress,
         ))
     except KeyboardInterrupt:

@@ -78,14 +78,16 @@ class SampleRecord:
         cam = self.cameras[i]
         return invert_rigid(self.T_global_from_keyego) @ cam.T_global_from_ego @ cam.T_ego_from_cam
 
-    def T_cam_from_lidar(self, i: int) -> np.ndarray:
-        """The devkit's chain lidar -> ego(t_lidar) -> global -> ego(t_cam) -> camera, `(4, 4) float64`."""
+    def T_cam_from_lidar(self, i: int, sweep: LidarRecord | None = None) -> np.ndarray:
+        """The devkit's chain lidar(t_i) -> ego(t_i) -> global -> ego(t_cam) -> camera, `(4, 4) float64`,
+        for the keyframe sweep or another `sweep` (its own calibration and ego pose)."""
         cam = self.cameras[i]
+        lidar = self.lidar if sweep is None else sweep
         return (
             invert_rigid(cam.T_ego_from_cam)
             @ invert_rigid(cam.T_global_from_ego)
-            @ self.lidar.T_global_from_ego
-            @ self.lidar.T_ego_from_lidar
+            @ lidar.T_global_from_ego
+            @ lidar.T_ego_from_lidar
         )
 
 
