@@ -13,8 +13,8 @@ import zarr
 from click.testing import CliRunner
 
 from cli.occdata_cli import main
-from occdata.store.layout import token_str
 from occdata.nuscenes import load_nuscenes
+from occdata.store.layout import token_str
 from occdata.store.reader import open_store
 
 N_SWEEPS = 9
