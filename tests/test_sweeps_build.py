@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +15,7 @@ import zarr
 from click.testing import CliRunner
 
 from cli.occdata_cli import main
+from occdata.constants import CAMERA_ORDER
 from occdata.nuscenes import load_nuscenes
 from occdata.store.layout import token_str
 from occdata.store.reader import open_store
@@ -148,3 +151,99 @@ def test_one_missing_sweep_is_named(synth_root: Path, tmp_path: Path) -> None:
     code, output = _build(root, tmp_path / "s.zarr", "--lidar-sweeps", str(N_SWEEPS))
     assert code == 1 and f"missing sweep file {victim} " in output, output
     assert f"{len(files) - 1} of the {len(files)} sweep files needed were found" in output
+
+
+# The official devkit aggregates the sweeps into the keyframe's LiDAR frame (from_file_multisweep),
+# then its own map_pointcloud_to_image chain projects the aggregate: its LidarPointCloud.from_file
+# is pointed at the aggregate for that call, so every transform and mask is the devkit's code.
+DEVKIT_MULTISWEEP = textwrap.dedent("""
+    import sys
+    import numpy as np
+    from nuscenes.nuscenes import NuScenes
+    from nuscenes.utils.data_classes import LidarPointCloud
+    root, nsweeps, out = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+    nusc = NuScenes(version="v1.0-mini", dataroot=root, verbose=False)
+    original = LidarPointCloud.__dict__["from_file"]
+    res = {}
+    for sample in nusc.sample:
+        agg, _ = LidarPointCloud.from_file_multisweep(nusc, sample, "LIDAR_TOP", "LIDAR_TOP", nsweeps=nsweeps)
+        LidarPointCloud.from_file = classmethod(lambda cls, path: cls(agg.points.copy()))
+        try:
+            for ch in ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT"):
+                pts, depth, im = nusc.explorer.map_pointcloud_to_image(sample["data"]["LIDAR_TOP"],
+                                                                       sample["data"][ch], min_dist=1.0)
+                res[sample["token"] + "/" + ch] = np.vstack([pts[:2], depth[None]]).T
+                res[sample["token"] + "/" + ch + "/size"] = np.array(im.size)
+        finally:
+            LidarPointCloud.from_file = original
+    np.savez(out, **res)
+""")
+
+
+def _devkit_rule(uvd: np.ndarray, width: int, height: int) -> np.ndarray:
+    u, v, d = uvd[:, 0], uvd[:, 1], uvd[:, 2]
+    return (d > 1.0) & (u > 1) & (u < width - 1) & (v > 1) & (v < height - 1)
+
+
+def _at_border(uvd: np.ndarray, width: int, height: int, px: float = 0.03) -> np.ndarray:
+    """Points whose keep/drop decision float32 rounding can flip: within `px` of a border line, or
+    depth within 1e-4 m of the 1 m limit."""
+    u, v, d = uvd[:, 0].astype(np.float64), uvd[:, 1].astype(np.float64), uvd[:, 2].astype(np.float64)
+    dist = np.min(np.abs(np.stack([u - 1, u - (width - 1), v - 1, v - (height - 1)])), axis=0)
+    return (dist < px) | (np.abs(d - 1.0) < 1e-4)
+
+
+def _match_in_order(ours: np.ndarray, theirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Both lists follow the aggregate's point order (keyframe, then sweeps nearest first), and differ
+    only by points that one side kept at a border: walk them together. Returns matched index pairs
+    and the unmatched indices of each side."""
+    i = j = 0
+    mi, mj, oi, oj = [], [], [], []
+    while i < len(ours) and j < len(theirs):
+        if np.abs(ours[i, :2] - theirs[j, :2]).max() < 0.5:
+            mi.append(i)
+            mj.append(j)
+            i, j = i + 1, j + 1
+        elif j + 1 < len(theirs) and np.abs(ours[i, :2] - theirs[j + 1, :2]).max() < 0.5:
+            oj.append(j)
+            j += 1
+        else:
+            oi.append(i)
+            i += 1
+    oi += range(i, len(ours))
+    oj += range(j, len(theirs))
+    return np.array(mi, int), np.array(mj, int), np.array(oi, int), np.array(oj, int)
+
+
+@pytest.mark.skipif(not os.environ.get("OCCDATA_DEVKIT_PYTHON"),
+                    reason="set OCCDATA_DEVKIT_PYTHON to a python with nuscenes-devkit (scripts/devkit_env.sh)")
+def test_lidar_sweeps_match_the_official_devkit_multisweep(synth_root: Path, tmp_path: Path) -> None:
+    n = 12  # crosses the previous keyframe: 9 sweeps, keyframe k-1, 2 sweeps before it
+    out = tmp_path / "d.zarr"
+    code, output = _build(synth_root, out, "--lidar-sweeps", str(n))
+    assert code == 0, output
+    script = tmp_path / "devkit_multisweep.py"
+    script.write_text(DEVKIT_MULTISWEEP)
+    res = subprocess.run([os.environ["OCCDATA_DEVKIT_PYTHON"], str(script), str(synth_root), str(n + 1),
+                          str(tmp_path / "devkit.npz")], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    store = open_store(out)
+    worst, total, flips = 0.0, 0, 0
+    with np.load(tmp_path / "devkit.npz", allow_pickle=False) as devkit:
+        for i in range(store.n_samples):
+            for c, uvd in enumerate(store.depth_points(i)):
+                key = f"{store.token(i)}/{CAMERA_ORDER[c]}"
+                theirs, (w, h) = devkit[key], devkit[key + "/size"]
+                ours = uvd[_devkit_rule(uvd, w, h)]
+                mi, mj, oi, oj = _match_in_order(ours, theirs)
+                # Equal counts, up to points that float32 rounding moves across a border.
+                assert _at_border(ours[oi], w, h).all() and _at_border(theirs[oj], w, h).all(), (key, oi, oj)
+                assert abs(len(ours) - len(theirs)) <= _at_border(ours, w, h).sum()
+                worst = max(worst, float(np.abs(ours[mi, :2] - theirs[mj, :2]).max()))
+                # The devkit rounds to float32 in the global frame (synthetic towns lie ~1-4 km out).
+                np.testing.assert_allclose(ours[mi, 2], theirs[mj, 2], rtol=0, atol=1e-3)
+                total += len(theirs)
+                flips += len(oi) + len(oj)
+    print(f"\ndevkit multisweep ({n + 1} sweeps): {total} points in image, {flips} border flips, "
+          f"max |d uv| {worst:.4f} px")
+    assert total > 1_000_000 and worst < 0.05
