@@ -178,9 +178,14 @@ def bev_gt(store: str, no_progress: bool) -> None:
 @click.option("--recompute", is_flag=True,
               help="Recompute for every labelled sample (default: only those without a shipped camera mask), "
                    "and print the agreement with the shipped masks per class.")
+@click.option("--lidar-sweeps", type=click.IntRange(0, 100), default=None, metavar="N",
+              help="LiDAR rays from the source tree instead of the stored depth targets: every point of the "
+                   "keyframe sweep and of up to N previous sweeps (Occ3D aggregates sweeps).")
+@click.option("--root", default=None, metavar="DIR",
+              help="With --lidar-sweeps: the nuScenes-format tree (default: the store's source root).")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
-def visibility(store: str, recompute: bool, no_progress: bool) -> None:
+def visibility(store: str, recompute: bool, lidar_sweeps: int | None, root: str | None, no_progress: bool) -> None:
     """Occ3D-style camera and LiDAR masks from the stored semantics (docs/visibility.md).
 
     LiDAR mask: voxels the stored keyframe LiDAR rays pass through or end in, plus every object
@@ -191,9 +196,12 @@ def visibility(store: str, recompute: bool, no_progress: bool) -> None:
     """
     from occdata.store.visibility_cmd import compute_visibility
 
-    report = compute_visibility(store, recompute=recompute, progress=not no_progress)
+    report = compute_visibility(store, recompute=recompute, progress=not no_progress, lidar_sweeps=lidar_sweeps,
+                                root=local_path(root, "--root") if root is not None else None)
     click.echo(f"{store}: visibility computed for {report.computed} samples "
                f"({report.seconds_per_sample:.2f} s/sample); {report.skipped_unlabelled} unlabelled skipped")
+    if report.computed:
+        click.echo(f"  LiDAR mask: {100 * report.free_observed:.2f}% of free voxels observed")
     if report.compared:
         from occdata.constants import CLASS_NAMES, FREE_LABEL
 

@@ -120,6 +120,10 @@ class NuScenesDataset:
     def sample(self, token: str) -> SampleRecord:
         return self.samples[self._index[token]]
 
+    def index_of(self, token: str) -> int:
+        """Position of a sample token in `samples` (KeyError if absent)."""
+        return self._index[token]
+
     def split_of(self, sample: SampleRecord) -> str:
         return next(sc.split for sc in self.scenes if sc.token == sample.scene_token)
 

@@ -479,7 +479,7 @@ def check_sweep_files(histories: list[tuple[LidarRecord, ...]], n_sweeps: int) -
         raise OccDataError(
             f"--lidar-sweeps {n_sweeps}: missing sweep file {first.path} (sample_data {first.token!r}); "
             f"{len(needed) - len(missing)} of the {len(needed)} sweep files needed were found. A keyframe-only "
-            "download has no sweeps/ folder: add the sweeps, or build with --lidar-sweeps 0"
+            "download has no sweeps/ folder: add the sweeps, or use --lidar-sweeps 0"
         )
 
 
