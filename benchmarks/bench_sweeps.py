@@ -29,10 +29,10 @@ sys.path.insert(0, str(REPO))
 from fastocc.data.augment import ImageAugConfig, sample_image_aug  # noqa: E402
 from occdata.constants import FREE_LABEL  # noqa: E402
 from occdata.depth_targets import DEPTH_MAX, DEPTH_MIN, depth_target  # noqa: E402
+from occdata.nuscenes import load_nuscenes  # noqa: E402
 from occdata.store.build import BuildConfig, build_store  # noqa: E402
 from occdata.store.layout import token_str  # noqa: E402
 from occdata.store.reader import open_store  # noqa: E402
-from occdata.nuscenes import load_nuscenes  # noqa: E402
 from occdata.store.sample import SampleOptions, depth_points  # noqa: E402
 from occdata.store.visibility_cmd import compute_visibility  # noqa: E402
 from occdata.synth import SynthConfig, pipeline, synthesize  # noqa: E402
@@ -56,23 +56,29 @@ def synth_world(out: Path, samples: int, width: int, height: int, frozen: bool) 
         pipeline.make_world = make_world
 
 
-def build(root: Path, out: Path, n: int, gts: Path | None = None) -> float:
-    shutil.rmtree(out, ignore_errors=True)
-    t0 = time.perf_counter()
-    build_store(BuildConfig(root=root, out=out, gts=gts, labels_required=gts is not None,
-                            options=SampleOptions(lidar_sweeps=n), progress=False))
-    return time.perf_counter() - t0
+def build(root: Path, out: Path, n: int, gts: Path | None = None, repeats: int = 1) -> float:
+    """Seconds of one `occdata build` (1 worker), the fastest of `repeats`."""
+    best = np.inf
+    for _ in range(repeats):  # the VM is shared: the fastest of a few runs
+        shutil.rmtree(out, ignore_errors=True)
+        t0 = time.perf_counter()
+        build_store(BuildConfig(root=root, out=out, gts=gts, labels_required=gts is not None,
+                                options=SampleOptions(lidar_sweeps=n), progress=False))
+        best = min(best, time.perf_counter() - t0)
+    return best
 
 
 def depth_seconds_per_sample(root: Path, n: int) -> float:
     """The depth-target stage alone (read N + 1 sweeps, project into 6 cameras), one core."""
     ds = load_nuscenes(root, sweeps=n > 0)
+    full = [i for i, s in enumerate(ds.samples) if s.index_in_scene >= 1]  # a full history of N sweeps
     t0 = time.perf_counter()
-    for i, s in enumerate(ds.samples):
+    for i in full:
+        s = ds.samples[i]
         K = np.stack([c.K for c in s.cameras])
         sizes = np.array([[c.width, c.height] for c in s.cameras])
         depth_points(s, ds.lidar_history(i, n), K, sizes, 0.0)
-    return (time.perf_counter() - t0) / len(ds.samples)
+    return (time.perf_counter() - t0) / len(full)
 
 
 def _dir_bytes(path: Path) -> int:
@@ -97,12 +103,13 @@ def depth_figures(store_path: Path, root: Path) -> dict[str, float]:
     store = open_store(store_path)
     g = zarr.open_group(store_path, mode="r")
     tokens, sizes, in_scene = g["cam/token"][:], g["cam/image_size"][:], g["sample/index_in_scene"][:]
-    dens, pts_err, tgt_err = [], [], []
+    dens, pix, pts_err, tgt_err = [], [], [], []
     for i in np.flatnonzero(in_scene >= 1):
         for c, uvd in enumerate(store.depth_points(int(i))):
             w, h = (int(v) for v in sizes[i, c])
             A = sample_image_aug(ImageAugConfig(train=False), w, h, None).matrix
             dens.append(float((depth_target(uvd, A, IN_H, IN_W, STRIDE, DEPTH_MIN, DEPTH_MAX) > 0).mean()))
+            pix.append(float((depth_target(uvd, A, IN_H, IN_W, 1, DEPTH_MIN, DEPTH_MAX) > 0).mean()))
             dmap = np.load(root / "depth" / f"{token_str(tokens[i, c])}.npy")
             u = np.clip(np.floor(uvd[:, 0] + 0.5).astype(int), 0, w - 1)
             v = np.clip(np.floor(uvd[:, 1] + 0.5).astype(int), 0, h - 1)
@@ -112,6 +119,7 @@ def depth_figures(store_path: Path, root: Path) -> dict[str, float]:
     e, t = np.concatenate(pts_err), np.concatenate(tgt_err)
     return {
         "target_cell_fraction": round(float(np.mean(dens)), 4),
+        "target_pixel_fraction_stride1": round(float(np.mean(pix)), 4),
         "points_per_camera": round(len(e) / len(dens)),
         "points_off_0p5m": round(float((np.abs(e) > 0.5).mean()), 4),
         "points_in_front_0p5m": round(float((e < -0.5).mean()), 4),
@@ -169,14 +177,14 @@ def main() -> None:
                         "input": f"{IN_H}x{IN_W}, stride {STRIDE}", "by_sweeps": {}}
         for n in SWEEPS:
             store = work / f"n{n}.zarr"
-            seconds = build(moving, store, n)
+            seconds = build(moving, store, n, repeats=3)
             figures = depth_figures(store, moving)
             build(frozen, work / f"f{n}.zarr", n)
             still = depth_figures(work / f"f{n}.zarr", frozen)
             result["by_sweeps"][n] = {
                 "build_samples_per_s_per_core": round(args.samples / seconds, 2),
                 "depth_stage_ms_per_sample": round(1000 * depth_seconds_per_sample(moving, n), 1),
-                "store_bytes": _dir_bytes(store),
+                "store_bytes": _dir_bytes(store),  # original JPEGs + depth + small arrays (no labels)
                 "depth_bytes": _dir_bytes(store / "depth"),
                 **figures,
                 "frozen_actors": {k: v for k, v in still.items() if "off" in k or "front" in k},

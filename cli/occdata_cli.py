@@ -36,8 +36,9 @@ def main() -> None:
 def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: int, no_progress: bool) -> None:
     """Write a synthetic nuScenes-format world with Occ3D labels and exact depth maps.
 
-    Tables (v1.0-mini), 6 ray-cast camera images, a 32-beam LiDAR sweep per keyframe,
-    gts/<scene>/<sample>/labels.npz and depth/<sample_data_token>.npy. See docs/synth.md.
+    Tables (v1.0-mini), 6 ray-cast camera images, a 32-beam LiDAR sweep per keyframe and 9
+    LiDAR sweeps (20 Hz) between keyframes under sweeps/LIDAR_TOP, gts/<scene>/<sample>/labels.npz
+    and depth/<sample_data_token>.npy. See docs/synth.md.
     """
     from occdata.synth import SynthConfig, synthesize
 
