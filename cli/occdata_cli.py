@@ -59,7 +59,8 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
 
     Every foreign key is resolved and every sample is checked as `occdata build` checks it from
     the tables (values, paths inside the root, calibration, intrinsics); a broken tree fails with
-    one line naming the file, row or token.
+    one line naming the file, row or token. The LIDAR_TOP sweep chains (prev links) are followed
+    too and the sweeps between keyframes reported (their files are counted, not required).
     """
     from occdata.nuscenes.summary import scan_tree
 
