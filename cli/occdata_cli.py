@@ -36,8 +36,9 @@ def main() -> None:
 def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: int, no_progress: bool) -> None:
     """Write a synthetic nuScenes-format world with Occ3D labels and exact depth maps.
 
-    Tables (v1.0-mini), 6 ray-cast camera images, a 32-beam LiDAR sweep per keyframe,
-    gts/<scene>/<sample>/labels.npz and depth/<sample_data_token>.npy. See docs/synth.md.
+    Tables (v1.0-mini), 6 ray-cast camera images, a 32-beam LiDAR sweep per keyframe and 9
+    LiDAR sweeps (20 Hz) between keyframes under sweeps/LIDAR_TOP, gts/<scene>/<sample>/labels.npz
+    and depth/<sample_data_token>.npy. See docs/synth.md.
     """
     from occdata.synth import SynthConfig, synthesize
 
@@ -58,7 +59,8 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
 
     Every foreign key is resolved and every sample is checked as `occdata build` checks it from
     the tables (values, paths inside the root, calibration, intrinsics); a broken tree fails with
-    one line naming the file, row or token.
+    one line naming the file, row or token. The LIDAR_TOP sweep chains (prev links) are followed
+    too and the sweeps between keyframes reported (their files are counted, not required).
     """
     from occdata.nuscenes.summary import scan_tree
 
@@ -71,6 +73,10 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
     click.echo(f"{summary['root']} [{summary['version']}]: {summary['scenes']} scenes, {summary['samples']} samples")
     for split, n in summary["samples_per_split"].items():
         click.echo(f"  {split:>12}: {summary['scenes_per_split'][split]:5d} scenes {n:7d} samples")
+    sw = summary["sweeps"]
+    files = f"; {sw['files_present']} of their files present" if "files_present" in sw else ""
+    click.echo(f"  LIDAR_TOP sweeps between keyframes: {sw['per_keyframe_mean']:.2f} per keyframe "
+               f"(min {sw['per_keyframe_min']}, max {sw['per_keyframe_max']}), {sw['total']} in all{files}")
 
 
 @main.command()
@@ -96,11 +102,14 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
               help="1.0 stores the original JPEG bytes; < 1 re-encodes the images at that scale.")
 @click.option("--jpeg-quality", type=click.IntRange(1, 100), default=90, show_default=True,
               help="Quality (1-100) when re-encoding.")
+@click.option("--lidar-sweeps", type=click.IntRange(0, 100), default=0, show_default=True, metavar="N",
+              help="Depth targets from the keyframe LiDAR sweep plus up to N previous sweeps (20 Hz, "
+                   "motion-compensated to each camera; needs the sweeps/ files). 0: the keyframe alone.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
 def build(root: str, version: str | None, out: str, gts: str | None, splits: tuple[str, ...], workers: int,
           resume: bool, on_error: str, block_samples: int, image_scale: float, jpeg_quality: int,
-          no_progress: bool) -> None:
+          lidar_sweeps: int, no_progress: bool) -> None:
     """Convert a nuScenes-format tree (+ Occ3D labels) into one chunked zarr store.
 
     Stores per keyframe: the 6 camera images, calibrations and poses, LiDAR depth targets,
@@ -125,7 +134,8 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
             root=root_path, out=out_path, version=version, gts=gts_path,
             labels_required=gts is not None, splits=splits, workers=workers, resume=resume,
             on_error=on_error,  # type: ignore[arg-type]
-            block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality),
+            block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality,
+                                                                 lidar_sweeps=lidar_sweeps),
             progress=not no_progress,
         ))
     except KeyboardInterrupt:
@@ -170,9 +180,14 @@ def bev_gt(store: str, no_progress: bool) -> None:
 @click.option("--recompute", is_flag=True,
               help="Recompute for every labelled sample (default: only those without a shipped camera mask), "
                    "and print the agreement with the shipped masks per class.")
+@click.option("--lidar-sweeps", type=click.IntRange(0, 100), default=None, metavar="N",
+              help="LiDAR rays from the source tree instead of the stored depth targets: every point of the "
+                   "keyframe sweep and of up to N previous sweeps (Occ3D aggregates sweeps).")
+@click.option("--root", default=None, metavar="DIR",
+              help="With --lidar-sweeps: the nuScenes-format tree (default: the store's source root).")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
-def visibility(store: str, recompute: bool, no_progress: bool) -> None:
+def visibility(store: str, recompute: bool, lidar_sweeps: int | None, root: str | None, no_progress: bool) -> None:
     """Occ3D-style camera and LiDAR masks from the stored semantics (docs/visibility.md).
 
     LiDAR mask: voxels the stored keyframe LiDAR rays pass through or end in, plus every object
@@ -183,9 +198,12 @@ def visibility(store: str, recompute: bool, no_progress: bool) -> None:
     """
     from occdata.store.visibility_cmd import compute_visibility
 
-    report = compute_visibility(store, recompute=recompute, progress=not no_progress)
+    report = compute_visibility(store, recompute=recompute, progress=not no_progress, lidar_sweeps=lidar_sweeps,
+                                root=local_path(root, "--root") if root is not None else None)
     click.echo(f"{store}: visibility computed for {report.computed} samples "
                f"({report.seconds_per_sample:.2f} s/sample); {report.skipped_unlabelled} unlabelled skipped")
+    if report.computed:
+        click.echo(f"  LiDAR mask: {100 * report.free_observed:.2f}% of free voxels observed")
     if report.compared:
         from occdata.constants import CLASS_NAMES, FREE_LABEL
 

@@ -1,8 +1,9 @@
 """Load a nuScenes-format version folder into frozen keyframe records (DESIGN §3).
 
 Only what occupancy needs is kept: keyframe samples with their 6 cameras and LIDAR_TOP sweep, each
-sensor with its calibration and its own ego pose. Every foreign key is resolved here, so a broken
-tree fails early with one line naming the table and token.
+sensor with its calibration and its own ego pose; on request (`sweeps=True`) also the non-keyframe
+LIDAR_TOP sweeps before each keyframe (`SampleRecord.sweeps`, through the `prev` links). Every
+foreign key is resolved here, so a broken tree fails early with one line naming the table and token.
 """
 
 from __future__ import annotations
@@ -135,13 +136,22 @@ def confined_path(root: Path, relative: Any, where: str) -> Path:
     return path
 
 
-def load_nuscenes(root: Path | str, version: str | None = None, check_files: bool = False) -> NuScenesDataset:
+def load_nuscenes(
+    root: Path | str, version: str | None = None, check_files: bool = False, sweeps: bool = False
+) -> NuScenesDataset:
     """Read `<root>/<version>/*.json` into keyframe records.
 
     Scenes come in table order, samples per scene in time order (following `next` links from
     `first_sample_token`). Each scene gets a split: the official one for nuScenes scene names
     (mini_train/mini_val for v1.0-mini), else a `split=NAME` tag in its description, else
     "unassigned". With `check_files`, every keyframe sensor file must be a readable regular file.
+
+    With `sweeps`, the non-keyframe LIDAR_TOP rows are read too: each keyframe gets the sweeps that
+    its LIDAR_TOP `prev` links pass through before reaching the previous keyframe's LIDAR_TOP (the
+    scene's first keyframe: until `prev` is ""), nearest first. Their files are not checked
+    (nuScenes' keyframe-only download ships none). A link to a token that is not a LIDAR_TOP row, a
+    `prev`/`next` pair that disagree, a row of another scene, a chain that reaches another keyframe
+    or ends before the previous one, or a cycle, is an `OccDataError` naming the rows.
 
     Raises `OccDataError` (one line, naming the file or token) on a broken tree: a missing table,
     a dangling token, a duplicate token with different content, a scene whose links do not reach
@@ -169,19 +179,25 @@ def load_nuscenes(root: Path | str, version: str | None = None, check_files: boo
         channel_of_calib[tok] = _get(sensor, "channel", "sensor")
 
     def keep_sd(row: dict[str, Any]) -> bool:
-        if not row.get("is_key_frame", False):
+        key = row.get("is_key_frame", False)
+        if not key and not sweeps:
             return False
         cs_tok = _get(row, "calibrated_sensor_token", "sample_data")
         if cs_tok not in channel_of_calib:
             _ref(calibs, cs_tok, "calibrated_sensor", f"sample_data {row.get('token')!r}")
-        return channel_of_calib[cs_tok] in _CHANNELS
+        return channel_of_calib[cs_tok] in _CHANNELS if key else channel_of_calib[cs_tok] == LIDAR_CHANNEL
 
     sample_data = load_table(vdir / "sample_data.json", keep=keep_sd, warn=notes.append)
     pose_tokens = {_get(sd, "ego_pose_token", "sample_data") for sd in sample_data.values()}
     ego_poses = load_table(vdir / "ego_pose.json", keep=lambda r: r.get("token") in pose_tokens, warn=notes.append)
+    lidar_rows = {
+        t: sd for t, sd in sample_data.items() if channel_of_calib[sd["calibrated_sensor_token"]] == LIDAR_CHANNEL
+    }
 
     by_sample: dict[str, dict[str, dict[str, Any]]] = defaultdict(dict)
     for tok, sd in sample_data.items():
+        if not sd.get("is_key_frame", False):
+            continue
         s_tok = _get(sd, "sample_token", "sample_data")
         _ref(samples_raw, s_tok, "sample", f"sample_data {tok!r}")
         channel = channel_of_calib[sd["calibrated_sensor_token"]]
@@ -205,21 +221,64 @@ def load_nuscenes(root: Path | str, version: str | None = None, check_files: boo
         src = f"sample_data {sd['token']!r}"
         return _pose(_ref(ego_poses, sd["ego_pose_token"], "ego_pose", src), "ego_pose")
 
-    def make_sample(s_tok: str, scene_name: str, index: int) -> SampleRecord:
+    def make_sample(s_tok: str, scene_name: str, index: int, prev_key: str) -> SampleRecord:
         row = samples_raw[s_tok]
         sds = by_sample.get(s_tok, {})
         missing = [c for c in (*CAMERA_ORDER, LIDAR_CHANNEL) if c not in sds]
         if missing:
             raise OccDataError(f"sample {s_tok!r} has no keyframe sample_data for {', '.join(missing)}")
-        for sd in sds.values():  # foreign keys first: a dangling pose is a broken tree, not a row value
+        chain = sweep_chain(sds[LIDAR_CHANNEL], prev_key, row["scene_token"], scene_name) if sweeps else []
+        for sd in (*sds.values(), *chain):  # foreign keys first: a dangling pose is a broken tree, not a row value
             _ref(ego_poses, sd["ego_pose_token"], "ego_pose", f"sample_data {sd['token']!r}")
         try:
-            return build_sample(s_tok, row, sds, scene_name, index)
+            return build_sample(s_tok, row, sds, scene_name, index, chain)
         except _RowProblem as exc:
             return placeholder_sample(s_tok, row, sds, scene_name, index, str(exc))
 
+    def sweep_chain(key_sd: dict[str, Any], prev_key: str, scene_tok: str, scene_name: str) -> list[dict[str, Any]]:
+        """The non-keyframe LIDAR_TOP rows from `key_sd` back (through `prev`) to the previous
+        keyframe's LIDAR_TOP row `prev_key` ("" for the scene's first keyframe: to the chain's start)."""
+        out: list[dict[str, Any]] = []
+        cur, tok = key_sd, key_sd.get("prev", "")
+        while tok and tok != prev_key:
+            nxt = lidar_rows.get(tok)
+            where = f"LIDAR_TOP chain of scene {scene_name!r}: sample_data {cur['token']!r}.prev"
+            if nxt is None:
+                raise OccDataError(f"{where} is {tok!r}, not a LIDAR_TOP row of sample_data.json")
+            if nxt.get("is_key_frame", False):
+                raise OccDataError(f"{where} reaches keyframe {tok!r}, not the previous keyframe's LIDAR_TOP "
+                                   f"{prev_key or '(none: first keyframe)'!r}")
+            if nxt.get("next", "") != cur["token"]:
+                raise OccDataError(f"{where} is {tok!r}, but that row's next is {nxt.get('next', '')!r}")
+            s_row = _ref(samples_raw, _get(nxt, "sample_token", "sample_data"), "sample", f"sample_data {tok!r}")
+            if s_row.get("scene_token") != scene_tok:
+                raise OccDataError(f"{where} is {tok!r}, a row of another scene (sample {nxt['sample_token']!r})")
+            if len(out) >= len(lidar_rows):
+                raise OccDataError(f"{where}: the prev-links form a cycle")
+            out.append(nxt)
+            cur, tok = nxt, nxt.get("prev", "")
+        if prev_key and tok != prev_key:
+            raise OccDataError(f"LIDAR_TOP chain of scene {scene_name!r}: the prev-links from keyframe sample_data "
+                               f"{key_sd['token']!r} end at {cur['token']!r} before the previous keyframe's "
+                               f"LIDAR_TOP {prev_key!r}")
+        return out
+
+    def sweep_record(sd: dict[str, Any]) -> LidarRecord:
+        where = f"sample_data {sd['token']!r}"
+        try:
+            path = confined_path(root, _get(sd, "filename", "sample_data"), f"{where} filename")
+        except OccDataError as exc:
+            raise _RowProblem(str(exc)) from None
+        return LidarRecord(
+            channel=LIDAR_CHANNEL, token=sd["token"], path=path,
+            T_ego_from_lidar=_pose(calibs[sd["calibrated_sensor_token"]], "calibrated_sensor"),
+            T_global_from_ego=pose_of(sd),
+            timestamp=_integer(_get(sd, "timestamp", "sample_data"), f"{where} timestamp"),
+        )
+
     def build_sample(
-        s_tok: str, row: dict[str, Any], sds: dict[str, dict[str, Any]], scene_name: str, index: int
+        s_tok: str, row: dict[str, Any], sds: dict[str, dict[str, Any]], scene_name: str, index: int,
+        chain: list[dict[str, Any]],
     ) -> SampleRecord:
         cams = []
         for channel in CAMERA_ORDER:
@@ -260,6 +319,7 @@ def load_nuscenes(root: Path | str, version: str | None = None, check_files: boo
             next=row.get("next", ""),
             cameras=tuple(cams),
             lidar=lidar,
+            sweeps=tuple(sweep_record(sd) for sd in chain),
         )
 
     def placeholder_sample(
@@ -331,9 +391,12 @@ def load_nuscenes(root: Path | str, version: str | None = None, check_files: boo
                 sample_tokens=tuple(chain),
             )
         )
-        samples.extend(make_sample(t, name, i) for i, t in enumerate(chain))
+        for i, t in enumerate(chain):
+            prev_key = by_sample.get(chain[i - 1], {}).get(LIDAR_CHANNEL, {}).get("token", "") if i else ""
+            samples.append(make_sample(t, name, i, prev_key))
     return NuScenesDataset(
-        root=root, version=version, scenes=tuple(scenes), samples=tuple(samples), warnings=tuple(notes)
+        root=root, version=version, scenes=tuple(scenes), samples=tuple(samples), warnings=tuple(notes),
+        sweeps_loaded=sweeps,
     )
 
 

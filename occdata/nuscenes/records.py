@@ -1,7 +1,8 @@
-"""Frozen records for the keyframe data that occupancy needs (DESIGN §3)."""
+"""Frozen records for the keyframe data that occupancy needs (DESIGN §3), and the LIDAR_TOP sweeps."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,7 +34,9 @@ class CameraRecord:
 
 @dataclass(frozen=True, eq=False)
 class LidarRecord:
-    """The LIDAR_TOP sweep of a keyframe; its ego pose defines the key-ego frame of the sample."""
+    """One LIDAR_TOP sweep: the keyframe's (its ego pose defines the sample's key-ego frame) or a
+    non-keyframe sweep (`SampleRecord.sweeps`). `T_ego_from_lidar`, `T_global_from_ego`: `(4, 4)
+    float64`, the latter at the sweep's own timestamp (microseconds)."""
 
     channel: str
     token: str  # sample_data token
@@ -60,6 +63,10 @@ class SampleRecord:
     # "" when fine. Such a record holds NaN placeholders and `validate_sample` rejects it, so the
     # problem stays with this one sample (and `--on-error skip` applies to it).
     problem: str = ""
+    # The non-keyframe LIDAR_TOP sweeps since the previous keyframe's LIDAR_TOP (for the scene's
+    # first keyframe: back to the start of its chain), nearest first. Empty unless the tables were
+    # read with `sweeps=True`. `NuScenesDataset.lidar_history` continues across earlier keyframes.
+    sweeps: tuple[LidarRecord, ...] = ()
 
     @property
     def T_global_from_keyego(self) -> np.ndarray:
@@ -71,14 +78,16 @@ class SampleRecord:
         cam = self.cameras[i]
         return invert_rigid(self.T_global_from_keyego) @ cam.T_global_from_ego @ cam.T_ego_from_cam
 
-    def T_cam_from_lidar(self, i: int) -> np.ndarray:
-        """The devkit's chain lidar -> ego(t_lidar) -> global -> ego(t_cam) -> camera, `(4, 4) float64`."""
+    def T_cam_from_lidar(self, i: int, sweep: LidarRecord | None = None) -> np.ndarray:
+        """The devkit's chain lidar(t_i) -> ego(t_i) -> global -> ego(t_cam) -> camera, `(4, 4) float64`,
+        for the keyframe sweep or another `sweep` (its own calibration and ego pose)."""
         cam = self.cameras[i]
+        lidar = self.lidar if sweep is None else sweep
         return (
             invert_rigid(cam.T_ego_from_cam)
             @ invert_rigid(cam.T_global_from_ego)
-            @ self.lidar.T_global_from_ego
-            @ self.lidar.T_ego_from_lidar
+            @ lidar.T_global_from_ego
+            @ lidar.T_ego_from_lidar
         )
 
 
@@ -102,6 +111,7 @@ class NuScenesDataset:
     scenes: tuple[SceneRecord, ...]
     samples: tuple[SampleRecord, ...]
     warnings: tuple[str, ...] = ()  # one line each: identical duplicate rows, nbr_samples disagreeing
+    sweeps_loaded: bool = False  # read with `sweeps=True`: `SampleRecord.sweeps` are filled in
     _index: dict[str, int] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -109,6 +119,10 @@ class NuScenesDataset:
 
     def sample(self, token: str) -> SampleRecord:
         return self.samples[self._index[token]]
+
+    def index_of(self, token: str) -> int:
+        """Position of a sample token in `samples` (KeyError if absent)."""
+        return self._index[token]
 
     def split_of(self, sample: SampleRecord) -> str:
         return next(sc.split for sc in self.scenes if sc.token == sample.scene_token)
@@ -119,7 +133,23 @@ class NuScenesDataset:
             return self
         scenes = tuple(sc for sc in self.scenes if sc.split in splits)
         keep = {sc.token for sc in scenes}
-        return NuScenesDataset(
-            self.root, self.version, scenes, tuple(s for s in self.samples if s.scene_token in keep),
-            self.warnings,
+        return dataclasses.replace(
+            self, scenes=scenes, samples=tuple(s for s in self.samples if s.scene_token in keep)
         )
+
+    def lidar_history(self, index: int, n: int) -> tuple[LidarRecord, ...]:
+        """Up to `n` LIDAR_TOP sweeps before sample `index`'s keyframe sweep, nearest first: its own
+        `sweeps`, then the previous keyframe's LIDAR_TOP and that keyframe's sweeps, and so on back
+        to the start of the scene's chain (fewer than `n` there). The keyframe sweep itself is not
+        included. Requires `sweeps_loaded` when `n > 0`."""
+        if n <= 0:
+            return ()
+        if not self.sweeps_loaded:
+            raise ValueError("lidar_history needs the tables read with sweeps=True")
+        out = list(self.samples[index].sweeps)
+        j = index
+        while len(out) < n and self.samples[j].index_in_scene > 0:
+            j -= 1
+            out.append(self.samples[j].lidar)
+            out.extend(self.samples[j].sweeps)
+        return tuple(out[:n])

@@ -8,6 +8,7 @@ from typing import Any
 
 from occdata.errors import OccDataError
 from occdata.nuscenes.reader import load_nuscenes, validate_sample
+from occdata.nuscenes.records import NuScenesDataset
 
 __all__ = ["scan_tree"]
 
@@ -16,8 +17,12 @@ def scan_tree(root: Path, version: str | None, check_files: bool) -> dict[str, A
     """Read the tree and summarise it. Raises `OccDataError` on any broken reference and on any
     sample that `occdata build` would reject from its tables alone (unusable values, paths outside
     the root, NaN or non-rigid calibration and poses, invalid intrinsics; missing files with
-    `check_files`): one line naming the first such sample and how many there are."""
-    ds = load_nuscenes(root, version, check_files=check_files)
+    `check_files`): one line naming the first such sample and how many there are.
+
+    `sweeps`: the non-keyframe LIDAR_TOP sweeps between consecutive keyframes (min / mean / max
+    over keyframes that have a previous keyframe), the total, and with `check_files` how many of
+    their files exist (none in a keyframe-only download: not an error)."""
+    ds = load_nuscenes(root, version, check_files=check_files, sweeps=True)
     bad: list[str] = []
     for s in ds.samples:
         try:
@@ -38,5 +43,19 @@ def scan_tree(root: Path, version: str | None, check_files: bool) -> dict[str, A
         "samples_per_split": dict(sorted(per_split.items())),
         "scenes_per_split": dict(sorted(Counter(sc.split for sc in ds.scenes).items())),
         "files_checked": check_files,
+        "sweeps": _sweep_summary(ds, check_files),
         "warnings": list(ds.warnings),
     }
+
+
+def _sweep_summary(ds: NuScenesDataset, check_files: bool) -> dict[str, Any]:
+    between = [len(s.sweeps) for s in ds.samples if s.index_in_scene > 0]
+    out: dict[str, Any] = {
+        "total": sum(len(s.sweeps) for s in ds.samples),
+        "per_keyframe_min": min(between, default=0),
+        "per_keyframe_mean": round(sum(between) / len(between), 3) if between else 0.0,
+        "per_keyframe_max": max(between, default=0),
+    }
+    if check_files:
+        out["files_present"] = sum(sw.path.is_file() for s in ds.samples for sw in s.sweeps)
+    return out

@@ -29,7 +29,7 @@ from zarr.codecs import ZstdCodec
 
 from occdata.constants import CAMERA_ORDER, CLASS_COLORS, CLASS_NAMES, FREE_LABEL, GRID
 from occdata.errors import OccDataError
-from occdata.nuscenes import NuScenesDataset, load_nuscenes
+from occdata.nuscenes import LidarRecord, NuScenesDataset, load_nuscenes
 from occdata.nuscenes.reader import confined_path
 from occdata.store.layout import (
     FLAT_ARRAYS,
@@ -48,8 +48,8 @@ from occdata.store.lock import store_lock
 from occdata.store.reader import StoreReader
 from occdata.store.sample import SampleOptions, SampleResult, process_sample, static_arrays, temporal_indices
 
-__all__ = ["BuildConfig", "BuildReport", "build_store", "find_label_files", "identity_diff", "label_layouts",
-           "sample_checksums"]
+__all__ = ["BuildConfig", "BuildReport", "build_store", "check_sweep_files", "find_label_files", "identity_diff",
+           "label_layouts", "sample_checksums"]
 
 
 @dataclass(frozen=True)
@@ -100,6 +100,7 @@ _IDENTITY_OPTION = {
     "source_root": "--root", "source_version": "--version", "gts": "--gts", "splits": "--split",
     "block_samples": "--block-samples", "options.image_scale": "--image-scale",
     "options.jpeg_quality": "--jpeg-quality", "options.min_depth": "min_depth",
+    "options.lidar_sweeps": "--lidar-sweeps",
     "sample_tokens_crc32": "the sample list in the tables",
 }
 
@@ -183,7 +184,10 @@ def _root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str]
                    "reencoded": opts.image_scale != 1.0, "jpeg_quality": opts.jpeg_quality if
                    opts.image_scale != 1.0 else None},
         "depth": {"columns": ["u", "v", "depth"], "pixel_frame": "original image pixels",
-                  "min_depth": opts.min_depth, "source": "keyframe LIDAR_TOP"},
+                  "min_depth": opts.min_depth, "lidar_sweeps": opts.lidar_sweeps,
+                  "source": "keyframe LIDAR_TOP" + (f" + up to {opts.lidar_sweeps} previous sweeps, motion-"
+                                                    "compensated to each camera's timestamp" if opts.lidar_sweeps
+                                                    else "")},
         "bev": {"encoding": "uint32 bit field, bit c = class c present in the column",
                 "free_bit": FREE_LABEL},
         "checksum_arrays": list(checksummed_names()),
@@ -328,6 +332,8 @@ def _open_or_create(config: BuildConfig, ds: NuScenesDataset, split_names: list[
         if root.attrs.get("schema") != SCHEMA_NAME:
             raise OccDataError(f"cannot resume {out}: not an occdata store (no schema attribute)")
         stored = root.attrs.get("build_identity")
+        if isinstance(stored, dict) and isinstance(stored.get("options"), dict):
+            stored = {**stored, "options": {"lidar_sweeps": 0, **stored["options"]}}  # stores from before sweeps
         if stored != attrs["build_identity"]:
             diffs = identity_diff(stored if isinstance(stored, dict) else {}, attrs["build_identity"])
             raise OccDataError(
@@ -366,9 +372,12 @@ def build_store(config: BuildConfig) -> BuildReport:
         raise OccDataError("--image-scale must be in [0.05, 1]")
     if not 1 <= config.options.jpeg_quality <= 100:
         raise OccDataError(f"--jpeg-quality must be in [1, 100], got {config.options.jpeg_quality}")
-    ds = load_nuscenes(config.root, config.version).select(config.splits or None)
+    n_sweeps = config.options.lidar_sweeps
+    ds = load_nuscenes(config.root, config.version, sweeps=n_sweeps > 0).select(config.splits or None)
     if not ds.samples:
         raise OccDataError(f"no samples selected under {config.root} (splits: {list(config.splits) or 'all'})")
+    histories = [ds.lidar_history(i, n_sweeps) for i in range(len(ds.samples))]
+    check_sweep_files(histories, n_sweeps)  # before anything is written
     if config.gts is not None and not Path(config.gts).is_dir():
         raise OccDataError(f"labels folder not found: {config.gts}")
     labels: list[Path | None] = [None] * len(ds.samples)
@@ -382,7 +391,8 @@ def build_store(config: BuildConfig) -> BuildReport:
     split_code = {name: i for i, name in enumerate(split_names)}
     with store_lock(config.out, "build"):
         try:
-            return _build_locked(config, ds, labels, split_names, split_code, scene_index, prev_index, prev_valid)
+            return _build_locked(config, ds, labels, split_names, split_code, scene_index, prev_index, prev_valid,
+                                 histories)
         except OSError as exc:  # a full disk, a read-only folder: committed samples are kept
             where = f" ({exc.filename})" if exc.filename else ""
             raise OccDataError(
@@ -393,7 +403,7 @@ def build_store(config: BuildConfig) -> BuildReport:
 
 def _build_locked(config: BuildConfig, ds: NuScenesDataset, labels: list[Path | None], split_names: list[str],
                   split_code: dict[str, int], scene_index: np.ndarray, prev_index: np.ndarray,
-                  prev_valid: np.ndarray) -> BuildReport:
+                  prev_valid: np.ndarray, histories: list[tuple[LidarRecord, ...]]) -> BuildReport:
     root = _open_or_create(config, ds, split_names)
     writer = _Writer(root)
     # Pending samples, and those that failed before (their input may have been fixed since).
@@ -409,7 +419,7 @@ def _build_locked(config: BuildConfig, ds: NuScenesDataset, labels: list[Path | 
                 s, int(scene_index[i]), split_code[ds.scenes[scene_index[i]].split], prev_index[i], prev_valid[i],
                 tok_width,
             )
-            yield (int(i), s, static, labels[int(i)], config.options)
+            yield (int(i), s, static, labels[int(i)], config.options, histories[int(i)])
 
     block = config.block_samples
     run: list[SampleResult] = []
@@ -459,6 +469,20 @@ def _build_locked(config: BuildConfig, ds: NuScenesDataset, labels: list[Path | 
     )
 
 
+def check_sweep_files(histories: list[tuple[LidarRecord, ...]], n_sweeps: int) -> None:
+    """Raise one `OccDataError` line if any sweep file that `--lidar-sweeps` needs is not a file:
+    it names the first missing one and how many of the needed files were found."""
+    needed = list(dict.fromkeys(sw for h in histories for sw in h))  # samples share sweeps
+    missing = [sw for sw in needed if not sw.path.is_file()]
+    if missing:
+        first = missing[0]
+        raise OccDataError(
+            f"--lidar-sweeps {n_sweeps}: missing sweep file {first.path} (sample_data {first.token!r}); "
+            f"{len(needed) - len(missing)} of the {len(needed)} sweep files needed were found. A keyframe-only "
+            "download has no sweeps/ folder: add the sweeps, or use --lidar-sweeps 0"
+        )
+
+
 def label_layouts(scene_name: str, token: str) -> tuple[str, str]:
     """The two accepted places of a sample's labels, relative to `gts`: Occ3D-nuScenes nests them
     by scene name, the flat layout (e.g. a single downloaded example) does not."""
@@ -494,7 +518,7 @@ def find_label_files(
             f"e.g. {gts / nested} (check --gts; leave it out for samples without labels, e.g. the test split)"
         )
     if any(s.problem for s in samples):
-        ds = NuScenesDataset(ds.root, ds.version, ds.scenes, tuple(samples), ds.warnings)
+        ds = dataclasses.replace(ds, samples=tuple(samples))
     return found, ds
 
 

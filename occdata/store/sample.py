@@ -18,13 +18,15 @@ from occdata.bev import bev_bits
 from occdata.constants import FREE_LABEL, GRID
 from occdata.errors import OccDataError
 from occdata.jpeg_check import decode_jpeg_checked
-from occdata.nuscenes import SampleRecord, load_lidar_points, validate_sample
+from occdata.nuscenes import LidarRecord, SampleRecord, load_lidar_points, validate_sample
 from occdata.projection import project_to_cameras
 from occdata.store.layout import MIN_TOKEN_BYTES, N_PREV, token_bytes
 
-__all__ = ["SampleError", "SampleOptions", "SampleResult", "jpeg_size", "load_occ3d_labels", "process_sample"]
+__all__ = ["MAX_LIDAR_SWEEPS", "SampleError", "SampleOptions", "SampleResult", "depth_points", "jpeg_size",
+           "load_occ3d_labels", "process_sample"]
 
 LABEL_KEYS = ("semantics", "mask_lidar", "mask_camera")
+MAX_LIDAR_SWEEPS = 100  # 5 s of 20 Hz sweeps; more would mostly smear moving objects
 
 
 class SampleError(OccDataError):
@@ -36,6 +38,11 @@ class SampleOptions:
     image_scale: float = 1.0  # 1.0 keeps the original JPEG bytes untouched
     jpeg_quality: int = 90  # only used when re-encoding (image_scale != 1)
     min_depth: float = 0.0  # LiDAR depth targets keep depth > min_depth
+    lidar_sweeps: int = 0  # depth targets from the keyframe sweep plus up to this many previous sweeps
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.lidar_sweeps <= MAX_LIDAR_SWEEPS:
+            raise OccDataError(f"--lidar-sweeps must be in [0, {MAX_LIDAR_SWEEPS}], got {self.lidar_sweeps}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,17 +182,15 @@ def process_sample(
     static: dict[str, np.ndarray],
     label_path: Path | None,
     options: SampleOptions,
+    sweeps: tuple[LidarRecord, ...] = (),
 ) -> SampleResult:
-    """Read and convert one sample. Bad input gives a result with `error` set (never raises it)."""
+    """Read and convert one sample; the depth targets also take the points of `sweeps` (previous
+    LIDAR_TOP sweeps, `NuScenesDataset.lidar_history`). Bad input gives a result with `error` set
+    (never raises it)."""
     try:
         validate_sample(sample)
         jpeg = tuple(_read_jpeg(c.path, c.width, c.height, options) for c in sample.cameras)
-        points = load_lidar_points(sample.lidar.path)
-        T_cam_from_lidar = np.stack([sample.T_cam_from_lidar(i) for i in range(len(sample.cameras))])
-        K = static["calib/K"]
-        sizes = static["cam/image_size"].astype(np.int64)
-        uvd_all, counts = project_to_cameras(points, T_cam_from_lidar, K, sizes, options.min_depth)
-        uvd = tuple(uvd_all[c, : counts[c]].copy() for c in range(len(counts)))
+        uvd = depth_points(sample, sweeps, static["calib/K"], static["cam/image_size"], options.min_depth)
         arrays = dict(static)
         if label_path is not None and os.path.lexists(label_path):
             labels = load_occ3d_labels(label_path)
@@ -202,6 +207,33 @@ def process_sample(
     except Exception as exc:  # noqa: BLE001 - anything else about this sample's input stays with it
         reason = f"unexpected {type(exc).__name__}: {exc}"
         return SampleResult(index=index, token=sample.token, arrays=dict(static), jpeg=(), uvd=(), error=reason)
+
+
+def depth_points(
+    sample: SampleRecord, sweeps: tuple[LidarRecord, ...], K: np.ndarray, image_size: np.ndarray, min_depth: float
+) -> tuple[np.ndarray, ...]:
+    """Per camera `(M_c, 3) float32` (u, v, depth): the keyframe sweep's points, then each of `sweeps`
+    in order, projected into the ORIGINAL image through lidar(t_i) -> ego(t_i) -> global ->
+    ego(t_cam) -> camera -> K (each sweep's own pose: the car's motion is compensated exactly).
+    K `(C, 3, 3) float64`; image_size `(C, 2)` (W, H). Raises `OccDataError` for a missing or corrupt
+    sweep file or a non-rigid sweep pose."""
+    sizes = np.asarray(image_size).astype(np.int64)
+    parts: list[list[np.ndarray]] = [[] for _ in sample.cameras]
+    for rec in (sample.lidar, *sweeps):
+        if rec is not sample.lidar:
+            _check_sweep(rec)
+        T = np.stack([sample.T_cam_from_lidar(i, rec) for i in range(len(sample.cameras))])
+        uvd_all, counts = project_to_cameras(load_lidar_points(rec.path), T, K, sizes, min_depth)
+        for c in range(len(counts)):
+            parts[c].append(uvd_all[c, : counts[c]])
+    return tuple(np.concatenate(p) if len(p) > 1 else p[0].copy() for p in parts)
+
+
+def _check_sweep(sweep: LidarRecord) -> None:
+    for T, what in ((sweep.T_ego_from_lidar, "calibration"), (sweep.T_global_from_ego, "ego pose")):
+        R = T[:3, :3]
+        if not np.isfinite(T).all() or not np.allclose(R.T @ R, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
+            raise SampleError(f"LIDAR_TOP sweep {sweep.token!r}: {what} is not a finite rigid transform")
 
 
 def temporal_indices(scene_index: np.ndarray, index_in_scene: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -2,8 +2,10 @@
 
 Occupancy comes from the stored semantics, so labelled samples are needed. The LiDAR rays are the
 keyframe points stored as depth targets (points inside some camera image), un-projected exactly
-into the key-ego frame; `occdata.visibility.lidar_mask` adds every object voxel, as Occ3D's mask
-does. The camera mask lies within the sample's LiDAR mask: the label's own `mask_lidar` when it
+into the key-ego frame; or, with `lidar_sweeps` (Occ3D aggregates sweeps), every point of the
+source tree's keyframe sweep and of up to N previous sweeps, each ray from its own sensor position,
+moved into key ego through global. `occdata.visibility.lidar_mask` adds every object voxel, as
+Occ3D's mask does. The camera mask lies within the sample's LiDAR mask: the label's own `mask_lidar` when it
 ships one, else the computed one (a label-only store).
 """
 
@@ -18,14 +20,17 @@ import zarr
 
 from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES
 from occdata.errors import OccDataError
-from occdata.geometry import invert_rigid
+from occdata.geometry import invert_rigid, transform_points
+from occdata.nuscenes import LidarRecord, NuScenesDataset, load_lidar_points, load_nuscenes
+from occdata.store.build import check_sweep_files
 from occdata.store.layout import STATE_DONE
 from occdata.store.lock import store_lock
 from occdata.store.reader import open_store, store_location
 from occdata.store.update import update_samples
 from occdata.visibility import camera_mask, lidar_mask
 
-__all__ = ["MaskCounts", "VisibilityReport", "compute_visibility", "points_keyego_from_uvd", "sample_visibility"]
+__all__ = ["MaskCounts", "SweepRays", "VisibilityReport", "compute_visibility", "points_keyego_from_uvd",
+           "sample_visibility"]
 
 
 @dataclass
@@ -60,6 +65,7 @@ class VisibilityReport:
     lidar: MaskCounts
     compared: int  # samples in `camera` / `lidar`
     seconds_per_sample: float
+    free_observed: float = 0.0  # fraction of free voxels in the computed LiDAR masks (all computed samples)
 
 
 def points_keyego_from_uvd(uvd: np.ndarray, K: np.ndarray, T_keyego_from_cam: np.ndarray) -> np.ndarray:
@@ -95,17 +101,61 @@ def sample_visibility(
     return camera, lidar
 
 
+@dataclass(frozen=True, eq=False)
+class SweepRays:
+    """LiDAR rays from the source tree: per store token, the keyframe sweep then up to N previous ones."""
+
+    dataset: NuScenesDataset
+    n_sweeps: int
+
+    @staticmethod
+    def load(reader_attrs: dict, root: Path | None, n_sweeps: int) -> SweepRays:
+        ident = reader_attrs.get("build_identity", {})
+        src = Path(root) if root is not None else Path(ident.get("source_root", ""))
+        version = None if root is not None else ident.get("source_version")
+        if not src.is_dir():
+            raise OccDataError(f"the store's source tree {str(src)!r} is not a folder here; pass --root")
+        ds = load_nuscenes(src, version, sweeps=n_sweeps > 0)
+        rays = SweepRays(ds, n_sweeps)
+        check_sweep_files([rays.records(s.token) for s in ds.samples], n_sweeps)
+        return rays
+
+    def records(self, token: str) -> tuple[LidarRecord, ...]:
+        try:
+            i = self.dataset.index_of(token)
+        except KeyError:
+            where = self.dataset.root
+            raise OccDataError(f"sample {token!r} of the store is not in the tables under {where}") from None
+        return (self.dataset.samples[i].lidar, *self.dataset.lidar_history(i, self.n_sweeps))
+
+    def keyego(self, token: str, T_global_from_keyego: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ray origins and end points `(M, 3) float64` in key ego."""
+        T_keyego_from_global = invert_rigid(T_global_from_keyego)
+        origins, ends = [], []
+        for rec in self.records(token):
+            T = T_keyego_from_global @ rec.T_global_from_ego @ rec.T_ego_from_lidar
+            pts = transform_points(T, load_lidar_points(rec.path)[:, :3].astype(np.float64))
+            origins.append(np.broadcast_to(T[:3, 3], pts.shape))
+            ends.append(pts)
+        return np.concatenate(origins), np.concatenate(ends)
+
+
 def compute_visibility(
-    store: str | Path, recompute: bool = False, block: int = 32, progress: bool = True
+    store: str | Path, recompute: bool = False, block: int = 32, progress: bool = True,
+    lidar_sweeps: int | None = None, root: Path | None = None,
 ) -> VisibilityReport:
     """Masks for labelled samples that ship no camera mask (every labelled sample with `recompute`,
-    comparing with the shipped masks per class)."""
+    comparing with the shipped masks per class). With `lidar_sweeps` N, the LiDAR rays come from the
+    source tree (`root`, default the store's `build_identity.source_root`): the keyframe sweep and
+    up to N previous sweeps; missing sweep files are one error line before anything is written."""
     with store_lock(store_location(store), "visibility"):  # one writer at a time
-        return _compute_visibility(store, recompute, block, progress)
+        return _compute_visibility(store, recompute, block, progress, lidar_sweeps, root)
 
 
-def _compute_visibility(store: str | Path, recompute: bool, block: int, progress: bool) -> VisibilityReport:
+def _compute_visibility(store: str | Path, recompute: bool, block: int, progress: bool,
+                        lidar_sweeps: int | None, root: Path | None) -> VisibilityReport:
     reader = open_store(store)
+    rays = None if lidar_sweeps is None else SweepRays.load(dict(reader.group.attrs), root, lidar_sweeps)
     group = zarr.open_group(reader.path, mode="r+")
     present = group["labels/present"][:]
     done = reader.state == STATE_DONE
@@ -120,15 +170,23 @@ def _compute_visibility(store: str | Path, recompute: bool, block: int, progress
     camera_counts, lidar_counts = MaskCounts(), MaskCounts()
     compared = 0
 
+    free_seen = np.zeros(2, np.int64)  # free voxels observed, free voxels
+
     def fn(a: dict[str, np.ndarray], i: int) -> dict[str, np.ndarray]:
         nonlocal compared
-        pts = [points_keyego_from_uvd(uvd, a["calib/K"][c], a["calib/T_keyego_from_cam"][c])
-               for c, uvd in enumerate(reader.depth_points(i))]
+        if rays is None:
+            pts = [points_keyego_from_uvd(uvd, a["calib/K"][c], a["calib/T_keyego_from_cam"][c])
+                   for c, uvd in enumerate(reader.depth_points(i))]
+            origins, ends = a["calib/T_ego_from_lidar"][:3, 3], np.concatenate(pts) if pts else np.zeros((0, 3))
+        else:
+            origins, ends = rays.keyego(reader.token(i), a["pose/T_global_from_keyego"])
         shipped_lidar = a["labels/mask_lidar"] if a["labels/mask_lidar"].any() else None
         camera, lidar = sample_visibility(
             a["labels/semantics"], a["calib/K"], a["calib/T_keyego_from_cam"], a["cam/image_size"],
-            a["calib/T_ego_from_lidar"][:3, 3], np.concatenate(pts) if pts else np.zeros((0, 3)), shipped_lidar,
+            origins, ends, shipped_lidar,
         )
+        free = a["labels/semantics"] == FREE_LABEL
+        free_seen[:] += (int(lidar[free].sum()), int(free.sum()))
         if a["labels/mask_camera"].any():
             camera_counts.add(a["labels/semantics"], camera, a["labels/mask_camera"])
             lidar_counts.add(a["labels/semantics"], lidar, a["labels/mask_lidar"])
@@ -139,11 +197,18 @@ def _compute_visibility(store: str | Path, recompute: bool, block: int, progress
     n = update_samples(
         group,
         ("labels/semantics", "labels/mask_camera", "labels/mask_lidar", "calib/K", "calib/T_keyego_from_cam",
-         "cam/image_size", "calib/T_ego_from_lidar"),
+         "cam/image_size", "calib/T_ego_from_lidar", "pose/T_global_from_keyego"),
         fn, select, block, "visibility", progress,
     )
+    if n:
+        group.attrs["visibility_lidar"] = {
+            "rays": "stored depth targets (keyframe points inside an image)" if rays is None else
+            f"source LIDAR_TOP keyframe sweep + up to {lidar_sweeps} previous sweeps, all points",
+            "lidar_sweeps": lidar_sweeps,
+        }
     seconds = (time.perf_counter() - t0) / max(n, 1)
     return VisibilityReport(
         computed=n, skipped_unlabelled=int((done & ~present).sum()), camera=camera_counts, lidar=lidar_counts,
         compared=compared, seconds_per_sample=seconds,
+        free_observed=float(free_seen[0] / free_seen[1]) if free_seen[1] else 0.0,
     )

@@ -22,6 +22,8 @@ from occdata.synth.world import Primitives, SceneWorld, make_world
 from occdata.visibility import camera_mask, lidar_mask
 
 __all__ = [
+    "KEYFRAME_PERIOD_US",
+    "SWEEP_PERIOD_US",
     "LIDAR_AZIMUTH_STEP_DEG",
     "LIDAR_ELEVATIONS_DEG",
     "LIDAR_MAX_RANGE",
@@ -34,6 +36,7 @@ __all__ = [
 ]
 
 KEYFRAME_PERIOD_US = 500_000  # 2 Hz
+SWEEP_PERIOD_US = 50_000  # LIDAR_TOP at 20 Hz: 9 sweeps between consecutive keyframes
 MASK_SWEEP_RADIUS = 2  # mask_lidar aggregates the sweeps of keyframes k-2 .. k+2 of the scene
 CAMERA_MAX_DEPTH = 150.0  # m along the optical axis; beyond is drawn as sky (depth 0)
 LIDAR_MAX_RANGE = 80.0  # m
@@ -224,10 +227,33 @@ def _render_keyframe(
     return frames, {"semantics": semantics, "mask_lidar": mask_lidar, "mask_camera": mask_camera}
 
 
+def _write_sweep(out: Path, world: SceneWorld, scene_name: str, t_us: int) -> SensorFrame:
+    """Render and write one non-keyframe LIDAR_TOP sweep (actors at `t_us`) under sweeps/."""
+    T_global_from_ego = ego_transform(world, t_us)
+    points = render_lidar(world, WorldGrid.build(world, t_us), T_global_from_ego @ RIG[LIDAR_CHANNEL].T_ego_from_sensor)
+    rel = f"sweeps/{LIDAR_CHANNEL}/{scene_name}__{LIDAR_CHANNEL}__{t_us}.pcd.bin"
+    write_atomic(out / rel, points.tobytes())
+    return SensorFrame(LIDAR_CHANNEL, int(t_us), rel, T_global_from_ego)
+
+
+def _lidar_chain(seed: int, si: int, n_samples: int, key_times: list[int]) -> list[tuple[str, int, int]]:
+    """The scene's LIDAR_TOP sample_data in time order as (token, timestamp, keyframe index k): the
+    sweeps between keyframes k-1 and k belong to sample k (as nuScenes assigns them), j = 9..1."""
+    n_between = KEYFRAME_PERIOD_US // SWEEP_PERIOD_US - 1
+    chain = []
+    for k in range(n_samples):
+        if k > 0:
+            chain += [(make_token(seed, "sample_data", si, k, LIDAR_CHANNEL, "sweep", j),
+                       key_times[k] - j * SWEEP_PERIOD_US, k) for j in range(n_between, 0, -1)]
+        chain.append((make_token(seed, "sample_data", si, k, LIDAR_CHANNEL), key_times[k], k))
+    return chain
+
+
 def synthesize(config: SynthConfig) -> Path:
     """Generate the world and write the tree under `config.out`; returns the output directory.
 
     Layout: `v1.0-mini/*.json` (13 tables), `samples/CAM_*/*.jpg`, `samples/LIDAR_TOP/*.pcd.bin`,
+    `sweeps/LIDAR_TOP/*.pcd.bin` (20 Hz LiDAR between keyframes; cameras are keyframe-only),
     `gts/<scene>/<sample_token>/labels.npz` (Occ3D), `depth/<sample_data_token>.npy`, `maps/`.
     """
     if config.scenes < 1 or config.samples < 1:
@@ -270,8 +296,12 @@ def synthesize(config: SynthConfig) -> Path:
             "description": f"Synthetic town drive, seed {seed}; split={split}",
             "first_sample_token": sample_toks[0], "last_sample_token": sample_toks[-1],
         })
+        key_times = [t0 + 100_000 + k * KEYFRAME_PERIOD_US for k in range(config.samples)]
+        lidar_chain = _lidar_chain(seed, si, config.samples, key_times)
+        link = {tok: (lidar_chain[n - 1][0] if n else "", lidar_chain[n + 1][0] if n + 1 < len(lidar_chain) else "")
+                for n, (tok, _, _) in enumerate(lidar_chain)}
         for k in range(config.samples):
-            t_lidar = t0 + 100_000 + k * KEYFRAME_PERIOD_US
+            t_lidar = key_times[k]
             s_tok = sample_toks[k]
             tables["sample"].append({"token": s_tok, "timestamp": t_lidar, "scene_token": scene_tok,
                                      "prev": sample_toks[k - 1] if k > 0 else "",
@@ -280,6 +310,16 @@ def synthesize(config: SynthConfig) -> Path:
             near = [t0 + 100_000 + j * KEYFRAME_PERIOD_US for j in window if j != k]
             frames, labels = _render_keyframe(out, world, scene_name, t_lidar, {ch: sd_toks[ch][k] for ch in channels},
                                               W, H, tuple(near))
+            sweeps = [(tok, _write_sweep(out, world, scene_name, t)) for tok, t, kk in lidar_chain
+                       if kk == k and t != t_lidar]
+            for tok, f in sweeps:
+                tables["ego_pose"].append(_pose_row(tok, f.T_global_from_ego, f.timestamp))
+                tables["sample_data"].append({
+                    "token": tok, "sample_token": s_tok, "ego_pose_token": tok,
+                    "calibrated_sensor_token": cs_tok[LIDAR_CHANNEL], "timestamp": f.timestamp, "fileformat": "pcd",
+                    "is_key_frame": False, "height": 0, "width": 0, "filename": f.filename,
+                    "prev": link[tok][0], "next": link[tok][1],
+                })
             for f in frames:
                 tok = sd_toks[f.channel][k]
                 is_cam = f.channel != LIDAR_CHANNEL
@@ -290,8 +330,8 @@ def synthesize(config: SynthConfig) -> Path:
                     "calibrated_sensor_token": cs_tok[f.channel], "timestamp": f.timestamp,
                     "fileformat": "jpg" if is_cam else "pcd", "is_key_frame": True,
                     "height": H if is_cam else 0, "width": W if is_cam else 0, "filename": f.filename,
-                    "prev": sd_toks[f.channel][k - 1] if k > 0 else "",
-                    "next": sd_toks[f.channel][k + 1] if k + 1 < config.samples else "",
+                    "prev": link[tok][0] if not is_cam else sd_toks[f.channel][k - 1] if k > 0 else "",
+                    "next": link[tok][1] if not is_cam else sd_toks[f.channel][k + 1] if k + 1 < config.samples else "",
                 })
             write_atomic(out / "gts" / scene_name / s_tok / "labels.npz", npz_bytes(labels))
             bar.update(1)
