@@ -25,39 +25,18 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from occdata.constants import NUM_CLASSES  # noqa: E402
-from occdata.store.layout import STATE_DONE  # noqa: E402
 from occdata.store.reader import open_store  # noqa: E402
 
 
-def split_indices(reader, split: str) -> np.ndarray:
-    names = list(reader.attrs["splits"])
-    keep = (reader.small("status/state") == STATE_DONE) & (reader.small("sample/split") == names.index(split))
-    return np.flatnonzero(keep & reader.small("labels/present"))
-
-
 def baseline(store: str, train_split: str = "train", val_split: str = "val") -> dict:
-    """Per-voxel most frequent training label (ties: the lower label), scored on the val split."""
-    from occdata.metrics import MIoUAccumulator
+    """Per-voxel most frequent training label (ties: the lower label), scored on the val split
+    (`occdata.baseline`, also `occdata baseline`)."""
+    from occdata.baseline import image_free_baseline
 
-    reader = open_store(store)
-    sem, cam = reader.array("labels/semantics"), reader.array("labels/mask_camera")
-    tr, va = split_indices(reader, train_split), split_indices(reader, val_split)
-    shape = tuple(sem.shape[1:])
-    counts = np.zeros((int(np.prod(shape)), NUM_CLASSES), dtype=np.int32)
-    rows = np.arange(counts.shape[0])
-    for i in tr:
-        counts[rows, np.asarray(sem[int(i)]).reshape(-1)] += 1
-    pred = counts.argmax(axis=1).astype(np.uint8).reshape(shape)
-    masked, unmasked = MIoUAccumulator(), MIoUAccumulator()
-    for i in va:
-        gt = np.asarray(sem[int(i)])
-        masked.update(gt, pred, np.asarray(cam[int(i)]))
-        unmasked.update(gt, pred, None)
-    m, u = masked.result(), unmasked.result()
-    return {"store": str(store), "train_samples": int(len(tr)), "val_samples": int(len(va)),
-            "miou_camera_mask": float(m.miou), "miou_no_mask": float(u.miou),
-            "per_class_iou_camera_mask": [None if np.isnan(x) else float(x) for x in m.per_class_iou]}
+    r = image_free_baseline(open_store(store), train_split, val_split)
+    return {"store": str(store), "train_samples": r.train_samples, "val_samples": r.val_samples,
+            "miou_camera_mask": r.miou_camera_mask, "miou_no_mask": r.miou_no_mask,
+            "per_class_iou_camera_mask": [None if np.isnan(x) else x for x in r.per_class_iou_camera_mask]}
 
 
 def evaluate_checkpoint(path: Path, store: str, noise: bool, rayiou: bool, workers: int) -> dict:

@@ -333,6 +333,31 @@ def verify(store: str, no_progress: bool, images: bool) -> None:
     click.echo(f"{store}: all {int((reader.state != 0).sum())} committed samples verified")
 
 
+@main.command()
+@_store_opt
+@click.option("--train-split", default="train", show_default=True, help="Split whose labels are counted.")
+@click.option("--split", default="val", show_default=True, help="Split to score.")
+@click.option("--json", "as_json", is_flag=True, help="Print the results as JSON (fractions).")
+@friendly_errors
+def baseline(store: str, train_split: str, split: str, as_json: bool) -> None:
+    """Score the image-free baseline: every voxel's most frequent training label.
+
+    The floor a camera model must beat (it knows the average street, not the scene). mIoU with the
+    camera mask, as `occdata eval` reports it.
+    """
+    import dataclasses
+
+    from occdata.baseline import image_free_baseline
+    from occdata.store.reader import open_store
+
+    r = image_free_baseline(open_store(store), train_split, split)
+    if as_json:
+        click.echo(json.dumps(dataclasses.asdict(r)))
+        return
+    click.echo(f"image-free baseline ({r.train_samples} {train_split} -> {r.val_samples} {split} samples): "
+               f"mIoU {100 * r.miou_camera_mask:.2f}% (camera mask), {100 * r.miou_no_mask:.2f}% (no mask)")
+
+
 @main.command("eval")
 @click.option("--pred", required=True, metavar="DIR",
               help="Predictions: <scene>/<token>/labels.npz (key 'semantics', the Occ3D layout) or <token>.npz "

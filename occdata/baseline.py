@@ -1,0 +1,62 @@
+"""The image-free baseline: every voxel's most frequent training label, scored on another split.
+
+It is the floor a camera model has to beat: it knows the store's average street layout (road ahead,
+buildings at the sides) but nothing of the scene in front of the car. Pure numpy over the store.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from occdata.constants import NUM_CLASSES
+from occdata.errors import OccDataError
+from occdata.metrics import MIoUAccumulator
+from occdata.store.layout import STATE_DONE
+
+__all__ = ["BaselineResult", "image_free_baseline"]
+
+
+@dataclass(frozen=True)
+class BaselineResult:
+    """mIoU of the per-voxel most frequent training label (fractions; camera mask and no mask)."""
+
+    train_samples: int
+    val_samples: int
+    miou_camera_mask: float
+    miou_no_mask: float
+    per_class_iou_camera_mask: tuple[float, ...]
+
+
+def _labelled(reader, split: str) -> np.ndarray:  # noqa: ANN001
+    names = list(reader.attrs["splits"])
+    if split not in names:
+        raise OccDataError(f"split {split!r} not in the store (it has {names})")
+    keep = (reader.small("status/state") == STATE_DONE) & (reader.small("sample/split") == names.index(split))
+    return np.flatnonzero(keep & reader.small("labels/present"))
+
+
+def image_free_baseline(reader, train_split: str = "train", val_split: str = "val") -> BaselineResult:  # noqa: ANN001
+    """Predict, for every val sample, the per-voxel most frequent label of the training split (ties: the
+    lower label) and score it with Occ3D mIoU. `reader`: an open `StoreReader`."""
+    train, val = _labelled(reader, train_split), _labelled(reader, val_split)
+    if not len(train) or not len(val):
+        raise OccDataError(f"the baseline needs labelled samples in both {train_split!r} ({len(train)}) and "
+                           f"{val_split!r} ({len(val)})")
+    sem, cam = reader.array("labels/semantics"), reader.array("labels/mask_camera")
+    shape = tuple(sem.shape[1:])
+    counts = np.zeros((int(np.prod(shape)), NUM_CLASSES), dtype=np.int32)
+    rows = np.arange(counts.shape[0])
+    for i in train:
+        counts[rows, np.asarray(sem[int(i)]).reshape(-1)] += 1
+    pred = counts.argmax(axis=1).astype(np.uint8).reshape(shape)
+    masked, unmasked = MIoUAccumulator(), MIoUAccumulator()
+    for i in val:
+        gt = np.asarray(sem[int(i)])
+        masked.update(gt, pred, np.asarray(cam[int(i)]))
+        unmasked.update(gt, pred, None)
+    m, u = masked.result(), unmasked.result()
+    per_class = tuple(float(x) for x in m.per_class_iou)
+    return BaselineResult(train_samples=len(train), val_samples=len(val), miou_camera_mask=float(m.miou),
+                          miou_no_mask=float(u.miou), per_class_iou_camera_mask=per_class)
