@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -56,12 +57,17 @@ def _torchrun_train(store: Path, tmp_path: Path, ranks: int, batch_size: int) ->
     conf = tmp_path / f"c{ranks}.toml"
     conf.write_text(config_to_toml(cfg))
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.run(
+    proc = subprocess.Popen(
         [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", str(ranks), "--master_port",
          str(29600 + (os.getpid() + ranks) % 1000), "-m", "cli.fastocc_cli", "train", "--store", str(store),
          "--config", str(conf), "--out", str(tmp_path / f"r{ranks}"), "--no-progress"],
-        cwd=REPO, env=env, capture_output=True, text=True, timeout=300)  # a hang fails here, not forever
-    log = proc.stdout + proc.stderr
+        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        log = proc.communicate(timeout=300)[0]  # the old plan hung here: ranks disagreed on the batch count
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)  # torchrun and its ranks (own session), no orphans left
+        log = proc.communicate()[0]
+        raise AssertionError(f"torchrun did not end within 300 s (hang):\n{log}") from None
     assert proc.returncode == 0, log
     assert "the loader gave" not in log, log  # each rank's loader yielded exactly the planned batches
     # Every rank prints its own TrainResult: its optimizer step count.
