@@ -6,6 +6,7 @@ marked as build errors so that the 3 training scenes have unequal lengths (3, 2 
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -50,10 +51,10 @@ def test_uneven_store_has_unequal_train_scenes(uneven_store: Path) -> None:
 
 
 # -- training: every rank runs the same number of optimizer steps, and the run ends ------------------
-def _torchrun_train(store: Path, tmp_path: Path, ranks: int, batch_size: int) -> list[int]:
+def _torchrun_train(store: Path, tmp_path: Path, ranks: int, batch_size: int, val_every: int) -> list[int]:
     cfg = load_config(None, {"input_hw": [32, 96], "num_history": 2, "epochs": 1, "batch_size": batch_size,
-                             "lr_scaling": "none", "workers": 0, "threads": 1, "log_every": 1, "val_every": 0,
-                             "keep_epochs": 0, "ema": False})
+                             "lr_scaling": "none", "workers": 0, "threads": 1, "log_every": 1,
+                             "val_every": val_every, "val_rayiou": False, "keep_epochs": 0, "ema": False})
     conf = tmp_path / f"c{ranks}.toml"
     conf.write_text(config_to_toml(cfg))
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
@@ -75,13 +76,17 @@ def _torchrun_train(store: Path, tmp_path: Path, ranks: int, batch_size: int) ->
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("ranks", "batch_size", "steps"), [
-    (2, 4, 2),  # 2 lanes per rank: 9 samples -> 4 lanes of 2, 1 sample not seen this epoch
-    (3, 3, 3),  # 1 lane per rank: 3 lanes of 3, all 9 seen
+@pytest.mark.parametrize(("ranks", "batch_size", "steps", "val_every"), [
+    (2, 4, 2, 0),  # 2 lanes per rank: 9 samples -> 4 lanes of 2, 1 sample not seen this epoch
+    (3, 3, 3, 1),  # 1 lane per rank: 3 lanes of 3, all 9 seen; then validation (1 val scene: 2 ranks idle)
 ])
 def test_torchrun_temporal_training_ends_with_equal_steps(uneven_store: Path, tmp_path: Path, ranks: int,
-                                                          batch_size: int, steps: int) -> None:
-    assert _torchrun_train(uneven_store, tmp_path, ranks, batch_size) == [steps] * ranks
+                                                          batch_size: int, steps: int, val_every: int) -> None:
+    assert _torchrun_train(uneven_store, tmp_path, ranks, batch_size, val_every) == [steps] * ranks
+    if val_every:
+        epoch = [json.loads(ln) for ln in (tmp_path / f"r{ranks}" / "metrics.jsonl").read_text().splitlines()
+                 if json.loads(ln)["kind"] == "epoch"]
+        assert 0.0 <= epoch[-1]["val_miou"] <= 1.0  # the ranks without a val scene joined the reduction
 
 
 # -- evaluation: the same predictions whatever the workers and ranks -------------------------------
