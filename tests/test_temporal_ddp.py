@@ -20,6 +20,7 @@ import torch
 import zarr
 from replicated_tree import make_replicated_tree
 
+from fastocc.checkpoint import save_checkpoint
 from fastocc.data.dataset import load_batch
 from fastocc.infer.predict import PredictConfig, _sample_config, predict_split
 from fastocc.model import FastOcc
@@ -130,3 +131,33 @@ def test_temporal_predictions_do_not_depend_on_workers_or_ranks(uneven_store: Pa
     for ranks, workers, batch_size in [(1, 2, 1), (2, 0, 1), (3, 0, 1), (2, 2, 2), (3, 0, 2)]:
         got = _predict(model, cfg, uneven_store, ranks=ranks, workers=workers, batch_size=batch_size)
         assert _max_diff(ref, got) == 0.0, (ranks, workers, batch_size)
+
+
+def _eval_json(cmd: list[str], timeout: int = 300) -> dict:
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        raise AssertionError(f"{cmd[:4]} did not end within {timeout} s (hang)") from None
+    assert proc.returncode == 0, out + err
+    report = json.loads(out)  # one JSON document: only rank 0 prints
+    return {k: v for k, v in report.items() if k not in ("seconds", "infer_seconds", "frames_per_s")}
+
+
+@pytest.mark.slow
+def test_torchrun_eval_of_a_temporal_checkpoint_equals_one_process(uneven_store: Path, tmp_path: Path) -> None:
+    model, cfg = _temporal_model()
+    ckpt = tmp_path / "temporal.pt"
+    save_checkpoint(ckpt, cfg, model.state_dict())
+    args = ["-m", "cli.fastocc_cli", "eval", "--checkpoint", str(ckpt), "--store", str(uneven_store), "--split",
+            "train", "--json", "--no-progress"]
+    one = _eval_json([sys.executable, *args])
+    assert one["n_samples"] == 9
+    for ranks in (2, 3):
+        port = str(29700 + (os.getpid() + ranks) % 1000)
+        got = _eval_json([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", str(ranks),
+                          "--master_port", port, *args])
+        assert got == one, ranks  # the same confusion matrices and ray counts: the same predictions
