@@ -235,15 +235,18 @@ def run_eval(run: EvalRun) -> EvalReport:
 
     check_device(run.predict.device)
     split_indices(run.predict.store, run.predict.split)  # unknown split / bad store before loading weights
+    dist = torch.distributed
+    joined = not (dist.is_available() and dist.is_initialized())  # leave a caller's own group alone
     info = D.setup(run.predict.device)
     try:
-        cfg = replace(run.predict, device=str(info.device))  # cuda:LOCAL_RANK under torchrun
+        cfg = replace(run.predict, device=str(info.device)) if info.enabled else run.predict  # cuda:LOCAL_RANK
         model, ckpt = load_model(run.checkpoint, device=cfg.device, prefer_ema=run.prefer_ema)
         report = evaluate(model, ckpt.model_config, cfg, rayiou=run.rayiou, progress=run.progress and info.is_main,
                           mask=run.mask)
         return all_reduce_report(report, info.device) if info.enabled else report
     finally:
-        D.teardown(info)
+        if joined:
+            D.teardown(info)
 
 
 def format_report(report: EvalReport) -> str:
