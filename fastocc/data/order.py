@@ -25,10 +25,9 @@ Two ways to make the lanes:
   costs: docs/data.md.
 
 The shuffled plan and the exactly-once sequential plan yield every loadable sample exactly once across
-all ranks x workers. With
-`pad=True` (shuffled order) every slot is topped up to the largest slot's count by repeating its own
-first samples, so all ranks see the same number of samples (DDP needs equal step counts); those
-repeats are the only duplicates. Plans depend only on (seed, epoch, ranks, workers, batch size), so
+all ranks x workers. With `pad=True` (shuffled order) every slot is topped up to the largest slot's
+count by repeating its own first samples, so all ranks see the same number of samples (DDP needs equal
+step counts); those repeats are the only duplicates. Plans depend only on (seed, epoch, ranks, workers, batch size), so
 every rank computes every rank's plan without communication.
 """
 
@@ -116,8 +115,8 @@ def _dealt_lanes(segs: list[np.ndarray], slot: Slot, batch_size: int) -> list[li
     """Exactly once: whole segments dealt to ranks, then to lanes; lanes sorted longest first."""
     rank_bins = _deal([len(s) for s in segs], slot.world_size)
     mine = [segs[k] for k in rank_bins[slot.rank]]
-    lanes = [[(int(x), j == 0) for k in b for j, x in enumerate(mine[k])] for b in _deal([len(s) for s in mine],
-                                                                                           batch_size)]
+    lane_bins = _deal([len(s) for s in mine], batch_size)
+    lanes = [[(int(x), j == 0) for k in b for j, x in enumerate(mine[k])] for b in lane_bins]
     # Longest first (stable): the live lanes are always slots 0..k-1, so a lane never changes slot and
     # a shrinking tail batch drops its LAST rows (TemporalFusion keeps the first rows of its queue).
     return sorted(lanes, key=len, reverse=True)
