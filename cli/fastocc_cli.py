@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import click
@@ -253,7 +254,8 @@ def eval_cmd(checkpoint: Path, store: str, split: str, tta: bool, mask: str, no_
     cfg = _predict_config(store, split, batch_size, workers, tta, device)
     report = run_eval(EvalRun(checkpoint=checkpoint, predict=cfg, rayiou=not no_rayiou, mask=mask,  # type: ignore[arg-type]
                               progress=not quiet))
-    click.echo(json.dumps(report.to_json(), indent=2) if as_json else format_report(report))
+    if os.environ.get("RANK", "0") == "0":  # under torchrun every rank holds the combined report
+        click.echo(json.dumps(report.to_json(), indent=2) if as_json else format_report(report))
 
 
 if __name__ == "__main__":

@@ -92,3 +92,19 @@ def test_seq_start_resets_only_the_flagged_sample_of_a_batch() -> None:
     out = fusion(torch.full((2, 1, 100, 100), 5.0), frame([False, True]))
     assert float(out[0, 0, 50, 50]) == pytest.approx(3.0, rel=1e-4)  # continues: previous frame
     assert float(out[1, 0, 50, 50]) == pytest.approx(5.0, rel=1e-4)  # new sequence: its own frame
+
+
+@torch.no_grad()
+def test_a_shrinking_batch_keeps_the_history_of_its_first_rows() -> None:
+    """Lane 1 ended (the exactly-once plan ends lanes from the last slot): lane 0 keeps its history."""
+    fusion = TemporalFusion(channels=1, num_history=1, grid=COARSE_GRID)
+    _select_warped(fusion, 1)
+
+    def frame(start: list[bool]) -> SceneInputs:
+        z, eye = torch.zeros(len(start), 1), torch.eye(4).expand(len(start), 4, 4)
+        return SceneInputs(z, z, z, z, eye, eye, torch.tensor(start))
+
+    feats = torch.stack([torch.full((1, 100, 100), 3.0), torch.full((1, 100, 100), 4.0)])
+    fusion(feats, frame([True, True]))
+    out = fusion(torch.full((1, 1, 100, 100), 5.0), frame([False]))
+    assert float(out[0, 0, 50, 50]) == pytest.approx(3.0, rel=1e-4)  # lane 0's previous frame, not a reset

@@ -35,7 +35,10 @@ class LoaderConfig:
     store: local path or fsspec URL. sequential: scene-sequential order (temporal training) instead of
     shuffled. splits: split names to keep (empty = all). rank/world_size: None = from
     torch.distributed when initialised, else 0/1. pad: top up shuffled slots to equal counts
-    (order.py). sample: image/BEV augmentation (train flags there) and depth-target settings.
+    (order.py). equal_lanes: scene-sequential lanes cut to one common length, so every rank yields the
+    same number of full batches (training; drops < ranks x batch_size samples per epoch, order.py);
+    False = every sample exactly once (evaluation). sample: image/BEV augmentation (train flags there)
+    and depth-target settings.
     skip_batches: the first k batches of the epoch (as this rank would yield them) are planned but not
     decoded; worker roles rotate by k so that a DataLoader's round robin continues the original order.
     """
@@ -51,6 +54,7 @@ class LoaderConfig:
     rank: int | None = None
     world_size: int | None = None
     pad: bool = False
+    equal_lanes: bool = False
     drop_last: bool = False
     skip_batches: int = 0  # start the epoch at this rank's batch k (exact resume); skipped ones are not decoded
 
@@ -177,7 +181,7 @@ class StoreDataset(IterableDataset):
         c, s = self.config, self.samples()
         make = SampleMaker(s, c.sample)
         plan = sequential_batches(self.indices, s.scene_index, slot, c.batch_size, c.seed, self.epoch,
-                                  c.segment_len)
+                                  c.segment_len, equal_lanes=c.equal_lanes)
         dropped = sum(len(e) for e in plan if c.drop_last and len(e) < c.batch_size)
         if dropped and dropped == sum(len(e) for e in plan):
             _warn_all_dropped(dropped, c.batch_size, slot)

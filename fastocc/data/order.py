@@ -5,17 +5,30 @@ the units are shuffled and dealt greedily (fewest samples first) to the R x W (r
 Each slot then reads its units in order and shuffles samples through a buffer (dataset.py).
 
 Scene-sequential order: every scene is cut into segments of consecutive loadable samples (at most
-`segment_len`); segments are shuffled and dealt greedily to ranks; within a rank they are dealt to
-B lanes (B = batch size). Batch t of a rank holds lane j's t-th sample in slot j, so each slot walks
-whole segments in time order; worker w of W produces the rank's batches t = w, w + W, ... which a
-DataLoader (in-order round robin over workers) returns in t order. `seq_start` is True at a
-segment's first sample and wherever a sample's slot differs from its lane's previous slot (lanes
-that run out shrink the tail batches).
+`segment_len`) and the segments are shuffled. Each rank then owns B lanes (B = batch size); batch t
+of a rank holds lane j's t-th sample in slot j, so each slot walks its lane in time order. Worker w of
+W produces the rank's batches t = w, w + W, ... which a DataLoader (in-order round robin over workers)
+returns in t order. `seq_start` is True at a segment's first sample and at a lane's first sample.
+Two ways to make the lanes:
 
-Both plans yield every loadable sample exactly once across all ranks x workers. With
-`pad=True` (shuffled order) every slot is topped up to the largest slot's count by repeating its own
-first samples, so all ranks see the same number of samples (DDP needs equal step counts); those
-repeats are the only duplicates. Plans depend only on (seed, epoch, ranks, workers, batch size).
+- exactly once (`equal_lanes=False`, evaluation): whole segments are dealt greedily to ranks, then to
+  lanes. Lanes differ in length, so ranks differ in batch count and the tail batches shrink. Lanes are
+  sorted longest first: the live lanes are always slots 0..k-1, a lane never changes slot, and a
+  shrinking batch loses its last rows (TemporalFusion keeps the first rows of its queue).
+- equal steps (`equal_lanes=True`, training): the shuffled segments are laid end to end into one
+  stream of n samples and cut into R x B lanes of the common length L = n // (R B); rank r takes lanes
+  rB .. rB + B - 1. Every rank runs exactly L full batches (the same number of optimizer steps, so DDP
+  never waits at an epoch end), for any number of workers. Cost: the last n mod (R B) < R B samples of
+  the epoch's stream are not seen that epoch (a different tail each epoch), and up to R B - 1 segments
+  are cut in two by a lane boundary (the second part starts with an empty queue). We cut rather than
+  pad: padding frames would cost forwards that carry no loss and a loss mask through DDP. Measured
+  costs: docs/data.md.
+
+The shuffled plan and the exactly-once sequential plan yield every loadable sample exactly once across
+all ranks x workers. With `pad=True` (shuffled order) every slot is topped up to the largest slot's
+count by repeating its own first samples, so all ranks see the same number of samples (DDP needs equal
+step counts); those repeats are the only duplicates. Plans depend only on (seed, epoch, ranks, workers, batch size), so
+every rank computes every rank's plan without communication.
 """
 
 from __future__ import annotations
@@ -23,6 +36,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from occdata.errors import OccDataError
 
 __all__ = ["Slot", "sequential_batches", "shuffle_units"]
 
@@ -89,32 +104,52 @@ def _segments(indices: np.ndarray, scene_index: np.ndarray, segment_len: int | N
     return segs
 
 
-def sequential_batches(indices: np.ndarray, scene_index: np.ndarray, slot: Slot, batch_size: int, seed: int,
-                       epoch: int, segment_len: int | None = None, shuffle: bool = True
-                       ) -> list[list[tuple[int, bool]]]:
-    """This worker's batches: lists of (store index, seq_start), time-ordered per slot (module doc)."""
+def _shuffled_segments(indices: np.ndarray, scene_index: np.ndarray, seed: int, epoch: int,
+                       segment_len: int | None, shuffle: bool) -> list[np.ndarray]:
     segs = _segments(indices, scene_index, segment_len)
     order = np.random.default_rng([seed, epoch, 1]).permutation(len(segs)) if shuffle else np.arange(len(segs))
-    segs = [segs[k] for k in order]
+    return [segs[k] for k in order]
+
+
+def _dealt_lanes(segs: list[np.ndarray], slot: Slot, batch_size: int) -> list[list[tuple[int, bool]]]:
+    """Exactly once: whole segments dealt to ranks, then to lanes; lanes sorted longest first."""
     rank_bins = _deal([len(s) for s in segs], slot.world_size)
     mine = [segs[k] for k in rank_bins[slot.rank]]
     lane_bins = _deal([len(s) for s in mine], batch_size)
-    lanes: list[list[tuple[int, bool]]] = []
-    for b in lane_bins:
-        lane = []
-        for k in b:
-            lane += [(int(x), j == 0) for j, x in enumerate(mine[k])]
+    lanes = [[(int(x), j == 0) for k in b for j, x in enumerate(mine[k])] for b in lane_bins]
+    # Longest first (stable): the live lanes are always slots 0..k-1, so a lane never changes slot and
+    # a shrinking tail batch drops its LAST rows (TemporalFusion keeps the first rows of its queue).
+    return sorted(lanes, key=len, reverse=True)
+
+
+def _equal_lanes(segs: list[np.ndarray], slot: Slot, batch_size: int) -> list[list[tuple[int, bool]]]:
+    """Equal steps: the segment stream cut into ranks x batch_size lanes of one length L = n // (R B)."""
+    stream = [(int(x), j == 0) for s in segs for j, x in enumerate(s)]
+    n_lanes = slot.world_size * batch_size
+    length = len(stream) // n_lanes
+    if stream and not length:
+        raise OccDataError(f"scene-sequential order: {len(stream)} samples cannot fill {slot.world_size} process(es) "
+                           f"x batch {batch_size} lanes of at least one sample; use fewer processes or a smaller "
+                           "batch")
+    lanes = []
+    for k in range(slot.rank * batch_size, (slot.rank + 1) * batch_size):
+        lane = stream[k * length: (k + 1) * length]
+        if lane:  # a lane cut inside a segment starts a new sequence (empty queue)
+            lane[0] = (lane[0][0], True)
         lanes.append(lane)
+    return lanes
+
+
+def sequential_batches(indices: np.ndarray, scene_index: np.ndarray, slot: Slot, batch_size: int, seed: int,
+                       epoch: int, segment_len: int | None = None, shuffle: bool = True,
+                       equal_lanes: bool = False) -> list[list[tuple[int, bool]]]:
+    """This worker's batches: lists of (store index, seq_start), time-ordered per slot (module doc).
+
+    equal_lanes=False: every sample exactly once, ranks may differ in batch count (evaluation).
+    equal_lanes=True: every rank gets exactly n // (ranks x batch_size) full batches (training).
+    """
+    segs = _shuffled_segments(indices, scene_index, seed, epoch, segment_len, shuffle)
+    lanes = (_equal_lanes if equal_lanes else _dealt_lanes)(segs, slot, batch_size)
     n_steps = max((len(lane) for lane in lanes), default=0)
-    batches: list[list[tuple[int, bool]]] = []
-    prev_slot = [-1] * len(lanes)
-    for t in range(n_steps):
-        batch = []
-        for j, lane in enumerate(lanes):
-            if t < len(lane):
-                idx, start = lane[t]
-                pos = len(batch)
-                batch.append((idx, start or pos != prev_slot[j]))
-                prev_slot[j] = pos
-        batches.append(batch)
+    batches = [[lane[t] for lane in lanes if t < len(lane)] for t in range(n_steps)]
     return batches[slot.worker:: slot.num_workers]

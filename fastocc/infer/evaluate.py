@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -227,11 +227,26 @@ class EvalRun:
 
 
 def run_eval(run: EvalRun) -> EvalReport:
-    """`fastocc eval`: load the checkpoint (its own model config) and `evaluate` it."""
+    """`fastocc eval`: load the checkpoint (its own model config) and `evaluate` it.
+
+    Under torchrun (WORLD_SIZE > 1) the processes join a process group, each scores its shard (whole
+    scenes, so temporal queues are intact) and every rank returns the combined report."""
+    from fastocc.train import dist as D
+
     check_device(run.predict.device)
     split_indices(run.predict.store, run.predict.split)  # unknown split / bad store before loading weights
-    model, ckpt = load_model(run.checkpoint, device=run.predict.device, prefer_ema=run.prefer_ema)
-    return evaluate(model, ckpt.model_config, run.predict, rayiou=run.rayiou, progress=run.progress, mask=run.mask)
+    dist = torch.distributed
+    joined = not (dist.is_available() and dist.is_initialized())  # leave a caller's own group alone
+    info = D.setup(run.predict.device)
+    try:
+        cfg = replace(run.predict, device=str(info.device)) if info.enabled else run.predict  # cuda:LOCAL_RANK
+        model, ckpt = load_model(run.checkpoint, device=cfg.device, prefer_ema=run.prefer_ema)
+        report = evaluate(model, ckpt.model_config, cfg, rayiou=run.rayiou, progress=run.progress and info.is_main,
+                          mask=run.mask)
+        return all_reduce_report(report, info.device) if info.enabled else report
+    finally:
+        if joined:
+            D.teardown(info)
 
 
 def format_report(report: EvalReport) -> str:

@@ -11,7 +11,17 @@ from occdata.constants import OccGrid
 from .geometry import voxel_centres
 from .inputs import SceneInputs
 
-__all__ = ["TemporalFusion", "warp_bev", "warp_bev_inverse"]
+__all__ = ["TemporalFusion", "T_curaug_from_prevaug", "warp_bev", "warp_bev_inverse"]
+
+
+def T_curaug_from_prevaug(T_global_from_cur: Tensor, M_cur: Tensor, T_global_from_prev: Tensor,
+                          M_prev: Tensor) -> Tensor:
+    """Previous augmented key ego -> current augmented key ego: `M_cur inv(T_g_from_cur) T_g_from_prev inv(M_prev)`.
+
+    All `(..., 4, 4)`, broadcast. The poses are the store's `T_global_from_keyego` (LIDAR_TOP ego at
+    the keyframe); M is the BEV augmentation (identity at test time). This is what the queue warps by.
+    """
+    return M_cur @ torch.linalg.inv(T_global_from_cur) @ T_global_from_prev @ torch.linalg.inv(M_prev)
 
 
 def warp_bev(feat_prev: Tensor, T_curaug_from_prevaug: Tensor, grid: OccGrid) -> Tensor:
@@ -41,7 +51,8 @@ class TemporalFusion(nn.Module):
 
     The queue holds detached per-frame features (nearest first) with their T_global_from_keyego and
     BEV augmentation M. Where `seq_start` is True (or on the first call) the queue of that sample is
-    filled with the current frame, so the channel count never changes. Per-frame cost is one warp of
+    filled with the current frame, so the channel count never changes. A batch smaller than the last
+    keeps the first rows of the queue (lanes that ended were the last rows). Per-frame cost is one warp of
     `num_history` maps, whatever the length of the stream.
     """
 
@@ -69,6 +80,9 @@ class TemporalFusion(nn.Module):
         if pose is None:
             pose = torch.eye(4, device=bev.device).expand(B, 4, 4)
         start = inputs.seq_start
+        if start is not None and self._feats is not None and self._feats.shape[0] > B:
+            # Lanes that ended leave a batch from its end (fastocc.data.order keeps the live lanes first).
+            self._feats, self._poses, self._bev_aug = self._feats[:B], self._poses[:B], self._bev_aug[:B]
         if start is None or self._feats is None or self._feats.shape[0] != B or self._feats.shape[2:] != bev.shape[1:]:
             start = torch.ones(B, dtype=torch.bool, device=bev.device)
             self._feats = bev.new_zeros(B, T, *bev.shape[1:])
@@ -80,9 +94,7 @@ class TemporalFusion(nn.Module):
         poses = torch.where(s.view(B, 1, 1, 1), pose[:, None].expand(B, T, 4, 4), self._poses)
         augs = torch.where(s.view(B, 1, 1, 1), inputs.bev_aug[:, None].expand(B, T, 4, 4), self._bev_aug)
         # T_curaug_from_prevaug = M_cur inv(T_g_from_cur) T_g_from_prev inv(M_prev), per queued frame
-        T_rel = (inputs.bev_aug[:, None] @ torch.linalg.inv(pose)[:, None] @ poses @ torch.linalg.inv(augs)).reshape(
-            B * T, 4, 4
-        )
+        T_rel = T_curaug_from_prevaug(pose[:, None], inputs.bev_aug[:, None], poses, augs).reshape(B * T, 4, 4)
         warped = warp_bev(feats.reshape(B * T, C, *bev.shape[2:]), T_rel, self.grid).view(B, T * C, *bev.shape[2:])
         fused = self.reduce(torch.cat([bev, warped], dim=1))
         self._feats = torch.cat([cur[:, None], feats[:, :-1]], dim=1)

@@ -167,7 +167,8 @@ class _Run:
         sample = SampleConfig(image=ImageAugConfig(height=H, width=W, train=aug), bev=BevAugConfig(train=aug))
         return LoaderConfig(store=self.cfg.store, batch_size=self.micro, sequential=self.sequential, sample=sample,
                             splits=(self.cfg.train_split,), seed=self.cfg.seed, rank=self.info.rank,
-                            world_size=self.info.world_size, pad=self.info.enabled and not self.sequential)
+                            world_size=self.info.world_size, pad=self.info.enabled and not self.sequential,
+                            equal_lanes=self.sequential)  # equal step counts on every rank (order.py)
 
     def make_epoch_loader(self, epoch: int, skip: int) -> torch.utils.data.DataLoader:
         cfg = dataclasses.replace(self.loader_cfg, skip_batches=skip)
@@ -188,7 +189,7 @@ class _Run:
             slot = Slot(self.info.rank, self.info.world_size, w, n_workers)
             if self.sequential:
                 total += len(sequential_batches(ds.indices, ds.samples().scene_index, slot, self.micro,
-                                                self.cfg.seed, epoch))
+                                                self.cfg.seed, epoch, equal_lanes=self.loader_cfg.equal_lanes))
             else:
                 units = shuffle_units(ds.indices, ds.samples().block, slot, self.cfg.seed, epoch,
                                       pad=self.loader_cfg.pad)
