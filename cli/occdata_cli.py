@@ -351,8 +351,10 @@ def baseline(store: str, train_split: str, split: str, as_json: bool) -> None:
     from occdata.store.reader import open_store
 
     r = image_free_baseline(open_store(store), train_split, split)
-    if as_json:
-        click.echo(json.dumps(dataclasses.asdict(r)))
+    if as_json:  # NaN (class absent from truth and prediction) -> null
+        out = dataclasses.asdict(r)
+        out["per_class_iou_camera_mask"] = [None if np.isnan(x) else x for x in r.per_class_iou_camera_mask]
+        click.echo(json.dumps(out))
         return
     click.echo(f"image-free baseline ({r.train_samples} {train_split} -> {r.val_samples} {split} samples): "
                f"mIoU {100 * r.miou_camera_mask:.2f}% (camera mask), {100 * r.miou_no_mask:.2f}% (no mask)")
