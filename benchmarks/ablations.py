@@ -211,15 +211,17 @@ def run_state(run: Path, epochs: int) -> str:
 
 def lane_commands(todo: Sequence[tuple[str, int]], epochs: int, store: str | None, runs_dir: Path,
                   lanes: int = 2) -> list[str]:
-    """At most `lanes` background chains (nohup, one log each), each running its share of `todo` in turn;
-    1 torch thread per run when two share the 2 cores."""
+    """At most `lanes` background chains (nohup, one log each), each running its share of `todo` in turn (a
+    failed run does not stop its lane); 1 torch thread per run when two share the 2 cores. The two seeds
+    of a row land on different lanes, so they run side by side under the same load."""
     threads = 1 if lanes > 1 and len(todo) > 1 else 2
     extra = f" --epochs {epochs} --threads {threads}" + (f" --store {shlex.quote(store)}" if store else "")
     extra += f" --runs-dir {shlex.quote(str(runs_dir))}" if runs_dir != RUNS_DIR else ""
+    script = shlex.quote(os.path.relpath(Path(__file__).resolve()))
     cmds = []
     for k in range(min(lanes, len(todo))):
         share = todo[k::lanes]
-        chain = " && ".join(f"python benchmarks/ablations.py run {r} --seed {s}{extra}" for r, s in share)
+        chain = "; ".join(f"{shlex.quote(sys.executable)} {script} run {r} --seed {s}{extra}" for r, s in share)
         log = runs_dir / "logs" / f"lane{k}.log"
         cmds.append(f"mkdir -p {runs_dir}/logs && nohup bash -c {shlex.quote(chain)} > {log} 2>&1 &")
     return cmds
@@ -330,17 +332,19 @@ def _save(results: dict[str, Any], path: Path) -> None:
 
 
 # -- latency --------------------------------------------------------------------------------------------
-def latency(repeats: int, threads: int | None, results_path: Path) -> dict[str, Any]:
-    """3D-side (head stage) inference latency of the three heads in one process (fastocc.bench), nano."""
+def latency(preset: str, repeats: int, threads: int | None, results_path: Path) -> dict[str, Any]:
+    """3D-side (head stage) inference latency of the three heads in one process (fastocc.bench: same V_B and
+    image features for each head, warm-up then the median of `repeats`)."""
     from fastocc.bench import BenchConfig, run_benchmark
     from fastocc.model import HeadKind
 
     heads = (HeadKind.FASTOCC, HeadKind.FCN3D, HeadKind.DECONV)
-    res = run_benchmark(BenchConfig(preset="nano", heads=heads, repeats=repeats, threads=threads))
+    load = os.getloadavg()[0]
+    res = run_benchmark(BenchConfig(preset=preset, heads=heads, repeats=repeats, threads=threads))
     ms = {h: v["ms"] for h, v in res["heads"].items()}
     out = {"head_ms": ms, "ratio_to_fastocc": {h: v / ms["fastocc"] for h, v in ms.items()},
-           "config": res["config"], "loadavg_1min": os.getloadavg()[0],
-           "command": f"python benchmarks/ablations.py latency --repeats {repeats}"
+           "config": res["config"], "loadavg_1min": load,
+           "command": f"python benchmarks/ablations.py latency --preset {preset} --repeats {repeats}"
                       + (f" --threads {threads}" if threads else "")}
     results = load_results(results_path)
     results["latency"] = out
@@ -416,6 +420,15 @@ def _comparison_lines(t: Table, results: dict[str, Any]) -> list[str]:
     return out
 
 
+def _latency_note(lat: dict[str, Any] | None) -> str:
+    if not lat:
+        return "3D-side latency: pending (`python benchmarks/ablations.py latency`)."
+    c, ms = lat["config"], lat["head_ms"]
+    return (f"3D-side latency ({c['preset']} {c['input_hw'][0]}x{c['input_hw'][1]}, {c['device_name']}, "
+            f"{c['threads']} threads, median of {c['repeats']}, 1-min load {lat['loadavg_1min']:.1f}): "
+            + ", ".join(f"{h} {v:.0f} ms" for h, v in ms.items()) + f"; `{lat['command']}`.")
+
+
 def _tta_lines(results: dict[str, Any]) -> list[str]:
     tta = results.get("tta")
     if not tta or not tta.get("runs"):
@@ -436,14 +449,18 @@ def render_markdown(results: dict[str, Any], epochs: int, png: dict[str, str] | 
     """docs/ablations.md from the results JSON: "pending" where runs are missing (pure function)."""
     png = png or {}
     lines = ["# Ablations on the synthetic world (issue 18)", "",
-             f"World: 8 scenes x 40 samples (6 train / 2 val), recipe `{RECIPE.relative_to(REPO)}` shortened to "
-             f"**E = {epochs} epochs** for every row, seeds {', '.join(map(str, SEEDS))}. Metrics in percent on "
-             "the 2 val scenes: mIoU with the camera mask, RayIoU (no mask), geometry IoU (occupied vs free, "
+             f"World: 8 scenes x 40 samples (6 train / 2 val; store `{results.get('store', 'w8v.zarr')}`), recipe "
+             f"`{RECIPE.relative_to(REPO)}` shortened to **E = {epochs} epochs** for every row, seeds "
+             f"{', '.join(map(str, SEEDS))}. Metrics in percent on the val scenes: mIoU with the camera mask, "
+             "RayIoU (no mask), geometry IoU (occupied vs free, "
              "camera mask); s/step = median over epochs of epoch seconds / optimizer steps (machine load and "
              "threads vary between runs: compare the `latency` ratios for cost). Where two rows differ by "
              "less than the larger seed spread (max - min over seeds) the comparison says **not resolved**.", ""]
     for t in TABLES:
-        lines += [f"## {t.title}", "", *_table_lines(t, results), "", t.note, "", *_comparison_lines(t, results), ""]
+        lines += [f"## {t.title}", "", *_table_lines(t, results), "", t.note, ""]
+        if t.key == "head":
+            lines += [_latency_note(results.get("latency")), ""]
+        lines += [*_comparison_lines(t, results), ""]
         if t.key in png:
             lines += [f"![{t.key} learning curves]({png[t.key]})", ""]
         lines += ["Reading: pending (written after the runs: where we agree with the paper, where not, and why).", ""]
@@ -525,6 +542,8 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--workers", type=int, default=1)
     s.add_argument("--tta-row", default=None, choices=sorted(ROWS), help="TTA for this row (default: the best)")
     lat = sub.add_parser("latency", parents=[common], help="3D-side latency of each head, ratio to FastOcc")
+    lat.add_argument("--preset", default="nano", choices=("nano", "tiny"),
+                     help="nano = the trained rows' size; tiny = the paper's Table IV size")
     lat.add_argument("--repeats", type=int, default=5)
     lat.add_argument("--threads", type=int, default=None)
     t = sub.add_parser("tables", parents=[common], help="write the markdown and PNGs from the results JSON")
@@ -542,7 +561,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     elif args.cmd == "score":
         score(args.epochs, store, args.workers, args.runs_dir, args.results, args.tta_row)
     elif args.cmd == "latency":
-        latency(args.repeats, args.threads, args.results)
+        latency(args.preset, args.repeats, args.threads, args.results)
     else:
         tables(args.results, args.md, args.epochs)
     return 0

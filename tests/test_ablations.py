@@ -80,7 +80,11 @@ def _fake_results() -> dict:
         for seed, v in zip((0, 1), (a, b), strict=True):
             runs[f"{row}-s{seed}"] = {"row": row, "seed": seed, "miou": v, "rayiou": v / 2, "geo_iou": 0.5,
                                       "s_per_step": 0.7, "curve": [[240, v / 2], [480, v]]}
-    return {"runs": runs, "latency": {"ratio_to_fastocc": {"fastocc": 1.0, "3dfcn": 2.5, "deconv": 1.5}}}
+    latency = {"head_ms": {"fastocc": 100.0, "3dfcn": 250.0, "deconv": 150.0},
+               "ratio_to_fastocc": {"fastocc": 1.0, "3dfcn": 2.5, "deconv": 1.5},
+               "config": {"preset": "nano", "input_hw": [128, 352], "device_name": "cpu", "threads": 2, "repeats": 5},
+               "loadavg_1min": 1.25, "command": "python benchmarks/ablations.py latency --preset nano --repeats 5"}
+    return {"runs": runs, "latency": latency, "store": "w8v.zarr"}
 
 
 def test_tables_markdown_from_hand_made_results() -> None:
@@ -96,6 +100,7 @@ def test_tables_markdown_from_hand_made_results() -> None:
     assert "| neither (`neither`) | - | pending | pending | pending | pending |" in md  # no runs yet
     assert "- `neither` vs `bev-only`: mIoU pending; RayIoU pending" in md
     assert "| 2.50 |" in md  # 3D FCN head latency ratio
+    assert "(nano 128x352, cpu, 2 threads, median of 5, 1-min load 1.2): fastocc 100 ms, 3dfcn 250 ms" in md
     assert "| 0 previous frames (`hist0`) | - | pending |" in md
     assert "python benchmarks/ablations.py run ROW --seed S --epochs 6" in md
 
@@ -118,6 +123,7 @@ def test_status_lanes_run_every_missing_run_once_two_at_a_time(tmp_path: Path) -
     assert len(cmds) == 2 and all(c.startswith("mkdir -p runs/ablate/logs && nohup bash -c ") for c in cmds)
     assert [c.endswith(f"> runs/ablate/logs/lane{k}.log 2>&1 &") for k, c in enumerate(cmds)] == [True, True]
     joined = " ".join(cmds)
+    assert joined.count(" && python") == 0 and joined.count("; ") == 1  # a failed run does not stop its lane
     for row, seed in todo:
         assert joined.count(f"run {row} --seed {seed} --epochs 6 --threads 1") == 1
     assert ab.lane_commands(todo[:1], 6, None, Path("runs/ablate"))[0].count("--threads 2") == 1
