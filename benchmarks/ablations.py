@@ -33,6 +33,7 @@ import json
 import math
 import os
 import platform
+import re
 import shlex
 import statistics
 import subprocess
@@ -332,19 +333,24 @@ def _save(results: dict[str, Any], path: Path) -> None:
 
 
 # -- latency --------------------------------------------------------------------------------------------
-def latency(preset: str, repeats: int, threads: int | None, results_path: Path) -> dict[str, Any]:
+def latency(preset: str, repeats: int, rounds: int, threads: int | None, results_path: Path) -> dict[str, Any]:
     """3D-side (head stage) inference latency of the three heads in one process (fastocc.bench: same V_B and
-    image features for each head, warm-up then the median of `repeats`)."""
+    image features for each head, warm-up then the median of `repeats`), `rounds` times; the reported ms and
+    ratios are medians over rounds (the ratio per round, so slow drifts of the machine's load cancel)."""
     from fastocc.bench import BenchConfig, run_benchmark
     from fastocc.model import HeadKind
 
     heads = (HeadKind.FASTOCC, HeadKind.FCN3D, HeadKind.DECONV)
     load = os.getloadavg()[0]
-    res = run_benchmark(BenchConfig(preset=preset, heads=heads, repeats=repeats, threads=threads))
-    ms = {h: v["ms"] for h, v in res["heads"].items()}
-    out = {"head_ms": ms, "ratio_to_fastocc": {h: v / ms["fastocc"] for h, v in ms.items()},
-           "config": res["config"], "loadavg_1min": load,
-           "command": f"python benchmarks/ablations.py latency --preset {preset} --repeats {repeats}"
+    per_round = []
+    for _ in range(rounds):
+        res = run_benchmark(BenchConfig(preset=preset, heads=heads, repeats=repeats, threads=threads))
+        per_round.append({h: v["ms"] for h, v in res["heads"].items()})
+    ms = {h.value: statistics.median(r[h.value] for r in per_round) for h in heads}
+    ratio = {h.value: statistics.median(r[h.value] / r["fastocc"] for r in per_round) for h in heads}
+    out = {"head_ms": ms, "ratio_to_fastocc": ratio, "rounds_ms": per_round, "config": res["config"],
+           "loadavg_1min": load,
+           "command": f"python benchmarks/ablations.py latency --preset {preset} --repeats {repeats} --rounds {rounds}"
                       + (f" --threads {threads}" if threads else "")}
     results = load_results(results_path)
     results["latency"] = out
@@ -423,9 +429,10 @@ def _comparison_lines(t: Table, results: dict[str, Any]) -> list[str]:
 def _latency_note(lat: dict[str, Any] | None) -> str:
     if not lat:
         return "3D-side latency: pending (`python benchmarks/ablations.py latency`)."
-    c, ms = lat["config"], lat["head_ms"]
+    c, ms, rounds = lat["config"], lat["head_ms"], len(lat.get("rounds_ms", [1]))
     return (f"3D-side latency ({c['preset']} {c['input_hw'][0]}x{c['input_hw'][1]}, {c['device_name']}, "
-            f"{c['threads']} threads, median of {c['repeats']}, 1-min load {lat['loadavg_1min']:.1f}): "
+            f"{c['threads']} threads, median of {c['repeats']} x {rounds} rounds, "
+            f"1-min load {lat['loadavg_1min']:.1f}): "
             + ", ".join(f"{h} {v:.0f} ms" for h, v in ms.items()) + f"; `{lat['command']}`.")
 
 
@@ -445,9 +452,10 @@ def _tta_lines(results: dict[str, Any]) -> list[str]:
     return lines
 
 
-def render_markdown(results: dict[str, Any], epochs: int, png: dict[str, str] | None = None) -> str:
+def render_markdown(results: dict[str, Any], epochs: int, png: dict[str, str] | None = None,
+                    readings: dict[str, str] | None = None) -> str:
     """docs/ablations.md from the results JSON: "pending" where runs are missing (pure function)."""
-    png = png or {}
+    png, readings = png or {}, readings or {}
     lines = ["# Ablations on the synthetic world (issue 18)", "",
              f"World: 8 scenes x 40 samples (6 train / 2 val; store `{results.get('store', 'w8v.zarr')}`), recipe "
              f"`{RECIPE.relative_to(REPO)}` shortened to **E = {epochs} epochs** for every row, seeds "
@@ -455,7 +463,11 @@ def render_markdown(results: dict[str, Any], epochs: int, png: dict[str, str] | 
              "RayIoU (no mask), geometry IoU (occupied vs free, "
              "camera mask); s/step = median over epochs of epoch seconds / optimizer steps (machine load and "
              "threads vary between runs: compare the `latency` ratios for cost). Where two rows differ by "
-             "less than the larger seed spread (max - min over seeds) the comparison says **not resolved**.", ""]
+             "less than the larger seed spread (max - min over seeds) the comparison says **not resolved**.", "",
+             f"Budget: E = {epochs} is {240 * epochs} optimizer steps per run (240 training samples, batch 1); at "
+             f"the 18-epoch recipe's 0.69 s/step (alone, 2 threads; docs/training.md) that is "
+             f"~{240 * epochs * 0.69 / 60:.0f} min for the FastOcc row alone, ~{240 * epochs * 1.2 / 60:.0f} min "
+             "with two runs side by side (~1.2 s/step each). 18 runs: the 9 rows below x 2 seeds.", ""]
     for t in TABLES:
         lines += [f"## {t.title}", "", *_table_lines(t, results), "", t.note, ""]
         if t.key == "head":
@@ -463,12 +475,27 @@ def render_markdown(results: dict[str, Any], epochs: int, png: dict[str, str] | 
         lines += [*_comparison_lines(t, results), ""]
         if t.key in png:
             lines += [f"![{t.key} learning curves]({png[t.key]})", ""]
-        lines += ["Reading: pending (written after the runs: where we agree with the paper, where not, and why).", ""]
+        lines += _reading_block(t.key, readings)
     lines += ["## Flip TTA for the best model", "", *_tta_lines(results)]
     if "tta" in png:
         lines += [f"![tta learning curves]({png['tta']})", ""]
+    lines += _reading_block("tta", readings)
     lines += _commands_section(epochs)
     return "\n".join(lines) + "\n"
+
+
+READING_PENDING = "Reading: pending (written after the runs: where we agree with the paper, where not, and why)."
+_READING = re.compile(r"<!-- reading:(\w+) -->\n(.*?)\n<!-- /reading -->", re.S)
+
+
+def _reading_block(key: str, readings: dict[str, str]) -> list[str]:
+    return [f"<!-- reading:{key} -->", readings.get(key, READING_PENDING), "<!-- /reading -->", ""]
+
+
+def readings_of(md_text: str) -> dict[str, str]:
+    """The hand-written paragraphs between the reading markers of an existing docs/ablations.md (kept by
+    `tables`, which rewrites everything else)."""
+    return {m.group(1): m.group(2) for m in _READING.finditer(md_text)}
 
 
 def _commands_section(epochs: int) -> list[str]:
@@ -509,6 +536,8 @@ def plot_curves(results: dict[str, Any], rows: Sequence[str], title: str, path: 
 
 def tables(results_path: Path, md_path: Path, epochs: int) -> str:
     results = load_results(results_path)
+    if results.get("epochs", epochs) != epochs:
+        raise SystemExit(f"{results_path} holds runs of E = {results['epochs']} epochs, not {epochs} (pass --epochs)")
     png = {}
     groups = [(t.key, [tr.row for tr in t.rows], t.title) for t in TABLES]
     if results.get("tta", {}).get("row"):
@@ -517,7 +546,8 @@ def tables(results_path: Path, md_path: Path, epochs: int) -> str:
         path = md_path.parent / f"{md_path.stem}_{key}.png"
         if plot_curves(results, rows, title, path):
             png[key] = path.name
-    text = render_markdown(results, epochs, png)
+    readings = readings_of(md_path.read_text()) if md_path.is_file() else {}
+    text = render_markdown(results, epochs, png, readings)
     md_path.write_text(text)
     print(f"wrote {md_path}" + (f" and {', '.join(png.values())}" if png else " (no curves yet)"))
     return text
@@ -545,6 +575,7 @@ def _parser() -> argparse.ArgumentParser:
     lat.add_argument("--preset", default="nano", choices=("nano", "tiny"),
                      help="nano = the trained rows' size; tiny = the paper's Table IV size")
     lat.add_argument("--repeats", type=int, default=5)
+    lat.add_argument("--rounds", type=int, default=3, help="whole measurements; medians over them")
     lat.add_argument("--threads", type=int, default=None)
     t = sub.add_parser("tables", parents=[common], help="write the markdown and PNGs from the results JSON")
     t.add_argument("--md", type=Path, default=DOCS / "ablations.md")
@@ -561,7 +592,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     elif args.cmd == "score":
         score(args.epochs, store, args.workers, args.runs_dir, args.results, args.tta_row)
     elif args.cmd == "latency":
-        latency(args.preset, args.repeats, args.threads, args.results)
+        latency(args.preset, args.repeats, args.rounds, args.threads, args.results)
     else:
         tables(args.results, args.md, args.epochs)
     return 0

@@ -100,7 +100,7 @@ def test_tables_markdown_from_hand_made_results() -> None:
     assert "| neither (`neither`) | - | pending | pending | pending | pending |" in md  # no runs yet
     assert "- `neither` vs `bev-only`: mIoU pending; RayIoU pending" in md
     assert "| 2.50 |" in md  # 3D FCN head latency ratio
-    assert "(nano 128x352, cpu, 2 threads, median of 5, 1-min load 1.2): fastocc 100 ms, 3dfcn 250 ms" in md
+    assert "(nano 128x352, cpu, 2 threads, median of 5 x 1 rounds, 1-min load 1.2): fastocc 100 ms, 3dfcn 250 ms" in md
     assert "| 0 previous frames (`hist0`) | - | pending |" in md
     assert "python benchmarks/ablations.py run ROW --seed S --epochs 6" in md
 
@@ -128,3 +128,21 @@ def test_status_lanes_run_every_missing_run_once_two_at_a_time(tmp_path: Path) -
         assert joined.count(f"run {row} --seed {seed} --epochs 6 --threads 1") == 1
     assert ab.lane_commands(todo[:1], 6, None, Path("runs/ablate"))[0].count("--threads 2") == 1
     ab.status(6, None, tmp_path)  # nothing there: every run is missing, no error
+
+
+def test_tables_keeps_hand_written_readings(tmp_path: Path) -> None:
+    import json
+
+    res, md = tmp_path / "ab.json", tmp_path / "ab.md"
+    res.write_text(json.dumps({"runs": {}}))
+    ab.tables(res, md, epochs=6)
+    assert md.read_text().count(ab.READING_PENDING) == 4  # head, components, history, tta
+    md.write_text(md.read_text().replace("<!-- reading:head -->\n" + ab.READING_PENDING,
+                                         "<!-- reading:head -->\nOurs agrees.\nTwo lines."))
+    ab.tables(res, md, epochs=6)
+    text = md.read_text()
+    assert "<!-- reading:head -->\nOurs agrees.\nTwo lines.\n<!-- /reading -->" in text
+    assert text.count(ab.READING_PENDING) == 3
+    res.write_text(json.dumps({"runs": {}, "epochs": 4}))
+    with pytest.raises(SystemExit, match="E = 4"):
+        ab.tables(res, md, epochs=6)
