@@ -233,7 +233,9 @@ def status(epochs: int, store: str | None, runs_dir: Path) -> list[tuple[str, in
     for row, seed in all_runs():
         state = run_state(runs_dir / run_name(row, seed), epochs)
         print(f"  {run_name(row, seed):<16} {state}")
-        if state != "done":
+        if state.startswith("stale"):
+            print(f"    {runs_dir / run_name(row, seed)} was trained with another E: move it away to rerun it")
+        elif state != "done":
             todo.append((row, seed))
     print(f"{len(all_runs()) - len(todo)} of {len(all_runs())} runs done (E = {epochs}).")
     if todo:
