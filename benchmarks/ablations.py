@@ -368,6 +368,10 @@ def _seed_values(results: dict[str, Any], row: str, metric: str) -> list[float]:
     return [float(v) for v in vals if v is not None]
 
 
+def _per_seed(results: dict[str, Any], row: str, metric: str) -> list[float | None]:
+    return [results["runs"].get(run_name(row, s), {}).get(metric) for s in SEEDS]
+
+
 def verdict(a: Sequence[float], b: Sequence[float]) -> str:
     """Compare two rows' per-seed values: "pending" without every seed; "not resolved" when the means differ
     by less than the larger seed spread (max - min) of the two rows; else "A > B" / "A < B" with the gap."""
@@ -380,9 +384,12 @@ def verdict(a: Sequence[float], b: Sequence[float]) -> str:
     return f"{'>' if gap > 0 else '<'} by {100 * abs(gap):.2f} (seed spread {100 * spread:.2f})"
 
 
-def _pct(vals: Sequence[float]) -> str:
-    if len(vals) < len(SEEDS):
+def _pct(vals: Sequence[float | None]) -> str:
+    """Per-seed values in percent and their mean; a missing seed shows as "pending" (no mean then)."""
+    if all(v is None for v in vals) or not vals:
         return "pending"
+    if len(vals) < len(SEEDS) or any(v is None for v in vals):
+        return " / ".join("pending" if v is None else f"{100 * v:.2f}" for v in vals)
     return " / ".join(f"{100 * v:.2f}" for v in vals) + f" (mean {100 * statistics.fmean(vals):.2f})"
 
 
@@ -402,7 +409,7 @@ def _table_lines(t: Table, results: dict[str, Any]) -> list[str]:
         cells = [f"{tr.label} (`{tr.row}`)", _num(tr.paper_miou, ".2f") if tr.paper_miou else "-"]
         if head:
             cells.append(f"{tr.paper_ms:.0f} ({tr.paper_ms / 221.0:.2f})" if tr.paper_ms else "-")
-        cells += [_pct(_seed_values(results, tr.row, "miou")), _pct(_seed_values(results, tr.row, "rayiou")),
+        cells += [_pct(_per_seed(results, tr.row, "miou")), _pct(_per_seed(results, tr.row, "rayiou")),
                   _num(100 * statistics.fmean(geo) if len(geo) == len(SEEDS) else None, ".2f"),
                   _num(statistics.fmean(sps) if len(sps) == len(SEEDS) else None, ".3f")]
         if head:

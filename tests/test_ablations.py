@@ -98,6 +98,11 @@ def test_tables_markdown_from_hand_made_results() -> None:
     assert "- `bev-only` vs `interp-only`: mIoU < by 14.00 (seed spread 1.00)" in md  # resolved, agrees
     assert "paper < by 1.41: agrees" in md
     assert "| neither (`neither`) | - | pending | pending | pending | pending |" in md  # no runs yet
+    one_seed = _fake_results()
+    del one_seed["runs"]["deconv-s1"]
+    md1 = ab.render_markdown(one_seed, epochs=6)
+    assert "| Baseline: 3D deconv head (`deconv`) | 38.44 | 306 (1.38) | 30.00 / pending | 15.00 / pending |" in md1
+    assert "- `deconv` vs `3dfcn`: mIoU pending; RayIoU pending" in md1
     assert "- `neither` vs `bev-only`: mIoU pending; RayIoU pending" in md
     assert "| 2.50 |" in md  # 3D FCN head latency ratio
     assert "(nano 128x352, cpu, 2 threads, median of 5 x 1 rounds, 1-min load 1.2): fastocc 100 ms, 3dfcn 250 ms" in md
