@@ -573,7 +573,8 @@ def _parser() -> argparse.ArgumentParser:
     common.add_argument("--results", type=Path, default=DOCS / "ablations.json", help="raw results JSON")
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run", parents=[common], help="train one row and seed (resumes a started run)")
-    r.add_argument("row", choices=sorted(ROWS))
+    r.add_argument("row", choices=sorted(ROWS), help="; ".join(
+        f"{n}: " + (", ".join(f"{k}={v}" for k, v in row.overrides) or "the recipe") for n, row in ROWS.items()))
     r.add_argument("--seed", type=int, required=True, choices=SEEDS)
     r.add_argument("--threads", type=int, default=None, help="torch threads (1 when two runs share 2 cores)")
     sub.add_parser("status", parents=[common], help="done / missing runs and the commands for the missing ones")
