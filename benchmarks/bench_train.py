@@ -55,7 +55,8 @@ def evaluate_checkpoint(path: Path, store: str, noise: bool, rayiou: bool, worke
                    rayiou=rayiou, progress=False)
     return {"checkpoint": path.name, "opt_steps": int(ckpt.meta.get("opt_steps", 0)),
             "samples_seen": int(ckpt.meta.get("samples_seen", 0)), "ema": ckpt.ema is not None,
-            "miou": float(rep.miou.miou), "rayiou": None if rep.rayiou is None else float(rep.rayiou.rayiou)}
+            "miou": float(rep.miou.miou), "rayiou": None if rep.rayiou is None else float(rep.rayiou.rayiou),
+            "geo_iou": float(rep.miou.geo_iou), "frames_per_s": float(rep.frames_per_s)}
 
 
 def run_curve(run: Path, store: str, rayiou: bool, workers: int, every: int = 1) -> dict:

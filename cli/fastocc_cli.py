@@ -143,6 +143,9 @@ def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height
 @click.option("--preset", "preset_name", type=click.Choice(["nano", "tiny", "small", "base"]), default=None,
               help="Model preset (default nano).")
 @click.option("--head", type=click.Choice(["fastocc", "3dfcn", "deconv"]), default=None, help="3D-side head.")
+@click.option("--interp-features/--no-interp-features", "interp_features", default=None,
+              help="Ablation: --no-interp-features drops the interpolated image features from the FastOcc head "
+              "(the BEV branch alone feeds the classifier). Default: on.")
 @click.option("--epochs", type=click.IntRange(min=1), default=None, help="Epochs over the training split.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=None,
               help="GLOBAL batch size (all processes); each process gets batch-size / world size.")

@@ -52,7 +52,7 @@ class StaticFastOcc(nn.Module):
         self.register_buffer("point_idx", index.point_idx.clone())
         self.register_buffer("voxel_idx", index.voxel_idx.clone())
         self.num_slots = 0
-        if cfg.head is HeadKind.FASTOCC:
+        if cfg.head is HeadKind.FASTOCC and cfg.interp_features:
             slots = _slot_sampling(geo, cfg.fine_grid, cfg.input_hw, cfg.stride, (h, w))
             self.num_slots = len(slots)
             for s, (rows, wts, scatter) in enumerate(slots):
@@ -118,6 +118,9 @@ class StaticFastOcc(nn.Module):
             return head(feat, bev, None)[0], 1
         X, Y, Z = self.cfg.fine_grid.shape
         bev_part = F.interpolate(head.fuse_bev(head.decoder(bev)), size=(X, Y), mode="bilinear", align_corners=False)
+        bev_z = bev_part[0].permute(1, 2, 0).unsqueeze(2)  # (X, Y, 1, Cf): z-repeat by broadcasting
+        if head.fuse_img is None:  # interp_features off: one classifier call per BEV cell, repeated over z
+            return head.classifier(F.relu(bev_z)).expand(X, Y, Z, -1), -1
         img = head.fuse_img(feat)  # (N, Cf, h, w)
         Cf = img.shape[1]
         # channels-last feature table with a zero row last: out-of-map corners and absent slots point at it
@@ -127,7 +130,7 @@ class StaticFastOcc(nn.Module):
             part = _bilinear(table, getattr(self, f"slot{s}_idx"), getattr(self, f"slot{s}_w"))  # (M_s, Cf)
             part = torch.cat([part, part.new_zeros(1, Cf)], dim=0)
             sampled = sampled + part.index_select(0, getattr(self, f"slot{s}_scatter"))
-        fused = F.relu(sampled.view(X, Y, Z, Cf) + bev_part[0].permute(1, 2, 0).unsqueeze(2))  # z-repeat
+        fused = F.relu(sampled.view(X, Y, Z, Cf) + bev_z)
         return head.classifier(fused), -1  # (X, Y, Z, 18)
 
 

@@ -73,6 +73,9 @@ class ModelConfig:
     head: HeadKind = HeadKind.FASTOCC
     num_history: int = 0  # previous frames in the temporal queue (0 = single frame; paper's base: 16)
     bev_head: bool = True  # auxiliary multi-hot BEV head (training only; FastOcc head only)
+    # Ablation (paper Table IV): False drops the interpolated image features P from the FastOcc head, so the
+    # fused voxel feature is the upsampled, z-repeated BEV map alone (constant along z). FastOcc head only.
+    interp_features: bool = True
     num_classes: int = NUM_CLASSES
     stride: int = 16
     fine_grid: OccGrid = GRID

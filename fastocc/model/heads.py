@@ -28,6 +28,10 @@ class FastOccHead(nn.Module):
     are applied where they are cheapest, which is exact because upsampling, z-repetition and sampling are
     linear with weights summing to 1: W_B at 100 x 100 before upsampling, W_P on the image map before
     sampling. Nothing of width C3 + C1 is ever materialised at 200 x 200 x 16.
+
+    With `cfg.interp_features` False (the components ablation) the head has no W_P and no sampler: the
+    fused feature is relu(W_B B_z + b), constant along z, so the classifier runs once per BEV cell and
+    its logits are repeated over the Z levels (exact: the classifier is per voxel).
     """
 
     def __init__(self, cfg: ModelConfig) -> None:
@@ -37,8 +41,11 @@ class FastOccHead(nn.Module):
         self.fine_shape = cfg.fine_grid.shape
         self.decoder = BEVDecoder(2, c2 * z, c2, c3)
         self.fuse_bev = nn.Conv2d(c3, cf, 1)  # W_B and the fusion bias
-        self.fuse_img = nn.Conv2d(cfg.neck_channels, cf, 1, bias=False)  # W_P
-        self.sampler = InterpolationSampler(cfg.fine_grid, cfg.input_hw, cfg.stride)
+        self.fuse_img: nn.Conv2d | None = None  # W_P
+        self.sampler: InterpolationSampler | None = None
+        if cfg.interp_features:
+            self.fuse_img = nn.Conv2d(cfg.neck_channels, cf, 1, bias=False)
+            self.sampler = InterpolationSampler(cfg.fine_grid, cfg.input_hw, cfg.stride)
         self.classifier = nn.Linear(cf, cfg.num_classes)
 
     def forward(self, feat: Tensor, bev: Tensor, inputs: SceneInputs) -> tuple[Tensor, Tensor]:
@@ -47,9 +54,12 @@ class FastOccHead(nn.Module):
         bev_map = self.decoder(bev)
         X, Y, _ = self.fine_shape
         bev_part = F.interpolate(self.fuse_bev(bev_map), size=(X, Y), mode="bilinear", align_corners=False)
+        bev_z = bev_part.permute(0, 2, 3, 1).unsqueeze(3)  # (B, X, Y, 1, Cf): z-repeat by broadcasting
+        if self.sampler is None or self.fuse_img is None:  # ablation: no interpolated image features
+            logits = self.classifier(F.relu(bev_z)).expand(-1, -1, -1, self.fine_shape[2], -1)
+            return logits.permute(0, 4, 1, 2, 3).contiguous(), bev_map
         img_part = self.sampler(self.fuse_img(feat), inputs)  # (B, X, Y, Z, Cf)
-        fused = F.relu(img_part + bev_part.permute(0, 2, 3, 1).unsqueeze(3))  # z-repeat by broadcasting
-        logits = self.classifier(fused)  # (B, X, Y, Z, 18)
+        logits = self.classifier(F.relu(img_part + bev_z))  # (B, X, Y, Z, 18)
         return logits.permute(0, 4, 1, 2, 3), bev_map
 
 

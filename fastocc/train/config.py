@@ -57,6 +57,8 @@ class TrainConfig:
     head: str = "fastocc"
     input_hw: tuple[int, int] | None = None  # None = the preset's input size
     num_history: int | None = None  # None = the preset's (temporal models train scene-sequentially)
+    interp_features: bool = True  # ablation: False = FastOcc head without interpolated image features
+    scene_sequential: bool = False  # walk scenes in order also for single-frame models (history ablation)
     pretrained: str | None = None  # torchvision ResNet state dict for the backbone
     checkpoint_backbone: bool = False  # activation checkpointing of the image backbone (saves memory)
     # optimisation
@@ -121,6 +123,8 @@ class TrainConfig:
             bad.append(f"ema_decay = {self.ema_decay} (must be in [0, 1))")
         if self.warmup_epochs < 0 or self.warmup_epochs > self.epochs:
             bad.append(f"warmup_epochs = {self.warmup_epochs} (must be in [0, epochs])")
+        if not self.interp_features and self.head != HeadKind.FASTOCC.value:
+            bad.append(f"interp_features = false with head {self.head!r} (only the fastocc head has them)")
         if self.input_hw is not None and any(v <= 0 or v % 16 for v in self.input_hw):
             bad.append(f"input_hw = {self.input_hw} (positive multiples of 16)")
         if bad:
@@ -128,7 +132,7 @@ class TrainConfig:
 
     # -- derived -------------------------------------------------------------------------------
     def model_config(self) -> ModelConfig:
-        changes: dict[str, Any] = {"head": HeadKind(self.head)}
+        changes: dict[str, Any] = {"head": HeadKind(self.head), "interp_features": self.interp_features}
         if self.input_hw is not None:
             changes["input_hw"] = tuple(self.input_hw)
         if self.num_history is not None:
@@ -247,7 +251,9 @@ def config_to_toml(cfg: TrainConfig) -> str:
 
 
 def incompatible_fields(saved: dict[str, Any], cfg: TrainConfig) -> list[str]:
-    """Fields whose values differ between a saved config dict and `cfg`, other than RESUME_MAY_CHANGE."""
-    now = cfg.to_dict()
+    """Fields whose values differ between a saved config dict and `cfg`, other than RESUME_MAY_CHANGE.
+
+    A field missing from `saved` (a run from before the field existed) counts as its default value."""
+    now, default = cfg.to_dict(), TrainConfig().to_dict()
     return sorted(k for k in set(saved) | set(now)
-                  if k not in RESUME_MAY_CHANGE and saved.get(k) != now.get(k))
+                  if k not in RESUME_MAY_CHANGE and saved.get(k, default.get(k)) != now.get(k))

@@ -97,7 +97,7 @@ class _Run:
         if per_rank % self.micro:
             raise OccDataError(f"micro_batch {self.micro} does not divide the per-process batch {per_rank}")
         self.accum = per_rank // self.micro
-        self.sequential = self.model_cfg.num_history > 0
+        self.sequential = self.model_cfg.num_history > 0 or cfg.scene_sequential
         self.use_amp = cfg.amp and info.device.type == "cuda"
 
     # -- set-up -------------------------------------------------------------------------------

@@ -1,0 +1,612 @@
+"""The paper's ablation tables on the synthetic world (issue 18, part 2), one command per step.
+
+World (6 train / 2 val scenes) and recipe (benchmarks/configs/learn_nano_18ep.toml, shortened to E epochs,
+the same E for every row; seeds 0 and 1 per row):
+
+    occdata synth --scenes 8 --samples 40 --seed 3 --width 800 --height 450 --out w8
+    occdata build --root w8 --out w8v.zarr
+
+Tables and the runs behind their rows (a run shared by two tables is trained once):
+
+    head        deconv | 3dfcn | fastocc                      (paper Table II)
+    components  neither | bev-only | interp-only | fastocc    (paper Table IV; BEV supervision off = w_bev 0)
+    history     hist0 | hist4 | hist16                        (all trained scene-sequentially)
+    tta         the best row of the tables above, flip TTA off | on (evaluation only)
+
+Steps:
+
+    python benchmarks/ablations.py status                     # done / missing runs, the commands to run them
+    python benchmarks/ablations.py run fastocc --seed 0       # fastocc train into runs/ablate/fastocc-s0
+    python benchmarks/ablations.py score                      # val mIoU (camera mask), RayIoU, geometry IoU
+    python benchmarks/ablations.py latency                    # 3D-side latency of each head / FastOcc head
+    python benchmarks/ablations.py tables                     # docs/ablations.md, PNGs, from docs/ablations.json
+
+`run` resumes a run whose folder holds last.pt; it records wall time per call in ablate_run.json in the
+run folder. `score` reuses benchmarks/bench_train.py's checkpoint evaluation (the project's metric code)
+and caches per checkpoint, so it can be re-run as runs land.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import re
+import shlex
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from fastocc.train.config import TrainConfig, config_to_toml, load_config  # noqa: E402
+
+__all__ = ["ROWS", "TABLES", "Row", "Table", "TableRow", "render_markdown", "row_config", "verdict"]
+
+RECIPE = REPO / "benchmarks" / "configs" / "learn_nano_18ep.toml"
+DEFAULT_EPOCHS = 6
+SEEDS = (0, 1)
+RUNS_DIR = Path("runs/ablate")
+DOCS = REPO / "docs"
+WORLD = ("occdata synth --scenes 8 --samples 40 --seed 3 --width 800 --height 450 --out w8\n"
+         "occdata build --root w8 --out w8v.zarr")
+
+
+@dataclass(frozen=True)
+class Row:
+    """One trained configuration: `overrides` are TrainConfig fields applied on top of the recipe."""
+
+    name: str
+    overrides: tuple[tuple[str, Any], ...] = ()
+
+
+@dataclass(frozen=True)
+class TableRow:
+    """A table line: its label, the run (Row name) it reads, and the paper's mIoU / latency (ms) if any."""
+
+    label: str
+    row: str
+    paper_miou: float | None = None
+    paper_ms: float | None = None
+
+
+@dataclass(frozen=True)
+class Table:
+    key: str
+    title: str
+    rows: tuple[TableRow, ...]
+    note: str
+
+
+ROWS: dict[str, Row] = {r.name: r for r in (
+    Row("fastocc"),
+    Row("3dfcn", (("head", "3dfcn"),)),
+    Row("deconv", (("head", "deconv"),)),
+    Row("neither", (("interp_features", False), ("w_bev", 0.0))),
+    Row("bev-only", (("interp_features", False),)),
+    Row("interp-only", (("w_bev", 0.0),)),
+    Row("hist0", (("num_history", 0), ("scene_sequential", True))),
+    Row("hist4", (("num_history", 4), ("scene_sequential", True))),
+    Row("hist16", (("num_history", 16), ("scene_sequential", True))),
+)}
+
+TABLES: tuple[Table, ...] = (
+    Table("head", "Head (paper Table II: ResNet-101, 640x1600, V100)", (
+        TableRow("Baseline: 3D deconv head", "deconv", 38.44, 306.0),
+        TableRow("Baseline+: 3D FCN head", "3dfcn", 41.02, 342.0),
+        TableRow("FastOcc: 2D BEV FCN + interpolation", "fastocc", 40.75, 221.0),
+    ), "Paper latency is the whole network's; ours is the 3D side only (`latency`), as a ratio to the FastOcc head."),
+    Table("components", "Components (paper Table IV: tiny, ResNet-50, 320x800)", (
+        TableRow("neither", "neither"),
+        TableRow("BEV supervision only", "bev-only", 31.67),
+        TableRow("interpolated fusion only", "interp-only", 33.08),
+        TableRow("both (= FastOcc row of the head table)", "fastocc", 34.21),
+    ), "BEV supervision off = `w_bev = 0` (the BEV head still runs in training but gets no loss); interpolated "
+       "fusion off = `interp_features = false` (the voxel feature is the z-repeated BEV map alone)."),
+    Table("history", "History (scene-sequential training for every row)", (
+        TableRow("0 previous frames", "hist0"),
+        TableRow("4 previous frames", "hist4"),
+        TableRow("16 previous frames", "hist16"),
+    ), "The paper's best result (40.75, base) uses 16 frames; it gives no 0/4/16 table, so no paper column."),
+)
+
+
+# -- configs ------------------------------------------------------------------------------------------
+def run_name(row: str, seed: int) -> str:
+    return f"{row}-s{seed}"
+
+
+def row_config(row: str, seed: int, epochs: int, store: str | None = None, runs_dir: Path = RUNS_DIR,
+               threads: int | None = None) -> TrainConfig:
+    """The recipe with the row's overrides, E epochs (every epoch checkpoint kept for the curves), one seed."""
+    if row not in ROWS:
+        raise SystemExit(f"unknown row {row!r}; rows: {', '.join(ROWS)}")
+    over: dict[str, Any] = dict(ROWS[row].overrides)
+    over.update(epochs=epochs, seed=seed, keep_epochs=epochs, out=str(runs_dir / run_name(row, seed)))
+    if store is not None:
+        over["store"] = store
+    if threads is not None:
+        over["threads"] = threads
+    return load_config(RECIPE, over)
+
+
+# -- run ------------------------------------------------------------------------------------------------
+def epoch_records(run: Path) -> list[dict[str, Any]]:
+    path = run / "metrics.jsonl"
+    if not path.is_file():
+        return []
+    recs = [json.loads(ln) for ln in path.read_text().splitlines() if ln.strip()]
+    return [r for r in recs if r.get("kind") == "epoch"]
+
+
+def epochs_done(run: Path) -> int:
+    recs = epoch_records(run)
+    return max((int(r["epoch"]) for r in recs), default=0) if (run / "last.pt").is_file() else 0
+
+
+def seconds_per_step(run: Path) -> float | None:
+    """Median over epochs of epoch seconds / optimizer steps in that epoch (metrics.jsonl epoch records)."""
+    recs = sorted(epoch_records(run), key=lambda r: r["epoch"])
+    rates, prev = [], 0
+    for r in recs:
+        steps = int(r["opt_step"]) - prev
+        prev = int(r["opt_step"])
+        if steps > 0:
+            rates.append(float(r["seconds"]) / steps)
+    return statistics.median(rates) if rates else None
+
+
+def run_row(row: str, seed: int, epochs: int, store: str | None, threads: int | None, runs_dir: Path) -> int:
+    """`fastocc train` for one row and seed; --resume when the folder holds last.pt. Returns the exit code."""
+    cfg = row_config(row, seed, epochs, store, runs_dir, threads)
+    out = Path(cfg.out)
+    if epochs_done(out) >= epochs:
+        print(f"{out}: already done ({epochs} epochs)")
+        return 0
+    out.parent.mkdir(parents=True, exist_ok=True)
+    toml = out.parent / "configs" / f"{out.name}.toml"
+    toml.parent.mkdir(exist_ok=True)
+    toml.write_text(config_to_toml(cfg))
+    cmd = [sys.executable, "-m", "cli.fastocc_cli", "train", "--config", str(toml), "--no-progress"]
+    if (out / "last.pt").is_file():
+        cmd.append("--resume")
+    print("$", shlex.join(cmd), flush=True)
+    t0 = time.time()
+    rc = subprocess.run(cmd, env={**os.environ, "PYTHONPATH": str(REPO)}).returncode
+    _record_wall(out, t0, time.time(), rc)
+    return rc
+
+
+def _record_wall(out: Path, start: float, end: float, rc: int) -> None:
+    path = out / "ablate_run.json"
+    log = json.loads(path.read_text()) if path.is_file() else {"calls": []}
+    log["calls"].append({"start": start, "wall_s": end - start, "rc": rc, "epochs_done": epochs_done(out),
+                         "loadavg_1min": os.getloadavg()[0]})
+    log["wall_s"] = sum(c["wall_s"] for c in log["calls"])
+    if out.is_dir():
+        path.write_text(json.dumps(log, indent=1) + "\n")
+
+
+# -- status ---------------------------------------------------------------------------------------------
+def all_runs() -> list[tuple[str, int]]:
+    return [(row, seed) for row in ROWS for seed in SEEDS]
+
+
+def run_state(run: Path, epochs: int) -> str:
+    cfg_path = run / "config.json"
+    if cfg_path.is_file() and json.loads(cfg_path.read_text()).get("epochs") != epochs:
+        return "stale (other E)"
+    done = epochs_done(run)
+    return "done" if done >= epochs else (f"partial ({done}/{epochs} epochs)" if (run / "last.pt").is_file()
+                                          else "missing")
+
+
+def lane_commands(todo: Sequence[tuple[str, int]], epochs: int, store: str | None, runs_dir: Path,
+                  lanes: int = 2) -> list[str]:
+    """At most `lanes` background chains (nohup, one log each), each running its share of `todo` in turn (a
+    failed run does not stop its lane); 1 torch thread per run when two share the 2 cores. The two seeds
+    of a row land on different lanes, so they run side by side under the same load."""
+    threads = 1 if lanes > 1 and len(todo) > 1 else 2
+    extra = f" --epochs {epochs} --threads {threads}" + (f" --store {shlex.quote(store)}" if store else "")
+    extra += f" --runs-dir {shlex.quote(str(runs_dir))}" if runs_dir != RUNS_DIR else ""
+    script = shlex.quote(os.path.relpath(Path(__file__).resolve()))
+    cmds = []
+    for k in range(min(lanes, len(todo))):
+        share = todo[k::lanes]
+        chain = "; ".join(f"{shlex.quote(sys.executable)} {script} run {r} --seed {s}{extra}" for r, s in share)
+        log = runs_dir / "logs" / f"lane{k}.log"
+        cmds.append(f"mkdir -p {runs_dir}/logs && nohup bash -c {shlex.quote(chain)} > {log} 2>&1 &")
+    return cmds
+
+
+def status(epochs: int, store: str | None, runs_dir: Path) -> list[tuple[str, int]]:
+    todo = []
+    for row, seed in all_runs():
+        state = run_state(runs_dir / run_name(row, seed), epochs)
+        print(f"  {run_name(row, seed):<16} {state}")
+        if state.startswith("stale"):
+            print(f"    {runs_dir / run_name(row, seed)} was trained with another E: move it away to rerun it")
+        elif state != "done":
+            todo.append((row, seed))
+    print(f"{len(all_runs()) - len(todo)} of {len(all_runs())} runs done (E = {epochs}).")
+    if todo:
+        print("Run the missing ones, two at a time in the background (re-run `status` any time; each resumes):")
+        for c in lane_commands(todo, epochs, store, runs_dir):
+            print("  " + c)
+    return todo
+
+
+# -- score ----------------------------------------------------------------------------------------------
+def load_results(path: Path) -> dict[str, Any]:
+    return json.loads(path.read_text()) if path.is_file() else {"runs": {}}
+
+
+def score_run(run: Path, store: str, workers: int) -> dict[str, Any]:
+    """Final scores of last.pt (mIoU camera mask, RayIoU, geometry IoU) and the val-mIoU learning curve
+    over the epoch checkpoints, with benchmarks/bench_train.py's evaluation (cached in the run folder)."""
+    from bench_train import evaluate_checkpoint, run_curve
+
+    curve = run_curve(run, store, rayiou=False, workers=workers)
+    cache = run / "ablate_score.json"
+    final = json.loads(cache.read_text()) if cache.is_file() else None
+    steps = int(_last_meta(run).get("opt_steps", -1))
+    if final is None or final.get("opt_steps") != steps or final.get("store") != store:
+        final = evaluate_checkpoint(run / "last.pt", store, noise=False, rayiou=True, workers=workers)
+        final["store"] = store
+        cache.write_text(json.dumps(final, indent=1) + "\n")
+    wall = json.loads((run / "ablate_run.json").read_text()) if (run / "ablate_run.json").is_file() else {}
+    return {"miou": final["miou"], "rayiou": final["rayiou"], "geo_iou": final["geo_iou"],
+            "frames_per_s": final.get("frames_per_s"), "opt_steps": steps, "s_per_step": seconds_per_step(run),
+            "wall_s": wall.get("wall_s"), "curve": [[p["samples_seen"], p["miou"]] for p in curve["points"]],
+            "loss": curve["loss"]}
+
+
+def _last_meta(run: Path) -> dict[str, Any]:
+    from fastocc.checkpoint import load_checkpoint
+
+    return load_checkpoint(run / "last.pt").meta
+
+
+def score_tta(run: Path, store: str, workers: int) -> dict[str, Any]:
+    """Flip TTA off and on for one run's last.pt, in one process (bench_tta's metrics dict each)."""
+    from bench_tta import _metrics
+
+    from fastocc.checkpoint import load_model
+    from fastocc.infer.evaluate import evaluate
+    from fastocc.infer.predict import PredictConfig
+
+    model, ckpt = load_model(run / "last.pt")
+    out = {}
+    for tta in (False, True):
+        rep = evaluate(model, ckpt.model_config, PredictConfig(store=store, split="val", workers=workers, tta=tta),
+                       progress=False)
+        out["on" if tta else "off"] = _metrics(rep)
+    out["time_factor"] = out["on"]["infer_seconds"] / out["off"]["infer_seconds"]
+    return out
+
+
+def best_row(results: dict[str, Any]) -> str | None:
+    """The row of tables 1-3 with the highest mean mIoU, once every one of their rows has both seeds."""
+    rows = {tr.row for t in TABLES for tr in t.rows}
+    means = {r: _seed_values(results, r, "miou") for r in rows}
+    if any(len(v) < len(SEEDS) for v in means.values()):
+        return None
+    return max(means, key=lambda r: statistics.fmean(means[r]))
+
+
+def score(epochs: int, store: str, workers: int, runs_dir: Path, results_path: Path, tta_row: str | None) -> None:
+    results = load_results(results_path)
+    results.update(epochs=epochs, store=store, seeds=list(SEEDS), recipe=str(RECIPE.relative_to(REPO)))
+    for row, seed in all_runs():
+        run = runs_dir / run_name(row, seed)
+        if run_state(run, epochs) != "done":
+            continue
+        print(f"scoring {run} ...", flush=True)
+        results["runs"][run_name(row, seed)] = {"row": row, "seed": seed, **score_run(run, store, workers)}
+        _save(results, results_path)
+    row = tta_row or best_row(results)
+    if row is None:
+        print("TTA waits for every row of the head / components / history tables (or pass --tta-row).")
+    else:
+        tta = {"row": row, "runs": {}}
+        for seed in SEEDS:
+            run = runs_dir / run_name(row, seed)
+            if run_state(run, epochs) == "done":
+                print(f"TTA off/on for {run} ...", flush=True)
+                tta["runs"][run_name(row, seed)] = score_tta(run, store, workers)
+        results["tta"] = tta
+    results["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(), "loadavg_1min": os.getloadavg()[0]}
+    _save(results, results_path)
+    print(f"wrote {results_path}")
+
+
+def _save(results: dict[str, Any], path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(results, indent=1) + "\n")
+
+
+# -- latency --------------------------------------------------------------------------------------------
+def latency(preset: str, repeats: int, rounds: int, threads: int | None, results_path: Path) -> dict[str, Any]:
+    """3D-side (head stage) inference latency of the three heads in one process (fastocc.bench: same V_B and
+    image features for each head, warm-up then the median of `repeats`), `rounds` times; the reported ms and
+    ratios are medians over rounds (the ratio per round, so slow drifts of the machine's load cancel)."""
+    from fastocc.bench import BenchConfig, run_benchmark
+    from fastocc.model import HeadKind
+
+    heads = (HeadKind.FASTOCC, HeadKind.FCN3D, HeadKind.DECONV)
+    load = os.getloadavg()[0]
+    per_round = []
+    for _ in range(rounds):
+        res = run_benchmark(BenchConfig(preset=preset, heads=heads, repeats=repeats, threads=threads))
+        per_round.append({h: v["ms"] for h, v in res["heads"].items()})
+    ms = {h.value: statistics.median(r[h.value] for r in per_round) for h in heads}
+    ratio = {h.value: statistics.median(r[h.value] / r["fastocc"] for r in per_round) for h in heads}
+    out = {"head_ms": ms, "ratio_to_fastocc": ratio, "rounds_ms": per_round, "config": res["config"],
+           "loadavg_1min": load,
+           "command": f"python benchmarks/ablations.py latency --preset {preset} --repeats {repeats} --rounds {rounds}"
+                      + (f" --threads {threads}" if threads else "")}
+    results = load_results(results_path)
+    results["latency"] = out
+    _save(results, results_path)
+    for h in ms:
+        print(f"  head {h:<8} {ms[h]:8.1f} ms  x{out['ratio_to_fastocc'][h]:.2f} of the FastOcc head")
+    return out
+
+
+# -- tables ---------------------------------------------------------------------------------------------
+def _seed_values(results: dict[str, Any], row: str, metric: str) -> list[float]:
+    vals = [results["runs"].get(run_name(row, s), {}).get(metric) for s in SEEDS]
+    return [float(v) for v in vals if v is not None]
+
+
+def _per_seed(results: dict[str, Any], row: str, metric: str) -> list[float | None]:
+    return [results["runs"].get(run_name(row, s), {}).get(metric) for s in SEEDS]
+
+
+def verdict(a: Sequence[float], b: Sequence[float]) -> str:
+    """Compare two rows' per-seed values: "pending" without every seed; "not resolved" when the means differ
+    by less than the larger seed spread (max - min) of the two rows; else "A > B" / "A < B" with the gap."""
+    if len(a) < len(SEEDS) or len(b) < len(SEEDS):
+        return "pending"
+    gap = statistics.fmean(a) - statistics.fmean(b)
+    spread = max(max(a) - min(a), max(b) - min(b))
+    if abs(gap) < spread or gap == 0:
+        return f"not resolved (|gap| {100 * abs(gap):.2f} < seed spread {100 * spread:.2f})"
+    return f"{'>' if gap > 0 else '<'} by {100 * abs(gap):.2f} (seed spread {100 * spread:.2f})"
+
+
+def _pct(vals: Sequence[float | None]) -> str:
+    """Per-seed values in percent and their mean; a missing seed shows as "pending" (no mean then)."""
+    if all(v is None for v in vals) or not vals:
+        return "pending"
+    if len(vals) < len(SEEDS) or any(v is None for v in vals):
+        return " / ".join("pending" if v is None else f"{100 * v:.2f}" for v in vals)
+    return " / ".join(f"{100 * v:.2f}" for v in vals) + f" (mean {100 * statistics.fmean(vals):.2f})"
+
+
+def _num(v: float | None, fmt: str) -> str:
+    return "pending" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
+
+
+def _table_lines(t: Table, results: dict[str, Any]) -> list[str]:
+    lat = results.get("latency", {}).get("ratio_to_fastocc", {})
+    head = t.key == "head"
+    cols = ["row", "paper mIoU"] + (["paper ms (ratio)"] if head else []) + [
+        "mIoU s0 / s1 (mean)", "RayIoU s0 / s1 (mean)", "geometry IoU (mean)", "s/step (mean)"]
+    cols += ["3D-side latency / FastOcc head"] if head else []
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for tr in t.rows:
+        geo, sps = _seed_values(results, tr.row, "geo_iou"), _seed_values(results, tr.row, "s_per_step")
+        cells = [f"{tr.label} (`{tr.row}`)", _num(tr.paper_miou, ".2f") if tr.paper_miou else "-"]
+        if head:
+            cells.append(f"{tr.paper_ms:.0f} ({tr.paper_ms / 221.0:.2f})" if tr.paper_ms else "-")
+        cells += [_pct(_per_seed(results, tr.row, "miou")), _pct(_per_seed(results, tr.row, "rayiou")),
+                  _num(100 * statistics.fmean(geo) if len(geo) == len(SEEDS) else None, ".2f"),
+                  _num(statistics.fmean(sps) if len(sps) == len(SEEDS) else None, ".3f")]
+        if head:
+            cells.append(_num(lat.get(tr.row), ".2f"))
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def _comparison_lines(t: Table, results: dict[str, Any]) -> list[str]:
+    """Every pair of rows, for mIoU and RayIoU, with the paper's order where it gives both mIoUs."""
+    out = []
+    for i, a in enumerate(t.rows):
+        for b in t.rows[i + 1:]:
+            m = verdict(_seed_values(results, a.row, "miou"), _seed_values(results, b.row, "miou"))
+            r = verdict(_seed_values(results, a.row, "rayiou"), _seed_values(results, b.row, "rayiou"))
+            line = f"- `{a.row}` vs `{b.row}`: mIoU {m}; RayIoU {r}"
+            if a.paper_miou is not None and b.paper_miou is not None:
+                paper = ">" if a.paper_miou > b.paper_miou else "<"
+                agree = ("pending" if m == "pending" else "not resolved" if m.startswith("not") else
+                         "agrees" if m.startswith(paper) else "disagrees")
+                line += f"; paper {paper} by {abs(a.paper_miou - b.paper_miou):.2f}: {agree}"
+            out.append(line)
+    return out
+
+
+def _latency_note(lat: dict[str, Any] | None) -> str:
+    if not lat:
+        return "3D-side latency: pending (`python benchmarks/ablations.py latency`)."
+    c, ms, rounds = lat["config"], lat["head_ms"], len(lat.get("rounds_ms", [1]))
+    return (f"3D-side latency ({c['preset']} {c['input_hw'][0]}x{c['input_hw'][1]}, {c['device_name']}, "
+            f"{c['threads']} threads, median of {c['repeats']} x {rounds} rounds, "
+            f"1-min load {lat['loadavg_1min']:.1f}): "
+            + ", ".join(f"{h} {v:.0f} ms" for h, v in ms.items()) + f"; `{lat['command']}`.")
+
+
+def _tta_lines(results: dict[str, Any]) -> list[str]:
+    tta = results.get("tta")
+    if not tta or not tta.get("runs"):
+        return ["Pending: `score` runs it for the best row of the tables above once all their runs are done.", ""]
+    runs = [tta["runs"][k] for k in sorted(tta["runs"])]
+    lines = [f"Best row: `{tta['row']}`.", "", "| TTA | mIoU s0 / s1 (mean) | RayIoU s0 / s1 (mean) | time factor |",
+             "|---|---|---|---|"]
+    for key in ("off", "on"):
+        factor = "1.00" if key == "off" else f"{statistics.fmean(r['time_factor'] for r in runs):.2f}"
+        lines.append(f"| {key} | {_pct([r[key]['miou'] for r in runs])} | "
+                     f"{_pct([r[key]['rayiou'] for r in runs])} | {factor} |")
+    off, on = [r["off"]["miou"] for r in runs], [r["on"]["miou"] for r in runs]
+    lines += ["", f"- TTA on vs off: mIoU {verdict(on, off)}", ""]
+    return lines
+
+
+def render_markdown(results: dict[str, Any], epochs: int, png: dict[str, str] | None = None,
+                    readings: dict[str, str] | None = None) -> str:
+    """docs/ablations.md from the results JSON: "pending" where runs are missing (pure function)."""
+    png, readings = png or {}, readings or {}
+    lines = ["# Ablations on the synthetic world (issue 18)", "",
+             f"World: 8 scenes x 40 samples (6 train / 2 val; store `{results.get('store', 'w8v.zarr')}`), recipe "
+             f"`{RECIPE.relative_to(REPO)}` shortened to **E = {epochs} epochs** for every row, seeds "
+             f"{', '.join(map(str, SEEDS))}. Metrics in percent on the val scenes: mIoU with the camera mask, "
+             "RayIoU (no mask), geometry IoU (occupied vs free, "
+             "camera mask); s/step = median over epochs of epoch seconds / optimizer steps (machine load and "
+             "threads vary between runs: compare the `latency` ratios for cost). Where two rows differ by "
+             "less than the larger seed spread (max - min over seeds) the comparison says **not resolved**.", "",
+             f"Budget: E = {epochs} is {240 * epochs} optimizer steps per run (240 training samples, batch 1); at "
+             f"the 18-epoch recipe's 0.69 s/step (alone, 2 threads; docs/training.md) that is "
+             f"~{240 * epochs * 0.69 / 60:.0f} min for the FastOcc row alone, ~{240 * epochs * 1.2 / 60:.0f} min "
+             "with two runs side by side (~1.2 s/step each). 18 runs: the 9 rows below x 2 seeds.", ""]
+    for t in TABLES:
+        lines += [f"## {t.title}", "", *_table_lines(t, results), "", t.note, ""]
+        if t.key == "head":
+            lines += [_latency_note(results.get("latency")), ""]
+        lines += [*_comparison_lines(t, results), ""]
+        if t.key in png:
+            lines += [f"![{t.key} learning curves]({png[t.key]})", ""]
+        lines += _reading_block(t.key, readings)
+    lines += ["## Flip TTA for the best model", "", *_tta_lines(results)]
+    if "tta" in png:
+        lines += [f"![tta learning curves]({png['tta']})", ""]
+    lines += _reading_block("tta", readings)
+    lines += _commands_section(epochs)
+    return "\n".join(lines) + "\n"
+
+
+READING_PENDING = "Reading: pending (written after the runs: where we agree with the paper, where not, and why)."
+_READING = re.compile(r"<!-- reading:(\w+) -->\n(.*?)\n<!-- /reading -->", re.S)
+
+
+def _reading_block(key: str, readings: dict[str, str]) -> list[str]:
+    return [f"<!-- reading:{key} -->", readings.get(key, READING_PENDING), "<!-- /reading -->", ""]
+
+
+def readings_of(md_text: str) -> dict[str, str]:
+    """The hand-written paragraphs between the reading markers of an existing docs/ablations.md (kept by
+    `tables`, which rewrites everything else)."""
+    return {m.group(1): m.group(2) for m in _READING.finditer(md_text)}
+
+
+def _commands_section(epochs: int) -> list[str]:
+    return ["## Commands", "", "```", WORLD, f"python benchmarks/ablations.py status --epochs {epochs}   "
+            "# prints the nohup commands for the missing runs (two lanes)",
+            f"python benchmarks/ablations.py run ROW --seed S --epochs {epochs} [--threads 1]",
+            f"python benchmarks/ablations.py score --epochs {epochs}", "python benchmarks/ablations.py latency",
+            f"python benchmarks/ablations.py tables --epochs {epochs}", "```", "",
+            f"Rows: {', '.join(f'`{r}`' for r in ROWS)}. Raw numbers: `docs/ablations.json`.", ""]
+
+
+def plot_curves(results: dict[str, Any], rows: Sequence[str], title: str, path: Path) -> bool:
+    """Val mIoU against samples seen, one colour per row, solid seed 0 / dashed seed 1. False if no data."""
+    series = [(r, s, results["runs"][run_name(r, s)]["curve"]) for r in rows for s in SEEDS
+              if run_name(r, s) in results["runs"] and results["runs"][run_name(r, s)].get("curve")]
+    if not series:
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    colours = {r: f"C{i}" for i, r in enumerate(rows)}
+    for r, s, curve in series:
+        xs, ys = zip(*curve, strict=True)
+        ax.plot(xs, [100 * y for y in ys], color=colours[r], ls="-" if s == SEEDS[0] else "--", marker="o", ms=3,
+                label=f"{r} seed {s}")
+    ax.set(xlabel="training samples seen", ylabel="val mIoU % (camera mask)", title=title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
+def tables(results_path: Path, md_path: Path, epochs: int) -> str:
+    results = load_results(results_path)
+    if results.get("epochs", epochs) != epochs:
+        raise SystemExit(f"{results_path} holds runs of E = {results['epochs']} epochs, not {epochs} (pass --epochs)")
+    png = {}
+    groups = [(t.key, [tr.row for tr in t.rows], t.title) for t in TABLES]
+    if results.get("tta", {}).get("row"):
+        groups.append(("tta", [results["tta"]["row"]], "best row (TTA table)"))
+    for key, rows, title in groups:
+        path = md_path.parent / f"{md_path.stem}_{key}.png"
+        if plot_curves(results, rows, title, path):
+            png[key] = path.name
+    readings = readings_of(md_path.read_text()) if md_path.is_file() else {}
+    text = render_markdown(results, epochs, png, readings)
+    md_path.write_text(text)
+    print(f"wrote {md_path}" + (f" and {', '.join(png.values())}" if png else " (no curves yet)"))
+    return text
+
+
+# -- command line ---------------------------------------------------------------------------------------
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, help=f"E, the same for every row "
+                        f"(default {DEFAULT_EPOCHS})")
+    common.add_argument("--store", default=None, help="store (default: the recipe's, w8v.zarr)")
+    common.add_argument("--runs-dir", type=Path, default=RUNS_DIR, help=f"run folders (default {RUNS_DIR})")
+    common.add_argument("--results", type=Path, default=DOCS / "ablations.json", help="raw results JSON")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run", parents=[common], help="train one row and seed (resumes a started run)")
+    r.add_argument("row", choices=sorted(ROWS), help="; ".join(
+        f"{n}: " + (", ".join(f"{k}={v}" for k, v in row.overrides) or "the recipe") for n, row in ROWS.items()))
+    r.add_argument("--seed", type=int, required=True, choices=SEEDS)
+    r.add_argument("--threads", type=int, default=None, help="torch threads (1 when two runs share 2 cores)")
+    sub.add_parser("status", parents=[common], help="done / missing runs and the commands for the missing ones")
+    s = sub.add_parser("score", parents=[common], help="score finished runs into the results JSON")
+    s.add_argument("--workers", type=int, default=1)
+    s.add_argument("--tta-row", default=None, choices=sorted(ROWS), help="TTA for this row (default: the best)")
+    lat = sub.add_parser("latency", parents=[common], help="3D-side latency of each head, ratio to FastOcc")
+    lat.add_argument("--preset", default="nano", choices=("nano", "tiny"),
+                     help="nano = the trained rows' size; tiny = the paper's Table IV size")
+    lat.add_argument("--repeats", type=int, default=5)
+    lat.add_argument("--rounds", type=int, default=3, help="whole measurements; medians over them")
+    lat.add_argument("--threads", type=int, default=None)
+    t = sub.add_parser("tables", parents=[common], help="write the markdown and PNGs from the results JSON")
+    t.add_argument("--md", type=Path, default=DOCS / "ablations.md")
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    store = args.store or load_config(RECIPE).store
+    if args.cmd == "run":
+        return run_row(args.row, args.seed, args.epochs, args.store, args.threads, args.runs_dir)
+    if args.cmd == "status":
+        status(args.epochs, args.store, args.runs_dir)
+    elif args.cmd == "score":
+        score(args.epochs, store, args.workers, args.runs_dir, args.results, args.tta_row)
+    elif args.cmd == "latency":
+        latency(args.preset, args.repeats, args.rounds, args.threads, args.results)
+    else:
+        tables(args.results, args.md, args.epochs)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
