@@ -89,16 +89,16 @@ def test_sigterm_to_the_process_group_saves_resumes_identically_and_leaves_no_or
     assert ref.returncode == 0, log
     out = tmp_path / "term"
     proc = _start([*base, "--out", str(out)])
-    _wait_steps(proc, out, 2)  # mid-epoch 1 (3 steps per epoch)
+    _wait_steps(proc, out, 1)  # mid-epoch 1 (3 steps per epoch)
     loader = loader_processes(proc.pid)
-    assert len(loader) >= 3, f"expected a forkserver and 2 workers, got {loader}"
+    assert len(loader) >= 2, f"expected a forkserver and its workers, got {loader}"
     os.killpg(proc.pid, signal.SIGTERM)  # the whole group: trainer, forkserver, workers, resource tracker
     log = proc.communicate(timeout=120)[0]
     assert proc.returncode == EXIT_PREEMPTED, log
     assert "SIGTERM: saving" in log and "continue with --resume" in log
     _assert_no_orphans(loader, log)
     meta = load_checkpoint(out / "last.pt").meta
-    assert 2 <= meta["opt_steps"] < 6
+    assert 1 <= meta["opt_steps"] < 6
     res = _start([*base, "--out", str(out), "--resume"])
     log = res.communicate()[0]
     assert res.returncode == 0, log
@@ -216,7 +216,7 @@ def test_kill9_of_the_trainer_leaves_no_orphans(synth_store: Path, tmp_path: Pat
     proc = _start(["train", "--store", str(synth_store), "--config", str(conf), "--no-progress", "--out", str(out)])
     _wait_steps(proc, out, 1)
     loader = loader_processes(proc.pid)
-    assert len(loader) >= 3, loader
+    assert len(loader) >= 2, loader
     proc.kill()
     proc.communicate()
     assert wait_for(lambda: not any(alive(p) for p in loader), ORPHAN_SECONDS), [p for p in loader if alive(p)]
