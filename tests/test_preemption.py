@@ -71,11 +71,13 @@ def _assert_identical(a: Path, b: Path) -> None:
     assert not diff, f"{len(diff)} tensors differ, e.g. {diff[:3]}"
 
 
-def _assert_no_orphans(pids: list[int], log: str) -> None:
+def _assert_no_orphans(pids: list[int], log: str, torchrun: bool = False) -> None:
     assert wait_for(lambda: not any(alive(p) for p in pids), ORPHAN_SECONDS), \
         f"still alive {ORPHAN_SECONDS:g} s after the parent: {[p for p in pids if alive(p)]}"
     assert "leaked semaphore" not in log, log
-    assert "Traceback" not in log, log
+    # torchrun's agent itself prints a SignalException traceback when it gets SIGTERM (not ours to change)
+    tracebacks = log.split("Traceback (most recent call last):")[1:]
+    assert all(torchrun and "SignalException" in t for t in tracebacks), log
 
 
 # -- preemption: one process ----------------------------------------------------------------------------
@@ -166,7 +168,7 @@ def test_torchrun_ranks_agree_on_the_stop_step(synth_store: Path, tmp_path: Path
     os.killpg(proc.pid, signal.SIGTERM)
     log = proc.communicate(timeout=300)[0]
     assert "SIGTERM: saving" in log, log
-    _assert_no_orphans(loader, log)
+    _assert_no_orphans(loader, log, torchrun=True)
     assert load_checkpoint(out / "last.pt").meta["opt_steps"] > first
     proc = _start([*base, "--out", str(out), "--resume"], tuple(run))
     log = proc.communicate(timeout=600)[0]
