@@ -23,6 +23,7 @@ from fastocc.checkpoint import CheckpointError, load_checkpoint, load_weights, s
 from fastocc.model.config import ModelConfig
 from occdata.constants import FREE_LABEL, NUM_CLASSES
 from occdata.errors import OccDataError
+from occdata.fileio import write_atomic
 from occdata.store.reader import open_store
 
 __all__ = ["EMA", "Progress", "TrainState", "class_counts", "get_rng_state", "load_resume", "set_rng_state"]
@@ -112,8 +113,8 @@ def class_counts(store: str | Path, split: str, use_camera_mask: bool, cache: Pa
             s = s[np.asarray(cam[lo: lo + block])[mine - lo].astype(bool)]
         counts += np.bincount(s.reshape(-1), minlength=NUM_CLASSES)[:NUM_CLASSES]
     if cache is not None:
-        cache.write_text(json.dumps({"split": split, "camera_mask": use_camera_mask, "counts": counts.tolist(),
-                                     "free_label": FREE_LABEL}))
+        write_atomic(cache, json.dumps({"split": split, "camera_mask": use_camera_mask, "counts": counts.tolist(),
+                                        "free_label": FREE_LABEL}).encode())
     return counts
 
 
