@@ -15,7 +15,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import BinaryIO
 
-__all__ = ["TMP_SUFFIX", "atomic_open", "copy_atomic", "current_umask", "remove_stale_temps", "write_atomic"]
+__all__ = ["TMP_SUFFIX", "atomic_open", "copy_atomic", "current_umask", "remove_stale_temps", "replace_synced",
+           "write_atomic"]
 
 TMP_SUFFIX = ".tmp"
 
@@ -52,6 +53,17 @@ def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def replace_synced(tmp: str | Path, path: str | Path) -> None:
+    """Move a finished file that another library wrote (e.g. `torch.onnx.export`) into place like
+    `atomic_open` does: fsync it, then rename it over `path`."""
+    fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, path)
 
 
 def write_atomic(path: str | Path, data: bytes) -> None:

@@ -23,7 +23,7 @@ import torch
 from fastocc.checkpoint import load_model, model_config_to_dict
 from fastocc.model import FastOcc
 from occdata.constants import CLASS_COLORS, CLASS_NAMES
-from occdata.fileio import write_atomic
+from occdata.fileio import replace_synced, write_atomic
 from occdata.image_ops import IMAGENET_MEAN, IMAGENET_STD
 
 from .predictor import TemporalState
@@ -209,7 +209,7 @@ def export_model(model: FastOcc, rig: Rig, cfg: ExportConfig) -> ExportReport:
             raise DeployError(
                 f"parity check failed (max |logit diff| {parity.max_abs_diff:.2e} > {cfg.max_abs_diff:g} or argmax "
                 f"agreement {100 * parity.min_agreement:.3f}% < {100 * cfg.min_agreement:g}%); {out} not written")
-        os.replace(tmp, out)
+        replace_synced(tmp, out)  # torch wrote it with open(): the umask's mode
     finally:
         onnx_log.setLevel(level)
         tmp.unlink(missing_ok=True)
