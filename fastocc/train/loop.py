@@ -403,6 +403,7 @@ def save_state(run: Run, state: TrainState, meta_extra: dict[str, Any] | None = 
         raise OccDataError(f"could not write checkpoint {path} ({exc.strerror or exc}); the previous "
                            "checkpoint there is intact") from None
 
+
 # -- the driver ------------------------------------------------------------------------------------------
 def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> TrainResult:
     """Train (or continue with `resume`) as described by `cfg`; returns when done, interrupted (Ctrl-C) or
@@ -421,6 +422,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Trai
                 return _train(cfg, info, resume, progress, stop)
     finally:
         D.teardown(info)
+
 
 def _train(cfg: TrainConfig, info: D.DistInfo, resume: bool, progress: bool, stop: StopRequest) -> TrainResult:
     if cfg.threads:
@@ -464,6 +466,7 @@ def _train(cfg: TrainConfig, info: D.DistInfo, resume: bool, progress: bool, sto
         return _loop(run, state)
     finally:
         run.logger.close()
+
 
 def _loop(run: Run, state: TrainState) -> TrainResult:
     """Epochs until done; Ctrl-C or a stop signal saves `last.pt` at the last step boundary."""

@@ -206,7 +206,6 @@ def estimate_step_seconds(run: Run, model: nn.Module) -> float:
     return dt
 
 
-
 class MetricsLog:
     """metrics.jsonl (+ TensorBoard when installed); rank 0 only."""
 
@@ -245,7 +244,6 @@ class MetricsLog:
             self.tb.close()
 
 
-
 def check_writable(out: Path) -> None:
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -254,7 +252,6 @@ def check_writable(out: Path) -> None:
         probe.unlink()
     except OSError as exc:
         raise OccDataError(f"run folder {out} is not writable ({exc.strerror or exc}); choose another --out") from None
-
 
 
 def say_start(run: Run) -> None:
