@@ -45,11 +45,11 @@ def evaluate_checkpoint(path: Path, store: str, noise: bool, rayiou: bool, worke
     from fastocc.checkpoint import load_model
     from fastocc.infer.evaluate import evaluate
     from fastocc.infer.predict import PredictConfig
-    from fastocc.train.loop import _noise_hook
+    from fastocc.train.setup import noise_hook
 
     model, ckpt = load_model(path, "cpu", prefer_ema=True)
     if noise:
-        model.backbone.register_forward_pre_hook(_noise_hook(12345))
+        model.backbone.register_forward_pre_hook(noise_hook(12345))
     torch.manual_seed(0)
     rep = evaluate(model, ckpt.model_config, PredictConfig(store=store, split="val", workers=workers),
                    rayiou=rayiou, progress=False)

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import os
+import signal
+import sys
 import urllib.parse
 from collections.abc import Callable
 from pathlib import Path
@@ -12,7 +16,9 @@ import click
 
 from occdata.errors import OccDataError
 
-__all__ = ["DEFAULT_STORE", "friendly_errors", "local_path"]
+__all__ = ["DEFAULT_STORE", "EXIT_TERMINATED", "friendly_errors", "local_path", "stop_on_sigterm"]
+
+EXIT_TERMINATED = 143  # 128 + SIGTERM, as a shell reports a process killed by it
 
 DEFAULT_STORE = "data.zarr"  # what `occdata build` writes by default and every store reader opens
 
@@ -26,6 +32,8 @@ def friendly_errors(fn: F) -> F:
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return fn(*args, **kwargs)
+        except BrokenPipeError:
+            _quiet_broken_pipe()
         except OccDataError as exc:
             raise click.ClickException(str(exc)) from None
         except FileNotFoundError as exc:
@@ -33,6 +41,33 @@ def friendly_errors(fn: F) -> F:
         except OSError as exc:  # a full disk, a read-only folder, ...: the reason and the file, one line
             where = f": {exc.filename}" if exc.filename else ""
             raise click.ClickException(f"{exc.strerror or exc}{where}") from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _quiet_broken_pipe() -> None:
+    """The reader of our output went away (`... | head`): stop quietly, as Unix tools do (status 141 =
+    128 + SIGPIPE). stdout goes to /dev/null so that the interpreter's final flush does not complain."""
+    with contextlib.suppress(OSError, ValueError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    raise SystemExit(141)
+
+
+def stop_on_sigterm(fn: F) -> F:
+    """SIGTERM raises SystemExit(143) in the main thread instead of killing the process outright, so
+    `finally` blocks run: the data loader stops its workers and no semaphore is left behind."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        def handler(signum: int, frame: object) -> None:
+            raise SystemExit(EXIT_TERMINATED)
+
+        old = signal.signal(signal.SIGTERM, handler)
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            signal.signal(signal.SIGTERM, old)
 
     return wrapper  # type: ignore[return-value]
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from cli._common import DEFAULT_STORE, friendly_errors
+from cli._common import DEFAULT_STORE, friendly_errors, stop_on_sigterm
 
 __all__ = ["main"]
 
@@ -155,7 +155,11 @@ def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height
 @click.option("--pretrained", type=click.Path(dir_okay=False), default=None,
               help="torchvision ResNet state dict for the backbone (e.g. resnet50.pth).")
 @click.option("--out", default=None, help="Run folder (default runs/fastocc).")
-@click.option("--resume", is_flag=True, help="Continue the run in --out exactly where it stopped.")
+@click.option("--resume", is_flag=True, help="Continue the run in --out exactly where it stopped (--epochs may grow).")
+@click.option("--init-from", "init_from", type=click.Path(dir_okay=False), default=None,
+              help="Start a NEW run from this checkpoint's weights (model, and EMA if present); not with --resume.")
+@click.option("--warn-signal", "warn_signal", type=click.Choice(["USR1", "USR2", "none"]), default=None,
+              help="Signal that, like SIGTERM, stops at the next step and saves last.pt (default USR1).")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="Default: cuda if available.")
 @click.option("--val-every", type=click.IntRange(min=0), default=None, help="Validate every N epochs (0 = never).")
 @click.option("--no-progress", is_flag=True, help="Hide the progress bar.")
@@ -165,10 +169,12 @@ def train(config_file: Path | None, resume: bool, no_progress: bool, **options: 
 
     Single process: `fastocc train --store data.zarr --out runs/nano`. Several GPUs or CPU processes:
     `torchrun --nproc_per_node N -m cli.fastocc_cli train ...` (DDP; only rank 0 writes). Ctrl-C saves
-    `last.pt`; `--resume` continues it. See docs/training.md for the config file and the recipe.
+    `last.pt` and exits 130; SIGTERM or the warning signal (SIGUSR1) stop after the current step, save
+    `last.pt` and exit 143 (preempted); `--resume` continues either. See docs/training.md.
     """
     from fastocc.train import load_config
     from fastocc.train import train as run_training
+    from fastocc.train.preempt import EXIT_INTERRUPTED, EXIT_PREEMPTED
 
     names = {"preset_name": "preset", "batch_size": "batch_size", "val_every": "val_every"}
     overrides = {names.get(k, k): v for k, v in options.items()}
@@ -177,11 +183,16 @@ def train(config_file: Path | None, resume: bool, no_progress: bool, **options: 
         result = run_training(cfg, resume=resume, progress=not no_progress)
     except KeyboardInterrupt:  # Ctrl-C during start-up, before the loop (which saves) has begun
         click.echo("\ninterrupted during start-up, before the first training step: nothing to save", err=True)
-        raise SystemExit(130) from None
+        raise SystemExit(EXIT_INTERRUPTED) from None
     if result.interrupted:
-        raise SystemExit(130)
-    best = "-" if result.best_miou is None else f"{100 * result.best_miou:.2f}%"
-    click.echo(f"done: {result.epochs_done} epochs, {result.opt_steps} steps; best val mIoU {best}; {result.out}")
+        raise SystemExit(EXIT_INTERRUPTED)
+    if result.preempted:
+        raise SystemExit(EXIT_PREEMPTED)
+    if result.is_main:  # under torchrun every rank returns here; one summary line
+        best = "-" if result.best_miou is None else f"{100 * result.best_miou:.2f}%"
+        which = "EMA" if result.best_is_ema else "raw"
+        click.echo(f"done: {result.epochs_done} epochs, {result.opt_steps} steps; best val mIoU ({which} weights) "
+                   f"{best}; {result.out}")
 
 
 _STORE = click.option("--store", default="data.zarr", show_default=True, help="Store path or fsspec URL.")
@@ -216,6 +227,7 @@ def _predict_config(store: str, split: str, batch_size: int, workers: int, tta: 
 @_WORKERS
 @click.option("--no-progress", "quiet", is_flag=True, help="No progress bar.")
 @friendly_errors
+@stop_on_sigterm
 def predict(checkpoint: Path, store: str, split: str, out: Path, tta: bool, png: int, batch_size: int, device: str,
             workers: int, quiet: bool) -> None:
     """Predict a store split with a checkpoint and write the Occ3D layout (score it with `occdata eval`).
@@ -245,6 +257,7 @@ def predict(checkpoint: Path, store: str, split: str, out: Path, tta: bool, png:
 @_WORKERS
 @click.option("--no-progress", "quiet", is_flag=True, help="No progress bar.")
 @friendly_errors
+@stop_on_sigterm
 def eval_cmd(checkpoint: Path, store: str, split: str, tta: bool, mask: str, no_rayiou: bool, as_json: bool,
              batch_size: int, device: str, workers: int, quiet: bool) -> None:
     """Score a checkpoint on a store split: Occ3D mIoU, RayIoU@1/2/4 m and inference frames/s.

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import tempfile
+import re
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,15 +27,19 @@ import torch
 from fastocc.model.config import BackboneConfig, DepthBins, HeadKind, ModelConfig
 from occdata.constants import OccGrid
 from occdata.errors import OccDataError
+from occdata.fileio import atomic_open
 
 __all__ = [
     "CHECKPOINT_FORMAT",
     "Checkpoint",
     "CheckpointError",
+    "first_mismatch",
     "load_checkpoint",
     "load_model",
+    "load_weights",
     "model_config_from_dict",
     "model_config_to_dict",
+    "newest_epoch_checkpoint",
     "save_checkpoint",
 ]
 
@@ -99,7 +103,7 @@ def save_checkpoint(
     meta: dict[str, Any] | None = None,
     **extra: Any,
 ) -> Path:
-    """Write atomically: a temporary file in the same folder, fsync, then rename over `path`.
+    """Write atomically (`occdata.fileio.atomic_open`: temporary file, fsync, rename; the umask's mode).
 
     A crash or a full disk while writing leaves any previous file at `path` intact (the temporary file
     is removed and the error re-raised)."""
@@ -113,42 +117,91 @@ def save_checkpoint(
         "meta": dict(meta or {}),
         **extra,
     }
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_open(path) as f:
+        torch.save(payload, f)
     return path
 
 
+def newest_epoch_checkpoint(folder: str | Path, exclude: Path | None = None) -> Path | None:
+    """The `epoch_NNN.pt` with the highest N in `folder` (the trainer keeps the last few), or None."""
+    found = sorted((int(m.group(1)), p) for p in Path(folder).glob("epoch_*.pt")
+                   if (m := re.fullmatch(r"epoch_(\d+)\.pt", p.name)) and p != exclude)
+    return found[-1][1] if found else None
+
+
+def _why_unreadable(path: Path) -> str:
+    """What is wrong with a file torch cannot load with weights_only=True, in a few words (never torch's
+    advice to load with weights_only=False: that would run code from the file)."""
+    size = path.stat().st_size
+    if size == 0:
+        return "truncated (an empty file)"
+    with path.open("rb") as f:
+        magic = f.read(4)
+    if magic != b"PK\x03\x04":
+        return "not a checkpoint at all (not a torch file)"
+    try:
+        with zipfile.ZipFile(path) as z:
+            bad = z.testzip()
+    except (zipfile.BadZipFile, OSError, EOFError):
+        return f"truncated or damaged ({size} bytes; the archive does not read to its end)"
+    if bad is not None:
+        return f"damaged (member {bad} fails its checksum)"
+    return "it holds Python objects besides tensors (refused: loading them could run code)"
+
+
+def _unreadable(path: Path, why: str) -> CheckpointError:
+    newest = newest_epoch_checkpoint(path.parent, exclude=path)
+    hint = f"; the newest epoch checkpoint there is {newest}" if newest is not None else ""
+    return CheckpointError(f"{path}: {why}{hint}")
+
+
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> Checkpoint:
-    """Read a checkpoint with `torch.load(weights_only=True)` (never unpickles code)."""
+    """Read a checkpoint with `torch.load(weights_only=True)` (never unpickles code).
+
+    A file that cannot be used is one `CheckpointError` line naming it: truncated, not a checkpoint or
+    from another version, pointing to the newest `epoch_NNN.pt` beside it when there is one."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as exc:  # a truncated file, a pickle with code, not a torch file at all
-        raise CheckpointError(f"{path}: not a readable fastocc checkpoint ({type(exc).__name__}: "
-                              f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
+    except Exception:  # a truncated file, a pickle with code, not a torch file at all
+        raise _unreadable(path, f"not a readable fastocc checkpoint: {_why_unreadable(path)}") from None
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         hint = " (it looks like a bare state dict: use --pretrained for backbone weights)" if isinstance(
             payload, dict) and payload and all(isinstance(v, torch.Tensor) for v in payload.values()) else ""
-        raise CheckpointError(f"{path}: not a fastocc checkpoint{hint}")
+        raise _unreadable(path, f"not a fastocc checkpoint{hint}")
     if payload.get("version") != CHECKPOINT_VERSION:
-        raise CheckpointError(f"{path}: checkpoint version {payload.get('version')} is not supported "
-                              f"(this fastocc reads version {CHECKPOINT_VERSION})")
+        raise _unreadable(path, f"checkpoint version {payload.get('version')} is from another fastocc version "
+                                f"(this one reads version {CHECKPOINT_VERSION})")
     try:
         cfg = model_config_from_dict(json.loads(payload["model_config"]))
     except (KeyError, TypeError, ValueError) as exc:
-        raise CheckpointError(f"{path}: bad model config in checkpoint ({exc})") from None
+        raise _unreadable(path, f"bad model config in checkpoint ({exc})") from None
     return Checkpoint(model_config=cfg, model=payload["model"], ema=payload.get("ema"),
                       meta=dict(payload.get("meta") or {}), payload=payload)
+
+
+def first_mismatch(expected: dict[str, torch.Tensor], given: dict[str, torch.Tensor]) -> str | None:
+    """The first key (in the model's order) whose tensor is missing, extra or of another shape, described
+    as "key 'k': checkpoint (a, b), model (c, d)"; None when every key and shape fits."""
+    for k, v in expected.items():
+        if k not in given:
+            return f"key {k!r}: not in the checkpoint, model {tuple(v.shape)}"
+        if tuple(given[k].shape) != tuple(v.shape):
+            return f"key {k!r}: checkpoint {tuple(given[k].shape)}, model {tuple(v.shape)}"
+    extra = [k for k in given if k not in expected]
+    if extra:
+        return f"key {extra[0]!r}: checkpoint {tuple(given[extra[0]].shape)}, not in the model"
+    return None
+
+
+def load_weights(model: torch.nn.Module, state: dict[str, torch.Tensor], source: str | Path) -> None:
+    """`model.load_state_dict(state)`, or one `CheckpointError` naming the first differing key and shapes."""
+    bad = first_mismatch(model.state_dict(), state)
+    if bad is not None:
+        raise CheckpointError(f"{source}: weights do not fit the model config (first difference at {bad})")
+    model.load_state_dict(state)
 
 
 def load_model(
@@ -159,8 +212,5 @@ def load_model(
 
     ckpt = load_checkpoint(path)
     model = FastOcc(ckpt.model_config)
-    try:
-        model.load_state_dict(ckpt.weights(prefer_ema))
-    except RuntimeError as exc:
-        raise CheckpointError(f"{path}: weights do not fit the model config ({str(exc).splitlines()[0]})") from None
+    load_weights(model, ckpt.weights(prefer_ema), path)
     return model.to(device).eval(), ckpt

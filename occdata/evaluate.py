@@ -23,7 +23,8 @@ import numpy as np
 
 from occdata.constants import CLASS_NAMES, FREE_LABEL, GRID
 from occdata.errors import OccDataError
-from occdata.metrics import MIoUAccumulator, MIoUResult, RayIoUAccumulator, RayIoUResult, scene_ray_origins
+from occdata.metrics import MIoUAccumulator, MIoUResult, RayIoUAccumulator, RayIoUResult
+from occdata.store.rays import scene_ray_origins
 
 __all__ = [
     "EvalConfig",
@@ -107,19 +108,13 @@ def load_prediction(path: Path) -> np.ndarray:
 
 def _split_samples(reader: Any, split: str) -> tuple[list[int], int]:
     """Committed store indices of `split` with labels, and how many committed ones lack labels."""
-    from occdata.store.layout import STATE_DONE
-
-    splits = list(reader.attrs.get("splits", []))
-    if split not in splits:
-        raise OccDataError(f"split '{split}' is not in store {reader.path} (splits: {', '.join(splits) or 'none'})")
-    in_split = np.flatnonzero((reader.small("sample/split") == splits.index(split))
-                              & (reader.small("status/state") == STATE_DONE))
+    in_split = reader.split_indices(split)
     if in_split.size == 0:
         raise OccDataError(f"split '{split}' has no samples in store {reader.path}")
-    labelled = reader.small("labels/present")[in_split]
-    if not labelled.any():
+    labelled = reader.split_indices(split, labelled=True)
+    if not labelled.size:
         raise OccDataError(f"split '{split}' has no labelled samples in store {reader.path} (nothing to score)")
-    return [int(i) for i in in_split[labelled]], int((~labelled).sum())
+    return [int(i) for i in labelled], int(in_split.size - labelled.size)
 
 
 def _iter_label_blocks(reader: Any, indices: list[int],

@@ -1,26 +1,91 @@
-"""Atomic file writes: readers never see a half-written file, a failed write leaves no debris."""
+"""Atomic file writes: readers never see a half-written file, a failed write leaves no debris.
+
+The one helper every writer uses (checkpoints, predictions, pictures, sidecars, synthetic worlds):
+a unique temporary file in the target folder, fsync, rename. `mkstemp` creates files with mode 0600;
+the temporary file is given `0666 & ~umask` first, so the result has the mode `open()` would give
+(a teammate in the same group can read a checkpoint when the umask allows it).
+"""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
+from typing import BinaryIO
 
-__all__ = ["write_atomic"]
+__all__ = ["TMP_SUFFIX", "atomic_open", "copy_atomic", "current_umask", "remove_stale_temps", "replace_synced",
+           "write_atomic"]
+
+TMP_SUFFIX = ".tmp"
 
 
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write `data` to `path` through a unique temporary file in the same folder and a rename.
+def current_umask() -> int:
+    """The process umask, read without changing it where /proc says it (Linux), else set and restored."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
-    On any failure (a full disk, Ctrl-C) the temporary file is removed and the previous `path`, if
-    any, is left as it was."""
+
+@contextlib.contextmanager
+def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
+    """`with atomic_open(p) as f: f.write(...)`: `p` appears complete (fsynced) or not at all.
+
+    On any failure (a full disk, Ctrl-C) the temporary file is removed, the error re-raised and the
+    previous `p`, if any, is left as it was."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=TMP_SUFFIX, dir=path.parent)
     try:
+        os.fchmod(fd, 0o666 & ~current_umask())
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def replace_synced(tmp: str | Path, path: str | Path) -> None:
+    """Move a finished file that another library wrote (e.g. `torch.onnx.export`) into place like
+    `atomic_open` does: fsync it, then rename it over `path`."""
+    fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, path)
+
+
+def write_atomic(path: str | Path, data: bytes) -> None:
+    """Write `data` to `path` atomically (`atomic_open`)."""
+    with atomic_open(path) as f:
+        f.write(data)
+
+
+def copy_atomic(src: str | Path, dst: str | Path) -> None:
+    """Copy `src` to `dst` atomically (`atomic_open`), in 4 MiB chunks."""
+    with Path(src).open("rb") as fi, atomic_open(dst) as fo:
+        while chunk := fi.read(1 << 22):
+            fo.write(chunk)
+
+
+def remove_stale_temps(folder: str | Path) -> list[Path]:
+    """Delete the temporary files `atomic_open` leaves when its process is killed (`.<name>.<random>.tmp`).
+
+    Only call this while holding the folder's writer lock: another writer's temporaries are live."""
+    removed = []
+    for p in Path(folder).glob(f".*{TMP_SUFFIX}"):
+        if p.is_file():
+            p.unlink(missing_ok=True)
+            removed.append(p)
+    return removed

@@ -18,16 +18,12 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numba import njit, prange
 
 from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES, OccGrid
 from occdata.errors import OccDataError
-
-if TYPE_CHECKING:
-    from occdata.store.reader import StoreReader
 
 __all__ = [
     "RAYIOU_TAUS",
@@ -43,7 +39,6 @@ __all__ = [
     "ray_counts",
     "ray_origins_keyego",
     "ray_pitches",
-    "scene_ray_origins",
 ]
 
 RAYIOU_TAUS: tuple[float, ...] = (1.0, 2.0, 4.0)
@@ -290,25 +285,6 @@ def ray_origins_keyego(T_global_from_keyego: np.ndarray, T_ego_from_lidar: np.nd
     if len(out) > max_origins:
         out = out[np.round(np.linspace(0, len(out) - 1, max_origins)).astype(np.int64)]
     return out
-
-
-def scene_ray_origins(reader: StoreReader, index: int) -> np.ndarray:
-    """`ray_origins_keyego` for store sample `index`, from its scene's committed keyframes.
-
-    Uses `pose/T_global_from_keyego`, `calib/T_ego_from_lidar`, `sample/scene_index` and the scene
-    ranges in the store attrs; samples that are not committed (pending, error) are skipped."""
-    from occdata.store.layout import STATE_DONE
-
-    reader._check_index(index)
-    scene = reader.attrs["scenes"][int(reader.small("sample/scene_index")[index])]
-    lo = int(scene["first_index"])
-    hi = lo + int(scene["num_samples"])
-    done = np.flatnonzero(reader.small("status/state")[lo:hi] == STATE_DONE) + lo
-    if index not in done:
-        raise OccDataError(f"sample {index} ({reader.token(index)}) is not committed in {reader.path}")
-    T_g = reader.small("pose/T_global_from_keyego")[done]
-    T_el = reader.small("calib/T_ego_from_lidar")[done]
-    return ray_origins_keyego(T_g, T_el, int(np.flatnonzero(done == index)[0]))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -565,7 +541,8 @@ class RayIoUResult:
 class RayIoUAccumulator:
     """RayIoU (SparseOcc protocol) over a split: ray counts updated per sample, mergeable.
 
-    >>> acc = RayIoUAccumulator(); acc.update(gt, pred, scene_ray_origins(reader, i)); acc.result().rayiou
+    >>> acc = RayIoUAccumulator()  # origins: occdata.store.rays.scene_ray_origins(reader, i)
+    >>> acc.update(gt, pred, origins); acc.result().rayiou
     """
 
     def __init__(self, taus: Sequence[float] = RAYIOU_TAUS, grid: OccGrid = GRID,

@@ -54,7 +54,8 @@ def main() -> None:
     from pyquaternion import Quaternion
 
     from occdata.constants import CLASS_NAMES, FREE_LABEL
-    from occdata.metrics import RayIoUAccumulator, first_hits, lidar_ray_directions, scene_ray_origins
+    from occdata.metrics import RayIoUAccumulator, first_hits, lidar_ray_directions
+    from occdata.store.rays import scene_ray_origins
     from occdata.store.reader import open_store
 
     ns, EgoPoseDataset = _reference(args.sparseocc)

@@ -4,6 +4,7 @@ streaming Predictor (shared preprocessing with the loader, fixed-size state) and
 from __future__ import annotations
 
 import json
+import stat
 import subprocess
 import sys
 import time
@@ -76,6 +77,10 @@ def test_cli_export_writes_a_parity_checked_standard_graph(nano_export: tuple[Pa
     assert meta["rig_hash"] == synthetic_rig().hash((128, 352))
     p = meta["parity"]
     assert p["passed"] and p["max_abs_diff"] <= 1e-3 and p["min_agreement"] >= 0.999
+    from occdata.fileio import current_umask
+
+    for f in (out, out.with_suffix(".json")):  # the mode open() gives under the umask (issue 17)
+        assert stat.S_IMODE(f.stat().st_mode) == 0o666 & ~current_umask(), (f, oct(f.stat().st_mode))
 
 
 @pytest.mark.parametrize("head", [HeadKind.FCN3D, HeadKind.DECONV])

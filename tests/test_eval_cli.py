@@ -11,7 +11,8 @@ import pytest
 from click.testing import CliRunner
 
 from cli.occdata_cli import main
-from occdata.metrics import MIoUAccumulator, RayIoUAccumulator, scene_ray_origins
+from occdata.metrics import MIoUAccumulator, RayIoUAccumulator
+from occdata.store.rays import scene_ray_origins
 from occdata.store.reader import open_store
 
 

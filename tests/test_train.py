@@ -280,6 +280,7 @@ def test_torchrun_two_processes_match_one(synth_store: Path, tmp_path: Path) -> 
                           str(synth_store), "--config", str(conf), "--out", str(tmp_path / "two"), "--no-progress"],
                          cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
     assert two.returncode == 0, two.stdout + two.stderr
+    assert (two.stdout + two.stderr).count("done:") == 1, two.stdout + two.stderr  # once, not once per rank
     a, b = _weights(tmp_path / "one1" / "last.pt"), _weights(tmp_path / "two" / "last.pt")
     params = [k for k in a if "running" not in k and "num_batches" not in k]
     worst = max(float((a[k] - b[k]).abs().max()) for k in params)

@@ -22,10 +22,9 @@ from fastocc.data.order import Slot, sequential_batches, shuffle_units
 from fastocc.data.sample import SampleConfig, SampleMaker, StoreSamples
 from fastocc.data.workers import check_main_guard, default_worker_context
 from occdata.errors import OccDataError
-from occdata.store.layout import STATE_DONE
 from occdata.store.reader import open_store
 
-__all__ = ["LoaderConfig", "StoreDataset", "load_batch", "make_loader"]
+__all__ = ["LoaderConfig", "StoreDataset", "load_batch", "loader_batches", "make_loader"]
 
 
 @dataclass(frozen=True)
@@ -41,6 +40,7 @@ class LoaderConfig:
     and depth-target settings.
     skip_batches: the first k batches of the epoch (as this rank would yield them) are planned but not
     decoded; worker roles rotate by k so that a DataLoader's round robin continues the original order.
+    limit_samples: keep only the first N selected samples (store order); 0 = all.
     """
 
     store: str | Path
@@ -57,6 +57,7 @@ class LoaderConfig:
     equal_lanes: bool = False
     drop_last: bool = False
     skip_batches: int = 0  # start the epoch at this rank's batch k (exact resume); skipped ones are not decoded
+    limit_samples: int = 0  # > 0: only the first N samples of the selection (smoke runs, tests)
 
     def __post_init__(self) -> None:
         if isinstance(self.batch_size, bool) or not isinstance(self.batch_size, int) or self.batch_size < 1:
@@ -77,16 +78,9 @@ class StoreDataset(IterableDataset):
                                "would yield no batch; lower batch_size or turn drop_last off")
 
     def _select(self, reader) -> np.ndarray:
-        state = reader.small("status/state")
-        keep = state == STATE_DONE  # pending / failed samples are never yielded
-        if self.config.splits:
-            names = list(reader.attrs["splits"])
-            unknown = set(self.config.splits) - set(names)
-            if unknown:
-                raise OccDataError(f"unknown split(s) {sorted(unknown)}; the store has {names}")
-            wanted = [names.index(s) for s in self.config.splits]
-            keep &= np.isin(reader.small("sample/split"), wanted)
-        return np.flatnonzero(keep)
+        # Built samples only (pending / failed ones are never yielded), the first `limit_samples` if set.
+        indices = reader.split_indices(self.config.splits or None)
+        return indices[: self.config.limit_samples] if self.config.limit_samples else indices
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
@@ -122,6 +116,23 @@ class StoreDataset(IterableDataset):
     def __len__(self) -> int:
         """Samples per epoch over all ranks (exactly-once; padding excluded)."""
         return len(self.indices)
+
+    def num_batches(self, num_workers: int) -> int:
+        """Batches this rank yields in the current epoch (`set_epoch`) with `num_workers` loader workers,
+        from the same plan functions the workers use (order.py); `skip_batches` not subtracted."""
+        c, s = self.config, self.samples()
+        rank, world = self._slot().rank, self._slot().world_size
+        total = 0
+        for w in range(max(1, num_workers)):
+            slot = Slot(rank, world, w, max(1, num_workers))
+            if c.sequential:
+                plan = sequential_batches(self.indices, s.scene_index, slot, c.batch_size, c.seed, self.epoch,
+                                          c.segment_len, equal_lanes=c.equal_lanes)
+                total += sum(1 for e in plan if not (c.drop_last and len(e) < c.batch_size))
+            else:
+                n = sum(len(u) for u in shuffle_units(self.indices, s.block, slot, c.seed, self.epoch, pad=c.pad))
+                total += n // c.batch_size if c.drop_last else -(-n // c.batch_size)
+        return total
 
     def __iter__(self) -> Iterator[Batch]:
         if get_worker_info() is not None:
@@ -215,6 +226,11 @@ def make_loader(config: LoaderConfig, num_workers: int = 0, pin_memory: bool = F
     ds = StoreDataset(config)
     return torch.utils.data.DataLoader(ds, batch_size=None, num_workers=num_workers, pin_memory=pin_memory,
                                        **kwargs)
+
+
+def loader_batches(loader: torch.utils.data.DataLoader) -> int:
+    """Batches a loader made by `make_loader` yields this epoch on this rank (`StoreDataset.num_batches`)."""
+    return loader.dataset.num_batches(loader.num_workers)
 
 
 def load_batch(store: str | Path, indices: list[int], sample: SampleConfig, seed: int = 0, epoch: int = 0) -> Batch:

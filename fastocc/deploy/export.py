@@ -23,9 +23,12 @@ import torch
 from fastocc.checkpoint import load_model, model_config_to_dict
 from fastocc.model import FastOcc
 from occdata.constants import CLASS_COLORS, CLASS_NAMES
+from occdata.fileio import replace_synced, write_atomic
 from occdata.image_ops import IMAGENET_MEAN, IMAGENET_STD
 
+from .predictor import TemporalState
 from .rig import DeployError, Rig, load_rig, require_onnx
+from .sidecar import SIDECAR_FORMAT, sidecar_path
 from .static import StaticFastOcc
 
 __all__ = [
@@ -40,7 +43,6 @@ __all__ = [
     "sidecar_path",
 ]
 
-SIDECAR_FORMAT = "fastocc.onnx"
 MIN_OPSET = 18  # the dynamo exporter's lowest; ScatterND(add) needs >= 16, GridSample (temporal warp) >= 16
 
 
@@ -80,11 +82,6 @@ class ExportReport:
     rig_hash: str
 
 
-def sidecar_path(onnx_path: str | Path) -> Path:
-    """`model.onnx` -> `model.json` (the sidecar the Predictor reads)."""
-    return Path(onnx_path).with_suffix(".json")
-
-
 def custom_domain_ops(onnx_path: str | Path) -> list[str]:
     """`domain::op` of every node outside the standard ONNX domain (empty for a portable graph)."""
     import onnx
@@ -114,7 +111,6 @@ def check_parity(model: FastOcc, static: StaticFastOcc, rig: Rig, session: Any, 
     Temporal models run a stream: the first frame starts a sequence, later ones move the ego; the
     network keeps its own queue, the ONNX side gets the queue and T_prev_from_cur as the Predictor does.
     """
-    from .predictor import TemporalState
 
     g = torch.Generator().manual_seed(cfg.seed)
     H, W = model.cfg.input_hw
@@ -213,13 +209,13 @@ def export_model(model: FastOcc, rig: Rig, cfg: ExportConfig) -> ExportReport:
             raise DeployError(
                 f"parity check failed (max |logit diff| {parity.max_abs_diff:.2e} > {cfg.max_abs_diff:g} or argmax "
                 f"agreement {100 * parity.min_agreement:.3f}% < {100 * cfg.min_agreement:g}%); {out} not written")
-        os.replace(tmp, out)
+        replace_synced(tmp, out)  # torch wrote it with open(): the umask's mode
     finally:
         onnx_log.setLevel(level)
         tmp.unlink(missing_ok=True)
     rig_hash = rig.hash(model.cfg.input_hw)
     side = sidecar_path(out)
-    side.write_text(json.dumps(_sidecar(static, rig, parity, cfg.opset, cfg.checkpoint), indent=1))
+    write_atomic(side, json.dumps(_sidecar(static, rig, parity, cfg.opset, cfg.checkpoint), indent=1).encode())
     return ExportReport(out=out, sidecar=side, parity=parity, seconds=time.perf_counter() - t0,
                         size_mib=out.stat().st_size / 2**20, opset=cfg.opset, rig_hash=rig_hash)
 

@@ -11,8 +11,8 @@ Preprocessing is the loader's own test transform (`fastocc.data.sample.warp_norm
 
 from __future__ import annotations
 
-import json
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +25,8 @@ from fastocc.data.sample import warp_normalise
 from fastocc.model.inputs import SceneInputs
 from occdata.image_ops import IMAGENET_MEAN, IMAGENET_STD, normalise_lut
 
-from .rig import DeployError, Rig, load_rig, require_onnx
+from .rig import DeployError, Rig, load_rig, require_onnx, synthetic_rig
+from .sidecar import read_sidecar
 
 __all__ = ["Predictor", "StageTimes", "TemporalState"]
 
@@ -158,19 +159,38 @@ class _OnnxBackend:
 _Backend = _TorchBackend | _StaticTorchBackend | _OnnxBackend
 
 
-def _read_sidecar(path: Path) -> dict[str, Any]:
-    from .export import SIDECAR_FORMAT, sidecar_path
+RIGID_ATOL = 1e-4  # |R^T R - I| and |det R - 1| allowed (float32 round trips stay far below it)
 
-    side = sidecar_path(path)
-    if not side.is_file():
-        raise DeployError(f"{path}: no sidecar {side} next to the ONNX file (write both with `fastocc export`)")
+
+def check_rigid_pose(ego_pose: object, name: str = "ego_pose") -> np.ndarray:
+    """`ego_pose` as a `(4, 4) float64` rigid transform, or one `DeployError` line saying what is wrong:
+    not finite, not 4 x 4, last row not (0, 0, 0, 1), rotation not orthonormal or a reflection (det -1)."""
     try:
-        meta = json.loads(side.read_text())
-    except (OSError, ValueError) as exc:
-        raise DeployError(f"{side}: unreadable sidecar ({exc})") from None
-    if not isinstance(meta, dict) or meta.get("format") != SIDECAR_FORMAT:
-        raise DeployError(f"{side}: not a fastocc ONNX sidecar")
-    return meta
+        pose = np.asarray(ego_pose, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DeployError(f"{name} must be a (4, 4) matrix of numbers, got {type(ego_pose).__name__}") from None
+    if pose.shape != (4, 4) or not np.isfinite(pose).all():
+        raise DeployError(f"{name} must be a finite (4, 4) matrix (T_global_from_ego), got shape {pose.shape}"
+                          + ("" if pose.shape != (4, 4) else " with NaN or inf"))
+    if not np.allclose(pose[3], (0.0, 0.0, 0.0, 1.0), atol=RIGID_ATOL):
+        raise DeployError(f"{name} is not a rigid transform: its last row is {pose[3].tolist()}, not [0, 0, 0, 1]")
+    R = pose[:3, :3]
+    ortho = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if ortho > RIGID_ATOL or abs(det - 1.0) > RIGID_ATOL:
+        raise DeployError(f"{name} is not a rigid transform: its rotation is not orthonormal with det +1 "
+                          f"(max |R^T R - I| = {ortho:.3g}, det = {det:.4g}; scaled, sheared or mirrored?)")
+    return pose
+
+
+def _default_rig(num_cams: int) -> Rig:
+    """The synthetic rig, said out loud: predictions are only meaningful for the rig the images come from."""
+    rig = synthetic_rig(num_cams)
+    w, h = (int(v) for v in rig.image_size[0])
+    warnings.warn(f"Predictor: no rig given, using the default synthetic nuScenes-like rig ({num_cams} cameras, "
+                  f"{w}x{h} images, fixed K and extrinsics); pass rig= a store or nuScenes tree for real cameras",
+                  UserWarning, stacklevel=3)
+    return rig
 
 
 class Predictor:
@@ -178,8 +198,9 @@ class Predictor:
 
     `source`: a fastocc checkpoint (run with PyTorch on `device`) or an exported `.onnx` file with its
     `.json` sidecar (run with ONNX Runtime; CPU unless `providers` says otherwise). `rig`: for a
-    checkpoint, the rig (a `Rig`, a store or a nuScenes tree; None = the synthetic rig); for an ONNX
-    file the rig is baked in and a given rig must match it. Images are RGB unless `bgr` (OpenCV order).
+    checkpoint, the rig (a `Rig`, a store or a nuScenes tree; None = the synthetic rig, with a warning
+    saying so); for an ONNX file the rig is baked in and a given rig must match it. Images are RGB
+    unless `bgr` (OpenCV order). `ego_pose` must be rigid (`check_rigid_pose`).
     """
 
     def __init__(self, source: str | Path, rig: Rig | str | Path | None = None, device: str = "cpu",
@@ -190,7 +211,7 @@ class Predictor:
         self.bgr = bgr
         self.times = StageTimes()
         if path.suffix.lower() == ".onnx":
-            meta = _read_sidecar(path)
+            meta = read_sidecar(path)
             self.rig = Rig.from_json(meta["rig"])
             self.input_hw = (int(meta["input_hw"][0]), int(meta["input_hw"][1]))
             if rig is not None:
@@ -211,7 +232,8 @@ class Predictor:
             if threads is not None:
                 torch.set_num_threads(threads)
             model, _ = load_model(path, device)
-            self.rig = rig if isinstance(rig, Rig) else load_rig(rig)
+            self.rig = rig if isinstance(rig, Rig) else (
+                _default_rig(model.cfg.num_cams) if rig is None else load_rig(rig))
             self.rig.check_cams(model.cfg.num_cams)
             self.input_hw = model.cfg.input_hw
             self.num_history = model.cfg.num_history
@@ -231,7 +253,7 @@ class Predictor:
         "static" (the export wrapper, eager) or "compile" (the export wrapper through `torch.compile`)."""
         self = cls.__new__(cls)
         self.bgr, self.times, self._frames = bgr, StageTimes(), 0
-        self.rig = rig if rig is not None else load_rig(None)
+        self.rig = rig if rig is not None else _default_rig(model.cfg.num_cams)
         self.rig.check_cams(model.cfg.num_cams)
         self.input_hw, self.num_history = model.cfg.input_hw, model.cfg.num_history
         from occdata.constants import CLASS_NAMES
@@ -291,9 +313,7 @@ class Predictor:
                 raise DeployError("this model fuses past frames: pass ego_pose (T_global_from_ego, 4 x 4)")
             pose = np.eye(4)
         else:
-            pose = np.asarray(ego_pose, dtype=np.float64)
-            if pose.shape != (4, 4) or not np.isfinite(pose).all():
-                raise DeployError(f"ego_pose must be a finite (4, 4) matrix, got shape {pose.shape}")
+            pose = check_rigid_pose(ego_pose)
         t0 = time.perf_counter()
         x = self.preprocess(images)
         t1 = time.perf_counter()

@@ -8,7 +8,6 @@ import numpy as np
 import torch
 
 from occdata.errors import OccDataError
-from occdata.store.layout import STATE_DONE
 from occdata.store.reader import StoreReader, open_store
 
 __all__ = ["check_device", "split_indices"]
@@ -18,13 +17,7 @@ def split_indices(store: str | Path | StoreReader, split: str | None) -> np.ndar
     """Store indices of the built samples of `split` (None: all), ascending; an unknown split name is an
     `OccDataError` naming the store's splits (the loader yields exactly these samples)."""
     reader = store if isinstance(store, StoreReader) else open_store(store)
-    keep = reader.small("status/state") == STATE_DONE
-    if split is not None:
-        names = list(reader.attrs["splits"])
-        if split not in names:
-            raise OccDataError(f"unknown split {split!r}; the store has {names}")
-        keep &= reader.small("sample/split") == names.index(split)
-    return np.flatnonzero(keep)
+    return reader.split_indices(split)
 
 
 def check_device(device: str) -> None:

@@ -34,8 +34,8 @@ from occdata.metrics import (
     MIoUResult,
     RayIoUAccumulator,
     RayIoUResult,
-    scene_ray_origins,
 )
+from occdata.store.rays import scene_ray_origins
 from occdata.store.reader import open_store
 
 __all__ = ["EvalReport", "EvalRun", "MaskKind", "all_reduce_report", "evaluate", "format_report", "reduce_reports",

@@ -72,6 +72,22 @@ class TemporalFusion(nn.Module):
     def reset(self) -> None:
         self._feats = self._poses = self._bev_aug = None
 
+    def queue_state(self) -> tuple[Tensor, Tensor, Tensor] | None:
+        """The queue (features `(B, T, C, X, Y)`, poses and BEV augmentations `(B, T, 4, 4)`), detached on
+        the CPU; None when empty. `load_queue_state` restores it exactly (checkpoints, validation)."""
+        if self._feats is None:
+            return None
+        return tuple(v.detach().cpu() for v in (self._feats, self._poses, self._bev_aug))  # type: ignore[return-value]
+
+    def load_queue_state(self, state: tuple[Tensor, Tensor, Tensor] | list[Tensor] | None,
+                         device: torch.device | str | None = None) -> None:
+        """Inverse of `queue_state` (None empties the queue); tensors go to `device` (default: the weights')."""
+        if state is None:
+            self.reset()
+            return
+        dev = device if device is not None else next(self.parameters()).device
+        self._feats, self._poses, self._bev_aug = (v.to(dev) for v in state)
+
     def forward(self, bev: Tensor, inputs: SceneInputs) -> Tensor:
         """bev `(B, C, X, Y)` in the current augmented frame -> fused `(B, C, X, Y)`."""
         B, C = bev.shape[:2]

@@ -20,7 +20,9 @@ from occdata.errors import OccDataError
 
 __all__ = [
     "RESUME_MAY_CHANGE",
+    "WARN_SIGNALS",
     "ConfigError",
+    "LossWeights",
     "TrainConfig",
     "config_from_dict",
     "config_to_toml",
@@ -31,6 +33,29 @@ __all__ = [
 
 class ConfigError(OccDataError):
     """A bad training config (unknown key, wrong type, bad value); printed as one line by the CLI."""
+
+
+WARN_SIGNALS = ("USR1", "USR2", "none")  # the warning signal a scheduler may send before SIGTERM
+_LEGACY_LOSS_KEYS = {f"w_{k}": k for k in ("focal", "sem_scal", "geo_scal", "dice", "lovasz", "depth", "bev")}
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """Weights of the loss terms (DESIGN §8): the `[loss]` TOML table (flat `w_focal = ...` keys are read too)."""
+
+    focal: float = 1.0
+    sem_scal: float = 1.0
+    geo_scal: float = 1.0
+    dice: float = 1.0
+    lovasz: float = 1.0
+    depth: float = 1.0
+    bev: float = 1.0
+
+    def __post_init__(self) -> None:
+        bad = [f"loss.{f.name} = {getattr(self, f.name)}" for f in dataclasses.fields(self)
+               if not (math.isfinite(getattr(self, f.name)) and getattr(self, f.name) >= 0)]
+        if bad:
+            raise ConfigError("bad training config: " + "; ".join(bad) + " (loss weights must be finite and >= 0)")
 
 
 @dataclass(frozen=True)
@@ -77,13 +102,7 @@ class TrainConfig:
     # losses (DESIGN §8)
     camera_mask: bool = True  # voxel losses on mask_camera = 1 only (matches Occ3D mIoU; see docs)
     class_weights: bool = True  # focal weights 1 / ln(f_c + 0.001) from the training split's counts
-    w_focal: float = 1.0
-    w_sem_scal: float = 1.0
-    w_geo_scal: float = 1.0
-    w_dice: float = 1.0
-    w_lovasz: float = 1.0
-    w_depth: float = 1.0
-    w_bev: float = 1.0
+    loss: LossWeights = dataclasses.field(default_factory=LossWeights)
     # run
     out: str = "runs/fastocc"
     device: str = "auto"  # auto | cpu | cuda
@@ -97,6 +116,9 @@ class TrainConfig:
     save_every_steps: int = 0  # also write `last` every N optimizer steps (0 = at epoch ends only)
     max_nonfinite: int = 5  # stop after this many non-finite losses in a row
     log_every: int = 10  # optimizer steps between metrics.jsonl records
+    init_from: str | None = None  # start a new run from this checkpoint's weights (model, and EMA if kept)
+    warn_signal: str = "USR1"  # besides SIGTERM, this signal stops at the next step boundary, saving last.pt
+    dist_timeout: int = 1800  # seconds a collective may wait for the other processes before failing
 
     def __post_init__(self) -> None:
         bad = []
@@ -115,6 +137,10 @@ class TrainConfig:
                      "save_every_steps", "threads"):
             if getattr(self, name) < 0:
                 bad.append(f"{name} = {getattr(self, name)} (must be >= 0)")
+        if self.warn_signal not in WARN_SIGNALS:
+            bad.append(f"warn_signal {self.warn_signal!r} (choose from {list(WARN_SIGNALS)})")
+        if self.dist_timeout < 1:
+            bad.append(f"dist_timeout = {self.dist_timeout} (must be >= 1 second)")
         if self.max_nonfinite < 1:
             bad.append(f"max_nonfinite = {self.max_nonfinite} (must be >= 1)")
         if not (self.lr > 0 and math.isfinite(self.lr)):
@@ -163,8 +189,10 @@ class TrainConfig:
 
 # Fields that may differ between a run and its --resume (they change neither the model nor the
 # sample stream nor the optimisation): where things run and how often things are logged/saved.
+# `epochs` may grow (the cosine is stretched to the new end, see `lr_at`); `init_from` only acts on a new run.
 RESUME_MAY_CHANGE = frozenset({"store", "workers", "device", "out", "threads", "val_every", "val_rayiou",
-                               "keep_epochs", "save_every_steps", "max_nonfinite", "log_every", "pretrained"})
+                               "keep_epochs", "save_every_steps", "max_nonfinite", "log_every", "pretrained",
+                               "init_from", "warn_signal", "dist_timeout", "epochs"})
 
 
 def _coerce(field: dataclasses.Field, value: Any) -> Any:
@@ -176,7 +204,17 @@ def _coerce(field: dataclasses.Field, value: Any) -> Any:
         if not (isinstance(value, list | tuple) and len(value) == 2 and all(isinstance(v, int) for v in value)):
             raise ConfigError(f"config key {name!r}: expected [height, width] integers, got {value!r}")
         return (int(value[0]), int(value[1]))
-    if name in ("num_history", "pretrained"):
+    if name == "loss":
+        if isinstance(value, LossWeights):
+            return value
+        if not isinstance(value, dict):
+            raise ConfigError(f"config key 'loss': expected a table of loss weights, got {value!r}")
+        known = {f.name: f for f in dataclasses.fields(LossWeights)}
+        unknown = sorted(set(value) - set(known))
+        if unknown:
+            raise ConfigError(f"unknown [loss] key(s) {unknown}; known: {', '.join(known)}")
+        return dataclasses.replace(LossWeights(), **{k: _coerce(known[k], v) for k, v in value.items()})
+    if name in ("num_history", "pretrained", "init_from"):
         ok = value is None or isinstance(value, int if name == "num_history" else str)
         if not ok or isinstance(value, bool):
             raise ConfigError(f"config key {name!r}: bad value {value!r}")
@@ -200,8 +238,29 @@ def _coerce(field: dataclasses.Field, value: Any) -> Any:
     return value
 
 
+def _lift_legacy_loss_keys(d: dict[str, Any]) -> dict[str, Any]:
+    """Flat `w_focal = ...` keys (configs before the `[loss]` table) -> `loss = {focal = ...}`."""
+    flat = {k: v for k, v in d.items() if k in _LEGACY_LOSS_KEYS}
+    if not flat:
+        return d
+    out = {k: v for k, v in d.items() if k not in _LEGACY_LOSS_KEYS}
+    table = out.get("loss")
+    table = dict(table) if isinstance(table, dict) else ({} if table is None else table)
+    if isinstance(table, dict):
+        for k, v in flat.items():
+            if _LEGACY_LOSS_KEYS[k] in table:
+                raise ConfigError(f"loss weight {_LEGACY_LOSS_KEYS[k]!r} given twice ({k} and [loss])")
+            table[_LEGACY_LOSS_KEYS[k]] = v
+    out["loss"] = table
+    return out
+
+
 def config_from_dict(d: dict[str, Any], base: TrainConfig | None = None) -> TrainConfig:
-    """Apply `d` on top of `base` (default TrainConfig()); an unknown key is an error naming it."""
+    """Apply `d` on top of `base` (default TrainConfig()); an unknown key is an error naming it.
+    `loss` may be a partial table; it updates the base's weights."""
+    d = _lift_legacy_loss_keys(d)
+    if isinstance(d.get("loss"), dict) and base is not None:
+        d = {**d, "loss": {**dataclasses.asdict(base.loss), **d["loss"]}}
     fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
     unknown = sorted(set(d) - set(fields))
     if unknown:
@@ -244,16 +303,32 @@ def _toml_value(v: Any) -> str:
 
 
 def config_to_toml(cfg: TrainConfig) -> str:
-    """The resolved config as a `[train]` TOML table (None fields are left out = "the preset's")."""
+    """The resolved config as a `[train]` TOML table with a `[train.loss]` sub-table (None fields are left
+    out = "the preset's")."""
+    d = cfg.to_dict()
+    loss = d.pop("loss")
     lines = ["# resolved by fastocc train; reuse with --config", "[train]"]
-    lines += [f"{k} = {_toml_value(v)}" for k, v in cfg.to_dict().items() if v is not None]
+    lines += [f"{k} = {_toml_value(v)}" for k, v in d.items() if v is not None]
+    lines += ["", "[train.loss]"] + [f"{k} = {_toml_value(v)}" for k, v in loss.items()]
     return "\n".join(lines) + "\n"
 
 
-def incompatible_fields(saved: dict[str, Any], cfg: TrainConfig) -> list[str]:
-    """Fields whose values differ between a saved config dict and `cfg`, other than RESUME_MAY_CHANGE.
+def flat_config(d: dict[str, Any]) -> dict[str, Any]:
+    """A config dict (as saved, old flat loss keys allowed) with the loss table as `loss.<term>` keys."""
+    d = _lift_legacy_loss_keys(dict(d))
+    loss = d.pop("loss", None) or {}
+    return {**d, **{f"loss.{k}": v for k, v in loss.items()}}
 
-    A field missing from `saved` (a run from before the field existed) counts as its default value."""
-    now, default = cfg.to_dict(), TrainConfig().to_dict()
-    return sorted(k for k in set(saved) | set(now)
-                  if k not in RESUME_MAY_CHANGE and saved.get(k, default.get(k)) != now.get(k))
+
+def incompatible_fields(saved: dict[str, Any], cfg: TrainConfig) -> list[str]:
+    """Fields (`loss.<term>` for weights) whose values differ between a saved config dict and `cfg`, other
+    than RESUME_MAY_CHANGE; `epochs` counts only when it shrinks."""
+    was, now = flat_config(saved), flat_config(cfg.to_dict())
+    bad = sorted(k for k in set(was) | set(now)
+                 if k not in RESUME_MAY_CHANGE and was.get(k, _DEFAULTS.get(k)) != now.get(k))
+    if int(was.get("epochs", 0)) > cfg.epochs:
+        bad = sorted([*bad, "epochs"])
+    return bad
+
+
+_DEFAULTS = flat_config(TrainConfig().to_dict())  # fields added after a checkpoint was written compare as defaults

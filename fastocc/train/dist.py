@@ -7,13 +7,23 @@ rendezvous address; multi-node runs use torchrun's `--nnodes`, `--node_rank` / `
 
 from __future__ import annotations
 
+import contextlib
+import datetime
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import torch
 import torch.distributed as dist
 
-__all__ = ["DistInfo", "all_reduce_sum", "barrier", "broadcast_object", "setup", "teardown"]
+from occdata.errors import OccDataError
+
+__all__ = ["CollectiveError", "DistInfo", "all_reduce_sum", "any_rank", "barrier", "broadcast_object",
+           "collective_errors", "setup", "teardown"]
+
+
+class CollectiveError(OccDataError):
+    """A collective operation timed out or lost a peer (one line instead of a hang or a C++ traceback)."""
 
 
 @dataclass(frozen=True)
@@ -32,8 +42,11 @@ class DistInfo:
         return self.rank == 0
 
 
-def setup(device: str) -> DistInfo:
-    """Resolve the device ("auto" = cuda when available) and join the process group when under torchrun."""
+def setup(device: str, timeout_s: float = 1800.0) -> DistInfo:
+    """Resolve the device ("auto" = cuda when available) and join the process group when under torchrun.
+
+    `timeout_s`: how long a collective waits for the other processes before it fails (`collective_errors`
+    turns that failure into one line)."""
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     world = int(os.environ.get("WORLD_SIZE", "1"))
@@ -41,15 +54,14 @@ def setup(device: str) -> DistInfo:
     local = int(os.environ.get("LOCAL_RANK", "0"))
     if device == "cuda":
         if not torch.cuda.is_available():
-            from occdata.errors import OccDataError
-
             raise OccDataError("--device cuda but no CUDA device is available (use --device cpu)")
         torch.cuda.set_device(local)
         dev = torch.device("cuda", local)
     else:
         dev = torch.device("cpu")
     if world > 1 and not dist.is_initialized():
-        dist.init_process_group(backend="nccl" if dev.type == "cuda" else "gloo")
+        dist.init_process_group(backend="nccl" if dev.type == "cuda" else "gloo",
+                                timeout=datetime.timedelta(seconds=timeout_s))
     return DistInfo(rank=rank, world_size=world, local_rank=local, device=dev)
 
 
@@ -79,3 +91,30 @@ def broadcast_object(obj: object, info: DistInfo) -> object:
     box = [obj]
     dist.broadcast_object_list(box, src=0)
     return box[0]
+
+
+def any_rank(flag: bool, info: DistInfo) -> bool:
+    """True on every rank when `flag` is True on at least one (all ranks must call it at the same point)."""
+    if not info.enabled:
+        return flag
+    t = torch.tensor([1.0 if flag else 0.0], device=info.device)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return bool(t.item() > 0)
+
+
+_PEER_LOST = ("timed out", "timeout", "connection closed", "connection reset", "broken pipe", "socket closed")
+
+
+@contextlib.contextmanager
+def collective_errors(info: DistInfo) -> Iterator[None]:
+    """Re-raise a collective's timeout or lost peer (gloo/NCCL RuntimeError) as one `CollectiveError` line."""
+    try:
+        yield
+    except RuntimeError as exc:
+        text = str(exc)
+        if not info.enabled or not any(s in text.lower() for s in _PEER_LOST):
+            raise
+        first = next((ln.strip() for ln in text.splitlines() if ln.strip()), text)[:200]
+        raise CollectiveError(f"rank {info.rank}: a collective operation with the other processes failed ({first}); "
+                              "another process stopped or hung. Its own output says why; the run can continue "
+                              "from last.pt with --resume") from None

@@ -1,9 +1,10 @@
-"""The training loop: one readable function per concern (set-up, one step, one epoch, validation, saving).
+"""The training loop, readable top to bottom: `train` -> `run_epoch` -> `train_step`, `validate`, `end_epoch`.
 
-Exact resume: a checkpoint is written only at optimizer-step boundaries and holds everything the next
-step depends on (weights, AdamW moments, EMA, samples seen -> learning rate, RNG states, temporal
-queue, epoch and micro-batch position). The epoch's sample order is a pure function of (seed, epoch)
-and the loader starts the epoch at batch k without decoding the skipped samples (`skip_batches`).
+Exact resume: a checkpoint is written only at optimizer-step boundaries and holds the whole `TrainState`
+(weights, AdamW moments, EMA, progress -> learning rate, RNG states, temporal queue). The epoch's sample
+order is a pure function of (seed, epoch) and the loader starts the epoch at batch k without decoding
+the skipped samples (`skip_batches`). Stops: Ctrl-C (KeyboardInterrupt) and SIGTERM / the warning signal
+(`preempt.StopRequest`, checked at every step boundary) both save `last.pt` at the last step boundary.
 """
 
 from __future__ import annotations
@@ -12,40 +13,45 @@ import contextlib
 import dataclasses
 import json
 import math
-import os
 import time
 import warnings
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from fastocc.data import BevAugConfig, ImageAugConfig, LoaderConfig, SampleConfig, make_loader
 from fastocc.data.batch import Batch
-from fastocc.data.order import Slot, sequential_batches, shuffle_units
+from fastocc.data.dataset import StoreDataset, loader_batches
 from fastocc.data.workers import start_iteration
-from fastocc.losses import LossConfig, LossTargets, class_weights_from_counts, occupancy_loss
-from fastocc.model import FastOcc
+from fastocc.losses import LossTargets, occupancy_loss
 from fastocc.model.config import DepthBins, ModelConfig
-from fastocc.model.inputs import synthetic_inputs
 from fastocc.train import dist as D
-from fastocc.train.config import TrainConfig, config_to_toml, incompatible_fields
-from fastocc.train.state import (
-    EMA,
-    class_counts,
-    get_rng_state,
-    load_resume,
-    save_train_checkpoint,
-    set_rng_state,
+from fastocc.train.config import TrainConfig, config_to_toml
+from fastocc.train.preempt import StopRequest, stop_signals
+from fastocc.train.runlock import RunLock
+from fastocc.train.setup import (
+    MetricsLog,
+    Run,
+    build_model,
+    check_writable,
+    estimate_step_seconds,
+    init_from,
+    loader_config,
+    loss_config,
+    make_run,
+    new_state,
+    prepare_out,
+    say_start,
 )
+from fastocc.train.state import Progress, TrainState, get_rng_state
 from occdata.errors import OccDataError
+from occdata.fileio import copy_atomic, write_atomic
 
-__all__ = ["NonFiniteLossError", "TrainResult", "depth_onehot", "train"]
+__all__ = ["NonFiniteLossError", "TrainResult", "depth_onehot", "run_epoch", "train", "train_step", "validate"]
 
 
 class NonFiniteLossError(OccDataError):
@@ -57,8 +63,11 @@ class TrainResult:
     out: Path
     epochs_done: int
     opt_steps: int
-    best_miou: float | None
-    interrupted: bool = False
+    best_miou: float | None  # the selection score: EMA weights' val mIoU when kept, else the raw weights'
+    interrupted: bool = False  # Ctrl-C
+    preempted: str | None = None  # name of the stop signal (SIGTERM, SIGUSR1, ...) that ended the run
+    is_main: bool = True  # rank 0 (the process that prints the summary)
+    best_is_ema: bool = True
 
 
 def depth_onehot(depth: torch.Tensor, bins: DepthBins) -> torch.Tensor:
@@ -70,156 +79,7 @@ def depth_onehot(depth: torch.Tensor, bins: DepthBins) -> torch.Tensor:
     return (F.one_hot(k.clamp(0, bins.count - 1), bins.count) * valid[..., None]).permute(0, 3, 1, 2).float()
 
 
-def _noise_hook(seed: int):
-    """Forward pre-hook for the backbone: its input images become Gaussian noise (the image ablation)."""
-    gen = torch.Generator().manual_seed(seed)
-
-    def hook(module: nn.Module, args: tuple) -> tuple:
-        (x,) = args
-        return (torch.randn(x.shape, generator=gen).to(x),)
-
-    return hook
-
-
-class _Run:
-    """State of one training process (rank). `train()` drives it."""
-
-    def __init__(self, cfg: TrainConfig, info: D.DistInfo, progress: bool) -> None:
-        self.cfg, self.info = cfg, info
-        self.progress = progress and info.is_main
-        self.out = Path(cfg.out)
-        self.model_cfg: ModelConfig = cfg.model_config()
-        world = info.world_size
-        if cfg.batch_size % world:
-            raise OccDataError(f"batch_size {cfg.batch_size} (global) is not divisible by the {world} processes")
-        per_rank = cfg.batch_size // world
-        self.micro = cfg.micro_batch or per_rank
-        if per_rank % self.micro:
-            raise OccDataError(f"micro_batch {self.micro} does not divide the per-process batch {per_rank}")
-        self.accum = per_rank // self.micro
-        self.sequential = self.model_cfg.num_history > 0 or cfg.scene_sequential
-        self.use_amp = cfg.amp and info.device.type == "cuda"
-
-    # -- set-up -------------------------------------------------------------------------------
-    def prepare_out(self, resume: bool) -> dict[str, Any] | None:
-        """Create/check the run folder (rank 0 writes); return the resume payload if resuming."""
-        last = self.out / "last.pt"
-        if self.info.is_main:
-            try:
-                self.out.mkdir(parents=True, exist_ok=True)
-                probe = self.out / f".write-test-{os.getpid()}"
-                probe.write_bytes(b"")
-                probe.unlink()
-            except OSError as exc:
-                raise OccDataError(f"run folder {self.out} is not writable ({exc.strerror or exc}); "
-                                   "choose another --out") from None
-            if not resume and last.exists():
-                raise OccDataError(f"{self.out} already holds a run (last.pt); pass --resume to continue it "
-                                   "or choose another --out")
-        D.barrier(self.info)
-        if not resume:
-            return None
-        if not last.exists():
-            raise OccDataError(f"--resume: no checkpoint {last} to resume from")
-        payload = load_resume(last)
-        bad = incompatible_fields(payload["train_config"], self.cfg)
-        if bad:
-            saved = payload["train_config"]
-            diffs = ", ".join(f"{k}: {saved.get(k)!r} -> {self.cfg.to_dict().get(k)!r}" for k in bad)
-            raise OccDataError(f"--resume with an incompatible config ({diffs}); these fields must match the run "
-                               f"in {self.out} (start a new --out to change them)")
-        return payload
-
-    def build_model(self) -> nn.Module:
-        torch.manual_seed(self.cfg.seed)  # same initial weights on every rank and every start
-        model = FastOcc(self.model_cfg)
-        if self.cfg.pretrained:
-            if not Path(self.cfg.pretrained).is_file():
-                raise OccDataError(f"--pretrained {self.cfg.pretrained}: no such file")
-            model.load_pretrained_backbone(self.cfg.pretrained)
-        if self.cfg.checkpoint_backbone:
-            inner = model.backbone.forward
-            # Recompute the backbone's activations in backward instead of storing them (memory).
-            model.backbone.forward = lambda x: torch.utils.checkpoint.checkpoint(inner, x, use_reentrant=False)
-        if self.cfg.noise_images:
-            model.backbone.register_forward_pre_hook(_noise_hook(self.cfg.seed + 1000 * self.info.rank))
-        return model.to(self.info.device)
-
-    def loss_config(self) -> LossConfig:
-        c = self.cfg
-        weights = None
-        if c.class_weights:
-            cache = self.out / "class_counts.json"
-            counts = None
-            if self.info.is_main:
-                counts = class_counts(c.store, c.train_split, c.camera_mask, cache)
-            counts = D.broadcast_object(counts, self.info)
-            weights = tuple(float(w) for w in class_weights_from_counts(np.maximum(counts, 1)))
-        elif self.info.is_main:
-            class_counts(c.store, c.train_split, c.camera_mask, None)  # still checks the split has labels
-        return LossConfig(focal=c.w_focal, sem_scal=c.w_sem_scal, geo_scal=c.w_geo_scal, dice=c.w_dice,
-                          lovasz=c.w_lovasz, depth=c.w_depth, bev=c.w_bev, use_camera_mask=c.camera_mask,
-                          class_weights=weights)
-
-    def loader_config(self) -> LoaderConfig:
-        H, W = self.model_cfg.input_hw
-        aug = self.cfg.augment
-        sample = SampleConfig(image=ImageAugConfig(height=H, width=W, train=aug), bev=BevAugConfig(train=aug))
-        return LoaderConfig(store=self.cfg.store, batch_size=self.micro, sequential=self.sequential, sample=sample,
-                            splits=(self.cfg.train_split,), seed=self.cfg.seed, rank=self.info.rank,
-                            world_size=self.info.world_size, pad=self.info.enabled and not self.sequential,
-                            equal_lanes=self.sequential)  # equal step counts on every rank (order.py)
-
-    def make_epoch_loader(self, epoch: int, skip: int) -> torch.utils.data.DataLoader:
-        cfg = dataclasses.replace(self.loader_cfg, skip_batches=skip)
-        loader = make_loader(cfg, num_workers=self.cfg.workers, pin_memory=self.info.device.type == "cuda")
-        self._limit(loader.dataset)
-        loader.dataset.set_epoch(epoch)
-        return loader
-
-    def _limit(self, ds) -> None:
-        if self.cfg.limit_train_samples:
-            ds.indices = ds.indices[: self.cfg.limit_train_samples]
-
-    def batches_per_epoch(self, ds, epoch: int) -> int:
-        """Micro-batches this rank yields in an epoch (each worker batches its own share)."""
-        n_workers = max(1, self.cfg.workers)
-        total = 0
-        for w in range(n_workers):
-            slot = Slot(self.info.rank, self.info.world_size, w, n_workers)
-            if self.sequential:
-                total += len(sequential_batches(ds.indices, ds.samples().scene_index, slot, self.micro,
-                                                self.cfg.seed, epoch, equal_lanes=self.loader_cfg.equal_lanes))
-            else:
-                units = shuffle_units(ds.indices, ds.samples().block, slot, self.cfg.seed, epoch,
-                                      pad=self.loader_cfg.pad)
-                total += -(-sum(len(u) for u in units) // self.micro)
-        return total
-
-    def estimate_step_seconds(self, model: nn.Module, loss_cfg: LossConfig) -> float:
-        """Time one forward + backward of a synthetic micro-batch; weights and buffers are restored.
-
-        The first pass only warms up (allocator, lazy caches: it took 2-3x a training step); the second is timed.
-        """
-        saved = {k: v.clone() for k, v in model.state_dict().items()}
-        inputs = synthetic_inputs(self.micro, self.model_cfg.input_hw, self.model_cfg.num_cams, seed=0,
-                                  device=str(self.info.device))
-        X, Y, Z = self.model_cfg.fine_grid.shape
-        targets = LossTargets(voxel_labels=torch.full((self.micro, X, Y, Z), 17, device=self.info.device),
-                              mask_camera=torch.ones(self.micro, X, Y, Z, dtype=torch.bool, device=self.info.device))
-        dt = 0.0
-        for _ in range(2):
-            t0 = time.perf_counter()
-            out = model(inputs)
-            loss, _ = occupancy_loss(out.voxel_logits.float(), targets, loss_cfg, None, out.bev_logits)
-            loss.backward()
-            dt = time.perf_counter() - t0
-            model.zero_grad(set_to_none=True)
-        model.load_state_dict(saved)
-        model.clear_caches()
-        return dt
-
-
+# -- one optimizer step ----------------------------------------------------------------------------------
 def _keep_masked(logits: torch.Tensor, targets: LossTargets) -> tuple[torch.Tensor, LossTargets]:
     """Select the camera-masked voxels ONCE: logits `(1, C, V, 1, 1)`, labels `(1, V, 1, 1)`, no mask.
 
@@ -243,19 +103,87 @@ def _targets(batch: Batch, model_cfg: ModelConfig) -> LossTargets:
                        bev_multihot=batch.bev_target)
 
 
-def _cpu_seconds() -> float:
-    """CPU time of this process and its finished children (loader workers of past epochs)."""
-    import resource
+def _micro_loss(run: Run, batch: Batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Forward one micro-batch and return (total loss, terms): the one call site of the loss function."""
+    with torch.autocast(device_type=run.info.device.type, dtype=torch.bfloat16, enabled=run.use_amp):
+        out = run.model(batch.inputs())
+    logits, targets = out.voxel_logits.float(), _targets(batch, run.model_cfg)
+    if run.loss_cfg.use_camera_mask:
+        logits, targets = _keep_masked(logits, targets)
+    return occupancy_loss(logits, targets, dataclasses.replace(run.loss_cfg, use_camera_mask=False),
+                          out.depth_probs.float(), None if out.bev_logits is None else out.bev_logits.float())
 
-    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
+
+@dataclass
+class StepStats:
+    """What one optimizer step did (summed over ranks where it says so)."""
+
+    loss: float  # mean loss per sample, all ranks
+    samples: int  # samples in the step, all ranks
+    lr: float
+    grad_norm: float
+    terms: dict[str, float] = field(default_factory=dict)  # mean per sample, this rank
+    skipped: bool = False  # non-finite loss or gradient somewhere: no update
 
 
+def train_step(run: Run, state: TrainState, micro_batches: list[Batch]) -> StepStats:
+    """Forward/backward each micro-batch (gradients accumulate; DDP syncs on the last), then one AdamW step
+    (skipped on every rank when any rank saw a non-finite loss or gradient), EMA update, progress."""
+    p, cfg, info = state.progress, run.cfg, run.info
+    acc_loss, acc_n, acc_terms, finite, indices = 0.0, 0, {}, True, []
+    for k, batch in enumerate(micro_batches):
+        batch = batch.to(info.device, non_blocking=True)
+        sync = run.model.no_sync if info.enabled and k < len(micro_batches) - 1 else contextlib.nullcontext
+        with sync():
+            total, terms = _micro_loss(run, batch)
+            (total * (len(batch) / (run.micro * run.accum))).backward()
+        finite &= bool(torch.isfinite(total))
+        acc_loss += float(total.detach()) * len(batch)
+        for name, v in terms.items():
+            acc_terms[name] = acc_terms.get(name, 0.0) + float(v) * len(batch)
+        acc_n += len(batch)
+        indices += batch.sample_index.tolist()
+    lr = cfg.lr_at(p.samples_seen, run.samples_per_epoch)
+    for g in state.optimizer.param_groups:
+        g["lr"] = lr
+    grad_norm = nn.utils.clip_grad_norm_(state.model.parameters(), cfg.grad_clip) if cfg.grad_clip else torch.zeros(())
+    ok = finite and bool(torch.isfinite(grad_norm))
+    stats = D.all_reduce_sum(torch.tensor([acc_loss, float(acc_n), 0.0 if ok else 1.0], dtype=torch.float64), info)
+    n_global, skipped = int(stats[1]), bool(stats[2] > 0)
+    if skipped:
+        state.optimizer.zero_grad(set_to_none=True)
+        _non_finite(run, p, indices)
+    else:
+        p.nonfinite_run = 0
+        state.optimizer.step()
+        state.optimizer.zero_grad(set_to_none=True)
+        if state.ema is not None:
+            state.ema.update(state.model)
+    p.opt_steps += 1
+    p.samples_seen += n_global
+    p.pos += len(micro_batches)
+    return StepStats(loss=float(stats[0]) / max(1, n_global), samples=n_global, lr=lr, grad_norm=float(grad_norm),
+                     terms={k: v / max(1, acc_n) for k, v in acc_terms.items()}, skipped=skipped)
+
+
+def _non_finite(run: Run, p: Progress, indices: list[int]) -> None:
+    p.nonfinite_run += 1
+    warnings.warn(f"non-finite loss or gradient at step {p.opt_steps + 1} (epoch {p.epoch + 1}, samples {indices} on "
+                  f"rank {run.info.rank}): step skipped ({p.nonfinite_run} in a row)", RuntimeWarning, stacklevel=2)
+    run.logger.write({"kind": "nonfinite", "opt_step": p.opt_steps, "epoch": p.epoch + 1, "samples": indices,
+                      "in_a_row": p.nonfinite_run})
+    if p.nonfinite_run >= run.cfg.max_nonfinite:
+        raise NonFiniteLossError(f"{p.nonfinite_run} non-finite losses in a row (last at step {p.opt_steps + 1}, "
+                                 f"samples {indices}); stopping. The last good checkpoint is {run.out / 'last.pt'} "
+                                 "(lower --lr or check the data)")
+
+
+# -- one epoch -------------------------------------------------------------------------------------------
 def _data_iter(loader) -> Iterator[tuple[Batch, float]]:
     """Batches with the seconds spent waiting for each.
 
     Ctrl-C is held back while the workers start (`start_iteration`). Closing the generator (Ctrl-C in
-    the loop body) shuts the workers down at once.
+    the loop body, a stop signal) shuts the workers down at once.
     """
     it = None
     try:
@@ -271,44 +199,137 @@ def _data_iter(loader) -> Iterator[tuple[Batch, float]]:
         del it  # the only reference: torch's iterator joins (or terminates) its workers now
 
 
-class _Logger:
-    """metrics.jsonl (+ TensorBoard when installed); rank 0 only."""
+def _step_groups(data: Iterator[tuple[Batch, float]], accum: int) -> Iterator[tuple[list[Batch], float]]:
+    """Micro-batches grouped per optimizer step (`accum` each; the epoch's last group may be shorter)."""
+    group, wait = [], 0.0
+    for batch, w in data:
+        group.append(batch)
+        wait += w
+        if len(group) == accum:
+            yield group, wait
+            group, wait = [], 0.0
+    if group:
+        yield group, wait
 
-    def __init__(self, out: Path, enabled: bool, resume_step: int | None) -> None:
-        self.enabled = enabled
-        self.path = out / "metrics.jsonl"
-        self.tb = None
-        if not enabled:
-            return
-        if resume_step is not None and self.path.exists():
-            # Drop records written after the checkpoint we resume from (they will be written again).
-            keep = [ln for ln in self.path.read_text().splitlines()
-                    if ln.strip() and json.loads(ln).get("opt_step", 0) <= resume_step]
-            self.path.write_text("".join(ln + "\n" for ln in keep))
+
+@dataclass
+class _EpochLog:
+    """Running sums for the epoch record and the periodic train records."""
+
+    t_epoch: float = field(default_factory=time.perf_counter)
+    wait_epoch: float = 0.0
+    loss_sum: float = 0.0
+    loss_n: int = 0
+    t_log: float = field(default_factory=time.perf_counter)
+    wait_log: float = 0.0
+    samples_log: int = 0
+
+
+def run_epoch(run: Run, state: TrainState) -> bool:
+    """Train the rest of the current epoch from `progress.pos`; False when a stop signal ended it early
+    (state at a step boundary, loader workers stopped)."""
+    from tqdm import tqdm
+
+    p, cfg = state.progress, run.cfg
+    loader = run.epoch_loader(p.epoch, p.pos)
+    per_epoch = loader_batches(loader)
+    bar = tqdm(total=per_epoch, initial=p.pos, desc=f"epoch {p.epoch + 1}/{cfg.epochs}", dynamic_ncols=True,
+               disable=not run.show_progress, unit="batch")
+    run.model.train()
+    log = _EpochLog()
+    data = _data_iter(loader)
+    try:
+        for group, wait in _step_groups(data, run.accum):
+            log.wait_epoch += wait
+            log.wait_log += wait
+            step = train_step(run, state, group)
+            bar.update(len(group))
+            _log_step(run, state, step, log, bar)
+            if run.stop.should_stop(run.info):
+                return False
+            if (cfg.save_every_steps and p.opt_steps % cfg.save_every_steps == 0 and p.pos < per_epoch
+                    and p.nonfinite_run == 0):  # never replace the last good checkpoint by a skipped step's
+                save_state(run, state)
+    finally:
+        data.close()  # stops the loader workers (also on Ctrl-C, before saving)
+        bar.close()
+    if p.pos != per_epoch:
+        warnings.warn(f"epoch {p.epoch + 1}: the loader gave {p.pos} micro-batches, the plan said {per_epoch}",
+                      RuntimeWarning, stacklevel=1)
+    end_epoch(run, state, log)
+    return True
+
+
+def _log_step(run: Run, state: TrainState, step: StepStats, log: _EpochLog, bar: Any) -> None:
+    p = state.progress
+    if not step.skipped:
+        log.loss_sum += step.loss * step.samples
+        log.loss_n += step.samples
+    log.samples_log += step.samples
+    elapsed = max(time.perf_counter() - log.t_log, 1e-9)
+    if run.show_progress:
+        bar.set_postfix(loss=f"{step.loss:.3f}", lr=f"{step.lr:.2e}", sps=f"{log.samples_log / elapsed:.2f}",
+                        refresh=False)
+    if run.cfg.log_every and p.opt_steps % run.cfg.log_every == 0:
+        run.logger.write({"kind": "train", "opt_step": p.opt_steps, "epoch": p.epoch + 1,
+                          "samples_seen": p.samples_seen, "loss": step.loss, "lr": step.lr,
+                          "grad_norm": step.grad_norm, **step.terms, "samples_per_s": log.samples_log / elapsed,
+                          "data_wait": log.wait_log / elapsed})
+        log.t_log, log.wait_log, log.samples_log = time.perf_counter(), 0.0, 0
+
+
+def end_epoch(run: Run, state: TrainState, log: _EpochLog) -> None:
+    """Epoch done: validate when due, log, say, keep best / epoch copies of last.pt."""
+    p, cfg = state.progress, run.cfg
+    seconds = time.perf_counter() - log.t_epoch
+    p.epoch += 1
+    p.pos = 0
+    rec = {"kind": "epoch", "opt_step": p.opt_steps, "epoch": p.epoch, "samples_seen": p.samples_seen,
+           "loss": log.loss_sum / max(1, log.loss_n), "seconds": seconds,
+           "data_wait": log.wait_epoch / max(seconds, 1e-9), "cpu_seconds": _cpu_seconds()}
+    val = None
+    if cfg.val_every and (p.epoch % cfg.val_every == 0 or p.epoch == cfg.epochs):
+        val = validate(run, state)
+        if val:
+            rec.update({f"val_{k}": v for k, v in val.items()})
+    run.logger.write(rec)
+    run.say(f"epoch {p.epoch}: loss {rec['loss']:.4f}, {seconds:.0f} s, data wait {100 * rec['data_wait']:.1f}%"
+            + _val_text(val))
+    score = None if not val else val.get("ema_miou", val.get("miou"))
+    is_best = score is not None and not math.isnan(score) and (p.best_miou is None or score > p.best_miou)
+    if is_best:
+        p.best_miou = score
+    save_state(run, state, {"val": val})
+    if run.info.is_main:
         try:
-            from torch.utils.tensorboard import SummaryWriter  # optional extra: pip install fastocc[tensorboard]
-
-            self.tb = SummaryWriter(str(out / "tb"))
-        except ImportError:
-            self.tb = None
-
-    def write(self, record: dict[str, Any]) -> None:
-        if not self.enabled:
-            return
-        with self.path.open("a") as f:
-            f.write(json.dumps(record) + "\n")
-        if self.tb is not None:
-            kind, step = record.get("kind", "train"), record.get("opt_step", 0)
-            for k, v in record.items():
-                if isinstance(v, int | float) and not isinstance(v, bool) and k not in ("opt_step", "epoch"):
-                    self.tb.add_scalar(f"{kind}/{k}", v, step)
-            self.tb.flush()
-
-    def close(self) -> None:
-        if self.tb is not None:
-            self.tb.close()
+            if is_best:
+                copy_atomic(run.out / "last.pt", run.out / "best.pt")
+            if cfg.keep_epochs:
+                copy_atomic(run.out / "last.pt", run.out / f"epoch_{p.epoch:03d}.pt")
+                for old in sorted(run.out.glob("epoch_*.pt"))[: -cfg.keep_epochs]:
+                    old.unlink()
+        except OSError as exc:
+            raise OccDataError(f"could not copy checkpoint {run.out / 'last.pt'} ({exc.strerror or exc}); the "
+                               "previous copies are intact") from None
 
 
+def _val_text(val: dict[str, float] | None) -> str:
+    """`, val mIoU raw 31.20% / EMA 30.10%`: which weights each figure is from, always said."""
+    if not val or "miou" not in val:
+        return ""
+    text = f", val mIoU raw {100 * val['miou']:.2f}%"
+    return text + (f" / EMA {100 * val['ema_miou']:.2f}%" if "ema_miou" in val else "")
+
+
+def _cpu_seconds() -> float:
+    """CPU time of this process and its finished children (loader workers of past epochs)."""
+    import resource
+
+    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+# -- validation ------------------------------------------------------------------------------------------
 def _evaluate_fns():
     """The shared evaluation (`fastocc.infer.evaluate`), or None where this install lacks it."""
     try:
@@ -327,296 +348,144 @@ def _report_dict(report: Any) -> dict[str, float]:
     return out
 
 
-def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> TrainResult:
-    """Train (or continue with `resume`) as described by `cfg`; returns when done or interrupted (Ctrl-C).
-
-    Under torchrun each process calls this; rank 0 writes the run folder."""
-    info = D.setup(cfg.device)
-    try:
-        return _train(cfg, info, resume, progress)
-    finally:
-        D.teardown(info)
-
-
-def _train(cfg: TrainConfig, info: D.DistInfo, resume: bool, progress: bool) -> TrainResult:
-    from tqdm import tqdm
-
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
-    if cfg.deterministic:
-        torch.use_deterministic_algorithms(True)
-    run = _Run(cfg, info, progress)
-    say = (lambda msg: tqdm.write(msg)) if info.is_main else (lambda msg: None)
-    payload = run.prepare_out(resume)
-    if info.is_main:
-        (run.out / "config.toml").write_text(config_to_toml(cfg))
-        (run.out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2) + "\n")
-
-    model = run.build_model()
-    raw_model = model
-    loss_cfg = run.loss_config()
-    run.loader_cfg = run.loader_config()
-    probe_ds = make_loader(run.loader_cfg, num_workers=0).dataset
-    run._limit(probe_ds)
-    n_train = len(probe_ds)
-    if n_train == 0:
-        raise OccDataError(f"no built samples in the {cfg.train_split!r} split of {cfg.store}")
-    samples_per_epoch = n_train
-    ema = EMA(raw_model, cfg.ema_decay) if cfg.ema else None
-    decay, no_decay = [], []
-    for name, p in raw_model.named_parameters():
-        (no_decay if p.ndim <= 1 or name.endswith(".bias") else decay).append(p)  # no decay on norms/biases
-    optimizer = torch.optim.AdamW([{"params": decay, "weight_decay": cfg.weight_decay},
-                                   {"params": no_decay, "weight_decay": 0.0}], lr=cfg.peak_lr())
-
-    say(f"fastocc train: preset {cfg.preset} head {cfg.head} input {run.model_cfg.input_hw} history "
-        f"{run.model_cfg.num_history} on {info.world_size} x {info.device}; {n_train} training samples/epoch, "
-        f"{cfg.epochs} epochs")
-    say(f"learning rate: {cfg.lr:g} x {cfg.lr_scaling} scaling ({cfg.batch_size} global batch / "
-        f"{cfg.lr_base_batch}) = {cfg.peak_lr():.3g} peak; warm-up {cfg.warmup_epochs:g} epochs, cosine to "
-        f"{cfg.min_lr_ratio:g} x peak; {run.accum} accumulation step(s) of {run.micro} per process")
-
-    epoch, pos, samples_seen, opt_steps, best = 0, 0, 0, 0, None
-    nonfinite_run = 0
-    if payload is not None:
-        raw_model.load_state_dict(payload["model"])
-        optimizer.load_state_dict(payload["optimizer"])
-        if ema is not None:
-            if payload.get("ema") is None:
-                raise OccDataError("--resume: the checkpoint has no EMA weights but ema = true")
-            ema.state = {k: v.to(info.device) for k, v in payload["ema"].items()}
-            ema.updates = int(payload["ema_updates"])
-        prog = payload["progress"]
-        epoch, pos, samples_seen, opt_steps = (int(prog[k]) for k in ("epoch", "pos", "samples_seen", "opt_steps"))
-        best = prog.get("best_miou")
-        nonfinite_run = int(prog.get("nonfinite_run", 0))
-        set_rng_state(payload["rng"][info.rank] if info.rank < len(payload["rng"]) else payload["rng"][0])
-        queue = payload.get("temporal_queue")
-        if queue is not None and raw_model.temporal is not None:
-            t = raw_model.temporal
-            t._feats, t._poses, t._bev_aug = (None if v is None else v.to(info.device) for v in queue)
-        say(f"resuming {run.out / 'last.pt'}: epoch {epoch + 1} at micro-batch {pos}, {opt_steps} steps done")
-    logger = _Logger(run.out, info.is_main, opt_steps if payload is not None else None)
-
-    per_epoch = run.batches_per_epoch(probe_ds, epoch)
-    if info.device.type == "cpu" and info.is_main:
-        dt = run.estimate_step_seconds(raw_model, loss_cfg)
-        say(f"estimated time per epoch on CPU: ~{dt * per_epoch / 60:.1f} min ({per_epoch} micro-batches x "
-            f"{dt:.2f} s forward+backward, measured on one synthetic batch; data loading not included)")
-    D.barrier(info)
-    if info.enabled:  # wrap after the time estimate: DDP's gradient hooks must see only real steps
-        model = nn.parallel.DistributedDataParallel(
-            raw_model, device_ids=[info.device.index] if info.device.type == "cuda" else None,
-            find_unused_parameters=True)  # e.g. the ResNet fc layer is never used
-
-    def checkpoint(path: Path, meta_extra: dict[str, Any] | None = None) -> None:
-        rng = [get_rng_state()]
-        if info.enabled:
-            gathered: list[Any] = [None] * info.world_size
-            torch.distributed.all_gather_object(gathered, rng[0])
-            rng = gathered
-        if not info.is_main:
-            return
-        t = raw_model.temporal
-        queue = None if t is None or t._feats is None else [v.detach().cpu() for v in (t._feats, t._poses, t._bev_aug)]
-        progress_state = {"epoch": epoch, "pos": pos, "samples_seen": samples_seen, "opt_steps": opt_steps,
-                          "best_miou": best, "nonfinite_run": nonfinite_run}
-        meta = {"epoch": epoch, "opt_steps": opt_steps, "samples_seen": samples_seen, **(meta_extra or {})}
-        try:
-            save_train_checkpoint(path, run.model_cfg, raw_model, ema, meta, optimizer=optimizer.state_dict(),
-                                  ema_updates=0 if ema is None else ema.updates, progress=progress_state, rng=rng,
-                                  train_config=cfg.to_dict(), temporal_queue=queue)
-        except OSError as exc:
-            raise OccDataError(f"could not write checkpoint {path} ({exc.strerror or exc}); the previous "
-                               "checkpoint there is intact") from None
-
-    loss_fn = occupancy_loss  # looked up at start (tests patch the module attribute)
-    interrupted = False
-    grad_ctx = contextlib.nullcontext
-    micro_i = 0
-    data: Iterator[tuple[Batch, float]] | None = None
-    try:
-        while epoch < cfg.epochs:
-            loader = run.make_epoch_loader(epoch, pos)
-            per_epoch = run.batches_per_epoch(probe_ds, epoch)
-            bar = tqdm(total=per_epoch, initial=pos, desc=f"epoch {epoch + 1}/{cfg.epochs}", disable=not run.progress,
-                       dynamic_ncols=True, unit="batch")
-            model.train()
-            t_epoch, wait_epoch, loss_sum, loss_n = time.perf_counter(), 0.0, 0.0, 0
-            t_log, wait_log, samples_log = time.perf_counter(), 0.0, 0
-            micro_i, acc_loss, acc_terms, acc_n, acc_idx = 0, 0.0, {}, 0, []
-            acc_finite = True
-            data = _data_iter(loader)
-            for batch, wait in data:
-                wait_epoch += wait
-                wait_log += wait
-                batch = batch.to(info.device, non_blocking=True)
-                last_micro = micro_i == run.accum - 1
-                sync = model.no_sync if info.enabled and not last_micro else grad_ctx
-                with sync():
-                    with torch.autocast(device_type=info.device.type, dtype=torch.bfloat16, enabled=run.use_amp):
-                        out = model(batch.inputs())
-                    logits, targets = out.voxel_logits.float(), _targets(batch, run.model_cfg)
-                    if loss_cfg.use_camera_mask:
-                        logits, targets = _keep_masked(logits, targets)
-                    total, terms = loss_fn(logits, targets, dataclasses.replace(loss_cfg, use_camera_mask=False),
-                                           out.depth_probs.float(),
-                                           None if out.bev_logits is None else out.bev_logits.float())
-                    (total * (len(batch) / (run.micro * run.accum))).backward()
-                acc_finite &= bool(torch.isfinite(total))
-                acc_loss += float(total.detach()) * len(batch)
-                for k, v in terms.items():
-                    acc_terms[k] = acc_terms.get(k, 0.0) + float(v) * len(batch)
-                acc_n += len(batch)
-                acc_idx += batch.sample_index.tolist()
-                micro_i += 1
-                pos += 1
-                bar.update(1)
-                if micro_i < run.accum and pos < per_epoch:
-                    continue
-                # -- optimizer step (all ranks agree on skipping) --------------------------------
-                lr = cfg.lr_at(samples_seen, samples_per_epoch)
-                for g in optimizer.param_groups:
-                    g["lr"] = lr
-                grad_norm = (nn.utils.clip_grad_norm_(raw_model.parameters(), cfg.grad_clip) if cfg.grad_clip
-                             else torch.zeros(()))
-                ok = acc_finite and bool(torch.isfinite(grad_norm))
-                stats = D.all_reduce_sum(torch.tensor([acc_loss, float(acc_n), 0.0 if ok else 1.0],
-                                                      dtype=torch.float64), info)
-                n_global = int(stats[1])
-                if stats[2] > 0:
-                    nonfinite_run += 1
-                    optimizer.zero_grad(set_to_none=True)
-                    warnings.warn(f"non-finite loss or gradient at step {opt_steps + 1} (epoch {epoch + 1}, "
-                                  f"samples {acc_idx} on rank {info.rank}): step skipped "
-                                  f"({nonfinite_run} in a row)", RuntimeWarning, stacklevel=1)
-                    logger.write({"kind": "nonfinite", "opt_step": opt_steps, "epoch": epoch + 1,
-                                  "samples": acc_idx, "in_a_row": nonfinite_run})
-                    if nonfinite_run >= cfg.max_nonfinite:
-                        raise NonFiniteLossError(
-                            f"{nonfinite_run} non-finite losses in a row (last at step {opt_steps + 1}, samples "
-                            f"{acc_idx}); stopping. The last good checkpoint is {run.out / 'last.pt'} (lower "
-                            "--lr or check the data)")
-                else:
-                    nonfinite_run = 0
-                    optimizer.step()
-                    optimizer.zero_grad(set_to_none=True)
-                    if ema is not None:
-                        ema.update(raw_model)
-                    loss_sum += float(stats[0])
-                    loss_n += n_global
-                opt_steps += 1
-                samples_seen += n_global
-                samples_log += n_global
-                step_loss = float(stats[0]) / max(1, n_global)
-                elapsed = time.perf_counter() - t_log
-                if run.progress:
-                    bar.set_postfix(loss=f"{step_loss:.3f}", lr=f"{lr:.2e}",
-                                    sps=f"{samples_log / max(elapsed, 1e-9):.2f}", refresh=False)
-                if cfg.log_every and opt_steps % cfg.log_every == 0:
-                    logger.write({"kind": "train", "opt_step": opt_steps, "epoch": epoch + 1,
-                                  "samples_seen": samples_seen, "loss": step_loss, "lr": lr,
-                                  "grad_norm": float(grad_norm),
-                                  **{k: v / max(1, acc_n) for k, v in acc_terms.items()},
-                                  "samples_per_s": samples_log / max(elapsed, 1e-9),
-                                  "data_wait": wait_log / max(elapsed, 1e-9)})
-                    t_log, wait_log, samples_log = time.perf_counter(), 0.0, 0
-                micro_i, acc_loss, acc_terms, acc_n, acc_idx, acc_finite = 0, 0.0, {}, 0, [], True
-                if (cfg.save_every_steps and opt_steps % cfg.save_every_steps == 0 and pos < per_epoch
-                        and nonfinite_run == 0):  # never replace the last good checkpoint by a skipped step's
-                    checkpoint(run.out / "last.pt")
-            bar.close()
-            del loader
-            if pos != per_epoch:
-                warnings.warn(f"epoch {epoch + 1}: the loader gave {pos} micro-batches, the plan said {per_epoch}",
-                              RuntimeWarning, stacklevel=1)
-            seconds = time.perf_counter() - t_epoch
-            epoch += 1
-            pos = 0
-            rec = {"kind": "epoch", "opt_step": opt_steps, "epoch": epoch, "samples_seen": samples_seen,
-                   "loss": loss_sum / max(1, loss_n), "seconds": seconds, "data_wait": wait_epoch / max(seconds, 1e-9),
-                   "cpu_seconds": _cpu_seconds()}
-            val = None
-            if cfg.val_every and (epoch % cfg.val_every == 0 or epoch == cfg.epochs):
-                val = _validate(run, raw_model, ema, say)
-                if val:
-                    rec.update({f"val_{k}": v for k, v in val.items()})
-            logger.write(rec)
-            say(f"epoch {epoch}: loss {rec['loss']:.4f}, {seconds:.0f} s, data wait {100 * rec['data_wait']:.1f}%"
-                + (f", val mIoU {100 * val['miou']:.2f}%" if val and 'miou' in val else ""))
-            score = None if not val else val.get("ema_miou", val.get("miou"))
-            is_best = score is not None and not math.isnan(score) and (best is None or score > best)
-            if is_best:
-                best = score
-            checkpoint(run.out / "last.pt", {"val": val})
-            if info.is_main:
-                if is_best:
-                    _copy_atomic(run.out / "last.pt", run.out / "best.pt")
-                if cfg.keep_epochs:
-                    _copy_atomic(run.out / "last.pt", run.out / f"epoch_{epoch:03d}.pt")
-                    for old in sorted(run.out.glob("epoch_*.pt"))[: -cfg.keep_epochs]:
-                        old.unlink()
-    except KeyboardInterrupt:
-        interrupted = True
-        if data is not None:
-            data.close()  # stop the loader workers before saving and exiting
-        # The position is the last optimizer-step boundary: the partial accumulation is redone on resume.
-        if micro_i:
-            pos -= micro_i
-            optimizer.zero_grad(set_to_none=True)
-        say(f"interrupted: saving {run.out / 'last.pt'} (epoch {epoch + 1}, micro-batch {pos}); "
-            "continue with --resume")
-        checkpoint(run.out / "last.pt")
-    finally:
-        logger.close()
-    return TrainResult(out=run.out, epochs_done=epoch, opt_steps=opt_steps, best_miou=best, interrupted=interrupted)
-
-
-def _copy_atomic(src: Path, dst: Path) -> None:
-    tmp = dst.with_name(f".{dst.name}.tmp")
-    try:
-        with src.open("rb") as fi, tmp.open("wb") as fo:
-            while chunk := fi.read(1 << 22):
-                fo.write(chunk)
-            fo.flush()
-            os.fsync(fo.fileno())
-        os.replace(tmp, dst)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise OccDataError(f"could not write checkpoint {dst} ({exc.strerror or exc}); the previous one is "
-                           "intact") from None
-
-
-def _validate(run: _Run, raw_model: nn.Module, ema: EMA | None, say) -> dict[str, float] | None:
+def validate(run: Run, state: TrainState) -> dict[str, float] | None:
     """Val metrics with the shared evaluation: raw weights, and the EMA weights when kept ("ema_*").
 
-    Every rank predicts its shard of the split; the accumulator states are summed across ranks."""
+    Every rank predicts its shard of the split; the accumulator states are summed across ranks. The
+    training temporal queue is set aside and restored (evaluation runs its own sequences)."""
     fns = _evaluate_fns()
     if fns is None:
-        say("validation skipped: fastocc.infer.evaluate is not available in this install")
+        run.say("validation skipped: fastocc.infer.evaluate is not available in this install")
         return None
     evaluate, all_reduce_report = fns
     from fastocc.infer.predict import PredictConfig
 
+    model, info = state.model, run.info
     pcfg = PredictConfig(store=run.cfg.store, split=run.cfg.val_split, batch_size=1, workers=run.cfg.workers,
-                         device=str(run.info.device))
-    temporal = raw_model.temporal
-    queue_state = None if temporal is None else (temporal._feats, temporal._poses, temporal._bev_aug)
+                         device=str(info.device))
+    queue = None if model.temporal is None else model.temporal.queue_state()
 
     def score() -> dict[str, float]:
-        report = evaluate(raw_model, run.model_cfg, pcfg, rayiou=run.cfg.val_rayiou, progress=run.progress)
-        return _report_dict(all_reduce_report(report, run.info.device) if run.info.enabled else report)
+        report = evaluate(model, run.model_cfg, pcfg, rayiou=run.cfg.val_rayiou, progress=run.show_progress)
+        return _report_dict(all_reduce_report(report, info.device) if info.enabled else report)
 
     out = score()
-    if ema is not None:
-        saved = {k: v.clone() for k, v in raw_model.state_dict().items()}
-        raw_model.load_state_dict(ema.state)
+    if state.ema is not None:
+        saved = {k: v.clone() for k, v in model.state_dict().items()}
+        model.load_state_dict(state.ema.state)
         try:
             out.update({f"ema_{k}": v for k, v in score().items()})
         finally:
-            raw_model.load_state_dict(saved)
-    raw_model.clear_caches()  # evaluation reset the temporal queue; training continues with its own
-    if queue_state is not None:
-        temporal._feats, temporal._poses, temporal._bev_aug = queue_state
-    raw_model.train()
+            model.load_state_dict(saved)
+    model.clear_caches()
+    if model.temporal is not None:
+        model.temporal.load_queue_state(queue)
+    model.train()
     return out
+
+
+# -- saving ----------------------------------------------------------------------------------------------
+def save_state(run: Run, state: TrainState, meta_extra: dict[str, Any] | None = None) -> None:
+    """Write `last.pt` (rank 0) from the state at a step boundary; every rank contributes its RNG state."""
+    rng = [get_rng_state()]
+    if run.info.enabled:
+        gathered: list[Any] = [None] * run.info.world_size
+        torch.distributed.all_gather_object(gathered, rng[0])
+        rng = gathered
+    if not run.info.is_main:
+        return
+    p = state.progress
+    meta = {"epoch": p.epoch, "opt_steps": p.opt_steps, "samples_seen": p.samples_seen, **(meta_extra or {})}
+    path = run.out / "last.pt"
+    try:
+        state.save(path, run.model_cfg, rng, meta, run.cfg.to_dict())
+    except OSError as exc:
+        raise OccDataError(f"could not write checkpoint {path} ({exc.strerror or exc}); the previous "
+                           "checkpoint there is intact") from None
+
+
+# -- the driver ------------------------------------------------------------------------------------------
+def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> TrainResult:
+    """Train (or continue with `resume`) as described by `cfg`; returns when done, interrupted (Ctrl-C) or
+    preempted (SIGTERM / the warning signal): the last two after writing `last.pt`.
+
+    Under torchrun each process calls this; rank 0 holds the run folder's lock and writes it."""
+    if resume and cfg.init_from:
+        raise OccDataError("--init-from starts a new run; it cannot be combined with --resume")
+    info = D.setup(cfg.device, cfg.dist_timeout)
+    try:
+        with D.collective_errors(info), StopRequest(stop_signals(cfg.warn_signal)) as stop:
+            if not info.is_main:
+                return _train(cfg, info, resume, progress, stop)
+            check_writable(Path(cfg.out))
+            with RunLock(cfg.out):
+                return _train(cfg, info, resume, progress, stop)
+    finally:
+        D.teardown(info)
+
+
+def _train(cfg: TrainConfig, info: D.DistInfo, resume: bool, progress: bool, stop: StopRequest) -> TrainResult:
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    if cfg.deterministic:
+        torch.use_deterministic_algorithms(True)
+    run = make_run(cfg, info, progress, stop)
+    payload = prepare_out(run, resume)
+    if info.is_main:
+        write_atomic(run.out / "config.toml", config_to_toml(cfg).encode())
+        write_atomic(run.out / "config.json", (json.dumps(cfg.to_dict(), indent=2) + "\n").encode())
+    state = new_state(run, build_model(run))
+    run.loss_cfg = loss_config(run)
+    run.loader_cfg = loader_config(run)
+    probe = StoreDataset(run.loader_cfg)
+    run.samples_per_epoch = len(probe)
+    if run.samples_per_epoch == 0:
+        raise OccDataError(f"no built samples in the {cfg.train_split!r} split of {cfg.store}")
+    say_start(run)
+    if payload is not None:
+        state.load_state_dict(payload, info.rank, run.out / "last.pt")
+        p = state.progress
+        run.say(f"resuming {run.out / 'last.pt'}: epoch {p.epoch + 1} at micro-batch {p.pos}, {p.opt_steps} steps done")
+    elif cfg.init_from:
+        init_from(state, cfg.init_from)
+        run.say(f"initialised from {cfg.init_from} (model{'' if state.ema is None else ' and EMA'} weights)")
+    run.logger = MetricsLog(run.out, info.is_main, state.progress.opt_steps if payload is not None else None)
+    probe.set_epoch(state.progress.epoch)
+    per_epoch = probe.num_batches(cfg.workers)
+    if info.device.type == "cpu" and info.is_main:
+        dt = estimate_step_seconds(run, state.model)
+        run.say(f"estimated time per epoch on CPU: ~{dt * per_epoch / 60:.1f} min ({per_epoch} micro-batches x "
+                f"{dt:.2f} s forward+backward, measured on one synthetic batch; data loading not included)")
+    D.barrier(info)
+    run.model = state.model
+    if info.enabled:  # wrap after the time estimate: DDP's gradient hooks must see only real steps
+        run.model = nn.parallel.DistributedDataParallel(
+            state.model, device_ids=[info.device.index] if info.device.type == "cuda" else None,
+            find_unused_parameters=True)  # e.g. the ResNet fc layer is never used
+    try:
+        return _loop(run, state)
+    finally:
+        run.logger.close()
+
+
+def _loop(run: Run, state: TrainState) -> TrainResult:
+    """Epochs until done; Ctrl-C or a stop signal saves `last.pt` at the last step boundary."""
+    p = state.progress
+    result = dict(out=run.out, is_main=run.info.is_main, best_is_ema=state.ema is not None)
+    try:
+        while p.epoch < run.cfg.epochs:
+            if run.stop.should_stop(run.info) or not run_epoch(run, state):
+                name = run.stop.received.name if run.stop.received is not None else "a stop signal on another rank"
+                run.say(f"{name}: saving {run.out / 'last.pt'} (epoch {p.epoch + 1}, micro-batch {p.pos}, "
+                        f"{p.opt_steps} steps); continue with --resume")
+                save_state(run, state)
+                return TrainResult(epochs_done=p.epoch, opt_steps=p.opt_steps, best_miou=p.best_miou,
+                                   preempted=name, **result)
+    except KeyboardInterrupt:
+        state.optimizer.zero_grad(set_to_none=True)  # a partial accumulation is redone on resume
+        run.say(f"interrupted: saving {run.out / 'last.pt'} (epoch {p.epoch + 1}, micro-batch {p.pos}); "
+                "continue with --resume")
+        save_state(run, state)
+        return TrainResult(epochs_done=p.epoch, opt_steps=p.opt_steps, best_miou=p.best_miou, interrupted=True,
+                           **result)
+    return TrainResult(epochs_done=p.epoch, opt_steps=p.opt_steps, best_miou=p.best_miou, **result)

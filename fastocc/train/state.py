@@ -1,14 +1,17 @@
-"""Training state that must survive a restart: EMA weights, RNG states, class weights, checkpoint files.
+"""Training state that must survive a restart, as one object: `TrainState` (saved and loaded symmetrically).
 
 A training checkpoint is a `fastocc.checkpoint` file (so `fastocc eval/predict` read it with no flags)
-with extra keys for exact resume: optimizer, samples seen (the schedule is a pure function of it),
-epoch and step inside the epoch, RNG states, the temporal queue and the resolved train config.
+with extra keys for exact resume: optimizer, progress (samples seen -> the schedule, epoch and
+micro-batch position, best score, non-finite streak), RNG states of every rank, the temporal queue
+and the resolved train config.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import random
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -16,14 +19,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from fastocc.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from fastocc.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
 from fastocc.model.config import ModelConfig
 from occdata.constants import FREE_LABEL, NUM_CLASSES
 from occdata.errors import OccDataError
-from occdata.store.layout import STATE_DONE
+from occdata.fileio import write_atomic
 from occdata.store.reader import open_store
 
-__all__ = ["EMA", "class_counts", "get_rng_state", "load_resume", "save_train_checkpoint", "set_rng_state"]
+__all__ = ["EMA", "Progress", "TrainState", "class_counts", "get_rng_state", "load_resume", "set_rng_state"]
 
 
 class EMA:
@@ -48,8 +51,14 @@ class EMA:
             else:
                 ema.copy_(v)
 
-    def state_dict(self) -> dict[str, Any]:
-        return {"updates": self.updates, "decay": self.decay}
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """The averaged weights on the CPU."""
+        return {k: v.cpu() for k, v in self.state.items()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor], updates: int) -> None:
+        device = next(iter(self.state.values())).device
+        self.state = {k: v.to(device) for k, v in state.items()}
+        self.updates = int(updates)
 
 
 def get_rng_state() -> dict[str, Any]:
@@ -85,14 +94,10 @@ def class_counts(store: str | Path, split: str, use_camera_mask: bool, cache: Pa
         if saved.get("split") == split and saved.get("camera_mask") == use_camera_mask:
             return np.asarray(saved["counts"], dtype=np.int64)
     reader = open_store(store)
-    names = list(reader.attrs["splits"])
-    if split not in names:
-        raise OccDataError(f"the store has no {split!r} split (it has {names})")
-    keep = (reader.small("status/state") == STATE_DONE) & (reader.small("sample/split") == names.index(split))
-    idx = np.flatnonzero(keep)
+    idx = reader.split_indices(split)
     if not len(idx):
         raise OccDataError(f"the store has no built samples in the {split!r} split")
-    unlabelled = idx[~reader.small("labels/present")[idx]]
+    unlabelled = reader.split_indices(split, labelled=False)
     if len(unlabelled):
         raise OccDataError(f"{len(unlabelled)} sample(s) of the training split {split!r} have no labels "
                            f"(e.g. {reader.token(int(unlabelled[0]))}); training needs Occ3D labels (--gts)")
@@ -108,17 +113,75 @@ def class_counts(store: str | Path, split: str, use_camera_mask: bool, cache: Pa
             s = s[np.asarray(cam[lo: lo + block])[mine - lo].astype(bool)]
         counts += np.bincount(s.reshape(-1), minlength=NUM_CLASSES)[:NUM_CLASSES]
     if cache is not None:
-        cache.write_text(json.dumps({"split": split, "camera_mask": use_camera_mask, "counts": counts.tolist(),
-                                     "free_label": FREE_LABEL}))
+        write_atomic(cache, json.dumps({"split": split, "camera_mask": use_camera_mask, "counts": counts.tolist(),
+                                        "free_label": FREE_LABEL}).encode())
     return counts
 
 
-def save_train_checkpoint(path: Path, model_cfg: ModelConfig, model: nn.Module, ema: EMA | None,
-                          meta: dict[str, Any], **train_state: Any) -> Path:
-    """Atomic write (fastocc.checkpoint): the previous file at `path` survives any failure."""
-    return save_checkpoint(path, model_cfg, {k: v.detach().cpu() for k, v in model.state_dict().items()},
-                           None if ema is None else {k: v.cpu() for k, v in ema.state.items()}, meta=meta,
-                           **train_state)
+@dataclass
+class Progress:
+    """Where the run is: epoch (0-based, the one in progress), micro-batches of it done (always at an
+    optimizer-step boundary), samples seen (-> learning rate), optimizer steps, best val score and the
+    current run of non-finite steps."""
+
+    epoch: int = 0
+    pos: int = 0
+    samples_seen: int = 0
+    opt_steps: int = 0
+    best_miou: float | None = None
+    nonfinite_run: int = 0
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Progress:
+        known = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+
+@dataclass
+class TrainState:
+    """Everything the next optimizer step depends on: weights, AdamW moments, EMA, progress, RNG, queue.
+
+    `state_dict` / `load_state_dict` are exact inverses; `model` is the raw network (not the DDP wrapper)."""
+
+    model: nn.Module
+    optimizer: torch.optim.Optimizer
+    ema: EMA | None
+    progress: Progress = field(default_factory=Progress)
+
+    def state_dict(self, rng: list[dict[str, Any]]) -> dict[str, Any]:
+        """The checkpoint keys of this state; `rng` holds every rank's `get_rng_state()` (rank order)."""
+        temporal = getattr(self.model, "temporal", None)
+        return {
+            "model": {k: v.detach().cpu() for k, v in self.model.state_dict().items()},
+            "ema": None if self.ema is None else self.ema.state_dict(),
+            "ema_updates": 0 if self.ema is None else self.ema.updates,
+            "optimizer": self.optimizer.state_dict(),
+            "progress": dataclasses.asdict(self.progress),
+            "rng": rng,
+            "temporal_queue": None if temporal is None else temporal.queue_state(),
+        }
+
+    def load_state_dict(self, payload: dict[str, Any], rank: int, source: str | Path = "checkpoint") -> None:
+        """Restore from `state_dict`'s keys (a loaded checkpoint payload) for this `rank`."""
+        load_weights(self.model, payload["model"], source)
+        self.optimizer.load_state_dict(payload["optimizer"])
+        if self.ema is not None:
+            if payload.get("ema") is None:
+                raise OccDataError("--resume: the checkpoint has no EMA weights but ema = true")
+            self.ema.load_state_dict(payload["ema"], payload["ema_updates"])
+        self.progress = Progress.from_dict(payload["progress"])
+        rng = payload["rng"]
+        set_rng_state(rng[rank] if rank < len(rng) else rng[0])
+        temporal = getattr(self.model, "temporal", None)
+        if temporal is not None:
+            temporal.load_queue_state(payload.get("temporal_queue"))
+
+    def save(self, path: Path, model_cfg: ModelConfig, rng: list[dict[str, Any]], meta: dict[str, Any],
+             train_config: dict[str, Any]) -> Path:
+        """Write a training checkpoint atomically (the previous file at `path` survives any failure)."""
+        sd = self.state_dict(rng)
+        return save_checkpoint(path, model_cfg, sd.pop("model"), sd.pop("ema"), meta=meta, train_config=train_config,
+                               **sd)
 
 
 def load_resume(path: Path) -> dict[str, Any]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import urllib.parse
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -152,6 +153,25 @@ class StoreReader:
 
     def done_indices(self) -> np.ndarray:
         return np.flatnonzero(self.state == STATE_DONE)
+
+    def split_indices(self, split: str | Sequence[str] | None, labelled: bool | None = None) -> np.ndarray:
+        """Store indices `(n,) int64`, ascending, of the built (committed) samples of `split` (a name, several
+        names, or None = every split); `labelled` True/False keeps only samples with/without Occ3D labels.
+
+        An unknown split name is one `OccDataError` line naming the store's splits. This is the one
+        definition of "the samples of a split" (loader, prediction, evaluation, class counts)."""
+        keep = self.state == STATE_DONE
+        if split is not None:
+            wanted = [split] if isinstance(split, str) else list(split)
+            names = list(self.attrs.get("splits", []))
+            unknown = [s for s in wanted if s not in names]
+            if unknown:
+                raise OccDataError(f"split {unknown[0]!r} is not in store {self.path}: unknown split (the store "
+                                   f"has {names})")
+            keep &= np.isin(self.small("sample/split"), [names.index(s) for s in wanted])
+        if labelled is not None:
+            keep &= self.small("labels/present").astype(bool) == labelled
+        return np.flatnonzero(keep)
 
     def token(self, index: int) -> str:
         return token_str(self.small("sample/token")[index])

@@ -1,0 +1,33 @@
+"""Ray origins of a store sample for RayIoU: the bridge from the store to the pure metric code.
+
+`occdata.metrics` is pure algorithm (arrays in, numbers out); reading a scene's poses from a store
+lives here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from occdata.errors import OccDataError
+from occdata.metrics import ray_origins_keyego
+from occdata.store.layout import STATE_DONE
+from occdata.store.reader import StoreReader
+
+__all__ = ["scene_ray_origins"]
+
+
+def scene_ray_origins(reader: StoreReader, index: int) -> np.ndarray:
+    """`ray_origins_keyego` for store sample `index`, from its scene's committed keyframes.
+
+    Uses `pose/T_global_from_keyego`, `calib/T_ego_from_lidar`, `sample/scene_index` and the scene
+    ranges in the store attrs; samples that are not committed (pending, error) are skipped."""
+    reader._check_index(index)
+    scene = reader.attrs["scenes"][int(reader.small("sample/scene_index")[index])]
+    lo = int(scene["first_index"])
+    hi = lo + int(scene["num_samples"])
+    done = np.flatnonzero(reader.small("status/state")[lo:hi] == STATE_DONE) + lo
+    if index not in done:
+        raise OccDataError(f"sample {index} ({reader.token(index)}) is not committed in {reader.path}")
+    T_g = reader.small("pose/T_global_from_keyego")[done]
+    T_el = reader.small("calib/T_ego_from_lidar")[done]
+    return ray_origins_keyego(T_g, T_el, int(np.flatnonzero(done == index)[0]))
