@@ -292,29 +292,6 @@ def test_torchrun_two_processes_match_one(synth_store: Path, tmp_path: Path) -> 
     assert np.isfinite(worst)
 
 
-def test_masked_voxel_selection_equals_masked_losses() -> None:
-    """The trainer selects camera-masked voxels once; the total must equal the losses' own masking."""
-    from fastocc.losses import LossConfig, LossTargets, occupancy_loss
-    from fastocc.train.loop import _keep_masked
-
-    g = torch.Generator().manual_seed(0)
-    logits = torch.randn(2, 18, 6, 5, 4, generator=g, requires_grad=True)
-    labels = torch.randint(0, 18, (2, 6, 5, 4), generator=g)
-    mask = torch.rand(2, 6, 5, 4, generator=g) > 0.4
-    t = LossTargets(voxel_labels=labels, mask_camera=mask)
-    cfg = LossConfig(depth=0, bev=0, class_weights=tuple(float(w) for w in torch.rand(18, generator=g) + 0.5))
-    ref, ref_terms = occupancy_loss(logits, t, cfg)
-    (g_ref,) = torch.autograd.grad(ref, logits)
-    x, t2 = _keep_masked(logits, t)
-    got, got_terms = occupancy_loss(x, t2, replace(cfg, use_camera_mask=False))
-    (g_got,) = torch.autograd.grad(got, logits)
-    assert ref_terms.keys() == got_terms.keys()
-    for k in ref_terms:
-        assert torch.allclose(ref_terms[k], got_terms[k], atol=1e-6), k
-    assert torch.allclose(g_ref, g_got, atol=1e-7)
-    assert float(g_got[~mask.unsqueeze(1).expand_as(logits)].abs().max()) == 0.0
-
-
 def test_ctrl_c_while_loader_workers_start_is_held_until_they_have_started() -> None:
     """Was: Ctrl-C inside `iter(loader)` left started workers unjoined; they printed FileNotFoundError tracebacks."""
     from fastocc.train.loop import _data_iter

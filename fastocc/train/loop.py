@@ -10,7 +10,6 @@ the skipped samples (`skip_batches`). Stops: Ctrl-C (KeyboardInterrupt) and SIGT
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import math
 import time
@@ -80,20 +79,6 @@ def depth_onehot(depth: torch.Tensor, bins: DepthBins) -> torch.Tensor:
 
 
 # -- one optimizer step ----------------------------------------------------------------------------------
-def _keep_masked(logits: torch.Tensor, targets: LossTargets) -> tuple[torch.Tensor, LossTargets]:
-    """Select the camera-masked voxels ONCE: logits `(1, C, V, 1, 1)`, labels `(1, V, 1, 1)`, no mask.
-
-    The voxel losses treat a batch as one bag of voxels, so this equals passing the mask to each of
-    them, but autograd scatters one masked gradient back instead of one per loss term (~1 s/step on CPU).
-    """
-    keep = targets.mask_camera.bool()
-    C = logits.shape[1]
-    x = logits.movedim(1, -1)[keep]  # (V, C)
-    y = targets.voxel_labels[keep]
-    return x.t().reshape(1, C, -1, 1, 1), dataclasses.replace(targets, voxel_labels=y.reshape(1, -1, 1, 1),
-                                                              mask_camera=None)
-
-
 def _targets(batch: Batch, model_cfg: ModelConfig) -> LossTargets:
     if not bool(batch.has_labels.all()):
         bad = batch.sample_index[~batch.has_labels].tolist()
@@ -107,10 +92,8 @@ def _micro_loss(run: Run, batch: Batch) -> tuple[torch.Tensor, dict[str, torch.T
     """Forward one micro-batch and return (total loss, terms): the one call site of the loss function."""
     with torch.autocast(device_type=run.info.device.type, dtype=torch.bfloat16, enabled=run.use_amp):
         out = run.model(batch.inputs())
-    logits, targets = out.voxel_logits.float(), _targets(batch, run.model_cfg)
-    if run.loss_cfg.use_camera_mask:
-        logits, targets = _keep_masked(logits, targets)
-    return occupancy_loss(logits, targets, dataclasses.replace(run.loss_cfg, use_camera_mask=False),
+    # occupancy_loss selects the camera-masked voxels once for all voxel terms (fastocc/losses.py)
+    return occupancy_loss(out.voxel_logits.float(), _targets(batch, run.model_cfg), run.loss_cfg,
                           out.depth_probs.float(), None if out.bev_logits is None else out.bev_logits.float())
 
 
