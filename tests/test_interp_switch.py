@@ -106,7 +106,7 @@ def test_train_config_toml_cli_and_resume(tmp_path: Path) -> None:
     toml = tmp_path / "c.toml"
     toml.write_text("[train]\ninterp_features = false\nw_bev = 0.0\n")
     cfg = load_config(toml)
-    assert cfg.model_config().interp_features is False and cfg.w_bev == 0.0
+    assert cfg.model_config().interp_features is False and cfg.loss.bev == 0.0
     assert load_config(toml, {"interp_features": True}).model_config().interp_features is True  # CLI wins
     with pytest.raises(ConfigError, match="interp_features"):
         TrainConfig(head="3dfcn", interp_features=False)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import torch
 from torch import Tensor, nn
 
 from .config import HeadKind, ModelConfig
@@ -31,7 +32,8 @@ class FastOcc(nn.Module):
         super().__init__()
         self.cfg = cfg
         z = cfg.coarse_grid.shape[2]
-        self.backbone = resnet(cfg.backbone.depth, cfg.backbone.base_width)
+        # channels-last: oneDNN's convolutions run a ResNet-50 forward+backward ~1.3x faster on CPU
+        self.backbone = resnet(cfg.backbone.depth, cfg.backbone.base_width).to(memory_format=torch.channels_last)
         self.neck = FPNNeck(self.backbone.out_channels, cfg.neck_channels)
         self.depth_net = DepthNet(cfg.neck_channels, cfg.context_channels, cfg.depth_bins.count)
         self.pooling = LSSPooling(cfg.coarse_grid, cfg.depth_bins.centres(), cfg.input_hw, cfg.stride)
@@ -58,8 +60,9 @@ class FastOcc(nn.Module):
             self.temporal.reset()
 
     def image_stage(self, images: Tensor) -> Tensor:
-        """`(B, N, 3, H, W)` -> F `(B*N, C1, H/16, W/16)`."""
-        return self.neck(self.backbone(images.flatten(0, 1)))
+        """`(B, N, 3, H, W)` -> F `(B*N, C1, H/16, W/16)` (contiguous)."""
+        x = images.flatten(0, 1).contiguous(memory_format=torch.channels_last)
+        return self.neck(self.backbone(x)).contiguous()
 
     def view_stage(self, feat: Tensor, inputs: SceneInputs) -> tuple[Tensor, Tensor]:
         """F -> depth `(B*N, 88, h, w)` and V_B with z collapsed `(B, C2*8, 100, 100)` (temporally fused)."""
