@@ -212,10 +212,12 @@ def _gather_voxels(logits: Tensor, labels: Tensor, mask: Tensor | None) -> tuple
     """-> logits `(V, C)` and labels `(V,)` of the kept voxels, selected once for all the voxel terms
     (autograd then scatters one masked gradient back instead of one per term)."""
     C = logits.shape[1]
+    flat = logits.movedim(1, -1).reshape(-1, C)  # a view when the logits are channels-last underneath
     if mask is None:
-        return logits.movedim(1, -1).reshape(-1, C), labels.reshape(-1)
-    keep = mask.bool()
-    return logits.movedim(1, -1)[keep], labels[keep]
+        return flat, labels.reshape(-1)
+    # index_select: its backward is an index_add, ~3x cheaper on CPU than boolean indexing's index_put
+    keep = torch.nonzero(mask.reshape(-1)).squeeze(1)
+    return flat.index_select(0, keep), labels.reshape(-1).index_select(0, keep)
 
 
 def _scal_vectorised(tp: Tensor, p_sum: Tensor, t_sum: Tensor, n: int) -> Tensor:
@@ -236,31 +238,78 @@ def _scal_vectorised(tp: Tensor, p_sum: Tensor, t_sum: Tensor, n: int) -> Tensor
 
 
 def _lovasz_sorted(p: Tensor, y: Tensor, present: Tensor) -> Tensor:
-    """Lovasz-softmax over the present classes with ONE sort: p `(V, C)`, y `(V,)`, present `(C,) bool`."""
+    """Lovasz-softmax over the present classes with ONE sort: p `(V, C)`, y `(V,)`, present `(C,) bool`.
+
+    After a class's last positive in error order the Jaccard term stays 1, so every later voxel has
+    gradient 0 and adds 0: only the positives and the negatives whose error reaches the smallest positive
+    error are sorted (same value and gradient; early in training that is a few percent of the voxels).
+    All classes go into one sort on the key 2 k + (1 - error) (class k, error descending within it).
+    """
     cls = torch.nonzero(present).squeeze(1)
     if cls.numel() == 0:
         return p.sum() * 0.0
-    gt = (y[None, :] == cls[:, None]).to(p.dtype)  # (K, V)
-    errors = (gt - p.t()[cls]).abs()
+    K, V = cls.numel(), p.shape[0]
+    gt = y[None, :] == cls[:, None]  # (K, V)
+    errors = (gt.to(p.dtype) - p.t()[cls]).abs()
+    e = errors.detach()
+    smallest_positive = torch.where(gt, e, torch.full_like(e, float("inf"))).amin(1, keepdim=True)
+    row, col = torch.nonzero(gt | (e >= smallest_positive), as_tuple=True)  # grouped by class
+    key = row.double() * 2 + (1 - e[row, col].double())
     # numpy's vectorised argsort is ~3x torch.sort here; the loss is the same for any order of ties.
-    order = torch.from_numpy(np.argsort(-errors.detach().cpu().numpy(), axis=1)).to(errors.device)
-    errors_sorted = errors.gather(1, order)
-    gt_sorted = gt.gather(1, order)
-    gts = gt_sorted.sum(1, keepdim=True)
-    jaccard = 1 - (gts - gt_sorted.cumsum(1)) / (gts + (1 - gt_sorted).cumsum(1))
-    grad = torch.cat([jaccard[:, :1], jaccard[:, 1:] - jaccard[:, :-1]], dim=1)
-    return (errors_sorted * grad).sum(1).mean()
+    order = torch.from_numpy(np.argsort(key.cpu().numpy())).to(p.device)
+    row, flat = row[order], (row * V + col)[order]
+    errors_sorted = errors.reshape(-1)[flat]
+    gt_sorted = gt.reshape(-1)[flat].to(p.dtype)
+    counts = torch.bincount(row, minlength=K)
+    start = (torch.cumsum(counts, 0) - counts)[row]  # position of each entry's class block
+    first = torch.arange(len(row), device=p.device) == start
+
+    def within(x: Tensor) -> Tensor:  # cumulative sum restarted at every class block
+        c = x.cumsum(0)
+        return c - torch.where(start > 0, c[(start - 1).clamp_min(0)], torch.zeros_like(c))
+
+    gts = gt.sum(1).to(p.dtype)[row]
+    jaccard = 1 - (gts - within(gt_sorted)) / (gts + within(1 - gt_sorted))
+    grad = jaccard - torch.where(first, torch.zeros_like(jaccard), jaccard.roll(1))
+    per_class = p.new_zeros(K).index_add(0, row, errors_sorted * grad)
+    return per_class.mean()
+
+
+class _FocalSum(torch.autograd.Function):
+    """sum_v w_v sum_c alpha_t (1 - p_t)^gamma (-ln p_t) on flat logits `(V, C)` with a hand-written
+    backward (autograd's graph of this expression held ~8 full-size temporaries and as many kernels).
+
+    With s = x where t else -x: 1 - p_t = q = sigmoid(-s), -ln p_t = softplus(-s), and
+    d/ds [alpha_t q^gamma softplus(-s)] = -alpha_t q^gamma (gamma (1 - q) softplus(-s) + q).
+    """
+
+    @staticmethod
+    def forward(ctx, x: Tensor, is_t: Tensor, w_v: Tensor, gamma: float, alpha: float) -> Tensor:  # noqa: ANN001
+        s = torch.where(is_t, x, -x)
+        q, ce = torch.sigmoid(-s), F.softplus(-s)
+        alpha_t = torch.where(is_t, x.new_tensor(alpha), x.new_tensor(1 - alpha))
+        ctx.save_for_backward(q, ce, is_t, w_v)
+        ctx.gamma, ctx.alpha = gamma, alpha
+        return ((alpha_t * _pow(q, gamma) * ce).sum(1) * w_v).sum()
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None, None, None]:  # noqa: ANN001
+        q, ce, is_t, w_v = ctx.saved_tensors
+        d = torch.where(is_t, q.new_tensor(-ctx.alpha), q.new_tensor(1 - ctx.alpha))  # -alpha_t * ds/dx
+        d = d * _pow(q, ctx.gamma) * (ctx.gamma * (1 - q) * ce + q)
+        return d * (w_v * grad)[:, None], None, None, None, None
+
+
+def _pow(q: Tensor, gamma: float) -> Tensor:
+    return q * q if gamma == 2.0 else q.pow(gamma)
 
 
 def _focal_fast(x: Tensor, is_t: Tensor, y: Tensor, cw: Tensor | None, gamma: float, alpha: float) -> Tensor:
-    """`focal_loss` on flat voxels `(V, C)` with fewer passes: with s = x where t else -x,
-    p_t = sigmoid(s), 1 - p_t = sigmoid(-s) and the cross-entropy is softplus(-s)."""
-    s = torch.where(is_t, x, -x)
-    alpha_t = torch.where(is_t, x.new_tensor(alpha), x.new_tensor(1 - alpha))
-    per_voxel = (alpha_t * torch.sigmoid(-s).pow(gamma) * F.softplus(-s)).sum(dim=1)
+    """`focal_loss` on flat voxels `(V, C)` (mean over voxels, times w_{y_v} when class weights are given)."""
+    w_v = torch.full((x.shape[0],), 1.0 / x.shape[0], dtype=x.dtype, device=x.device)
     if cw is not None:
-        per_voxel = per_voxel * cw.to(x)[y]
-    return per_voxel.mean()
+        w_v = w_v * cw.to(x)[y]
+    return _FocalSum.apply(x, is_t, w_v, float(gamma), float(alpha))
 
 
 def _voxel_terms(x: Tensor, y: Tensor, cfg: LossConfig, free_label: int = FREE_LABEL) -> dict[str, Tensor]:
