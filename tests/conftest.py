@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import pytest
@@ -10,6 +11,13 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 REAL_NUSCENES = SHARED_DATA / "nuscenes-real"
 REAL_OCC3D_LABEL = SHARED_DATA / "occ3d-label" / "29796060110c4163b07f06eff4af0753" / "labels.npz"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # A run started in the background by a non-interactive shell (`bash scripts/test.sh &`) inherits SIGINT
+    # ignored, and so would every process the tests start: the Ctrl-C tests need the usual disposition.
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session")
