@@ -77,7 +77,7 @@ def test_combined_loss_equals_the_per_term_formulas_values_and_gradients(use_mas
         total, terms = fn(logits, targets, cfg, depth, bev)
         total.backward()
         grads = [t.grad.clone() for t in (logits, depth_logits, bev)]
-        return float(total.detach()), {k: float(v) for k, v in terms.items()}, grads
+        return float(total.detach()), {k: float(v.detach()) for k, v in terms.items()}, grads
 
     ref_total, ref_terms, ref_grads = run(_reference)
     got_total, got_terms, got_grads = run(occupancy_loss)
