@@ -191,8 +191,10 @@ def train(config_file: Path | None, resume: bool, no_progress: bool, **options: 
     if result.is_main:  # under torchrun every rank returns here; one summary line
         best = "-" if result.best_miou is None else f"{100 * result.best_miou:.2f}%"
         which = "EMA" if result.best_is_ema else "raw"
-        click.echo(f"done: {result.epochs_done} epochs, {result.opt_steps} steps; best val mIoU ({which} weights) "
-                   f"{best}; {result.out}")
+        ranks = (f" ({len(result.steps_per_rank)} processes: {', '.join(map(str, result.steps_per_rank))} steps)"
+                 if len(result.steps_per_rank) > 1 else "")
+        click.echo(f"done: {result.epochs_done} epochs, {result.opt_steps} steps{ranks}; best val mIoU ({which} "
+                   f"weights) {best}; {result.out}")
 
 
 _STORE = click.option("--store", default="data.zarr", show_default=True, help="Store path or fsspec URL.")

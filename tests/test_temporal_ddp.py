@@ -72,8 +72,10 @@ def _torchrun_train(store: Path, tmp_path: Path, ranks: int, batch_size: int, va
         raise AssertionError(f"torchrun did not end within 300 s (hang):\n{log}") from None
     assert proc.returncode == 0, log
     assert "the loader gave" not in log, log  # each rank's loader yielded exactly the planned batches
-    # Every rank prints its own TrainResult: its optimizer step count.
-    return [int(n) for n in re.findall(r"done: 1 epochs, (\d+) steps", log)]
+    # Rank 0 prints one summary with every rank's optimizer step count (gathered at the end of the run).
+    found = re.findall(r"done: 1 epochs, \d+ steps \(\d+ processes: ([\d, ]+) steps\)", log)
+    assert len(found) == 1, log
+    return [int(n) for n in found[0].split(",")]
 
 
 @pytest.mark.slow

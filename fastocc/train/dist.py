@@ -93,6 +93,15 @@ def broadcast_object(obj: object, info: DistInfo) -> object:
     return box[0]
 
 
+def gather_ints(value: int, info: DistInfo) -> tuple[int, ...]:
+    """Every rank's `value`, in rank order, on every rank (`(value,)` in one process)."""
+    if not info.enabled:
+        return (int(value),)
+    out: list[object] = [None] * info.world_size
+    torch.distributed.all_gather_object(out, int(value))
+    return tuple(int(v) for v in out)  # type: ignore[arg-type]
+
+
 def any_rank(flag: bool, info: DistInfo) -> bool:
     """True on every rank when `flag` is True on at least one (all ranks must call it at the same point)."""
     if not info.enabled:

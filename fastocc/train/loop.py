@@ -67,6 +67,7 @@ class TrainResult:
     preempted: str | None = None  # name of the stop signal (SIGTERM, SIGUSR1, ...) that ended the run
     is_main: bool = True  # rank 0 (the process that prints the summary)
     best_is_ema: bool = True
+    steps_per_rank: tuple[int, ...] = ()  # optimizer steps of every process (a finished run; all equal)
 
 
 def depth_onehot(depth: torch.Tensor, bins: DepthBins) -> torch.Tensor:
@@ -471,4 +472,7 @@ def _loop(run: Run, state: TrainState) -> TrainResult:
         save_state(run, state)
         return TrainResult(epochs_done=p.epoch, opt_steps=p.opt_steps, best_miou=p.best_miou, interrupted=True,
                            **result)
-    return TrainResult(epochs_done=p.epoch, opt_steps=p.opt_steps, best_miou=p.best_miou, **result)
+    # every rank ran the same number of steps (DDP needs it; order.py plans it): reported by rank 0
+    steps = D.gather_ints(p.opt_steps, run.info)
+    return TrainResult(epochs_done=p.epoch, opt_steps=p.opt_steps, best_miou=p.best_miou, steps_per_rank=steps,
+                       **result)
