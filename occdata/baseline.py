@@ -13,7 +13,6 @@ import numpy as np
 from occdata.constants import NUM_CLASSES
 from occdata.errors import OccDataError
 from occdata.metrics import MIoUAccumulator
-from occdata.store.layout import STATE_DONE
 
 __all__ = ["BaselineResult", "image_free_baseline"]
 
@@ -29,18 +28,10 @@ class BaselineResult:
     per_class_iou_camera_mask: tuple[float, ...]
 
 
-def _labelled(reader, split: str) -> np.ndarray:  # noqa: ANN001
-    names = list(reader.attrs["splits"])
-    if split not in names:
-        raise OccDataError(f"split {split!r} not in the store (it has {names})")
-    keep = (reader.small("status/state") == STATE_DONE) & (reader.small("sample/split") == names.index(split))
-    return np.flatnonzero(keep & reader.small("labels/present"))
-
-
 def image_free_baseline(reader, train_split: str = "train", val_split: str = "val") -> BaselineResult:  # noqa: ANN001
     """Predict, for every val sample, the per-voxel most frequent label of the training split (ties: the
     lower label) and score it with Occ3D mIoU. `reader`: an open `StoreReader`."""
-    train, val = _labelled(reader, train_split), _labelled(reader, val_split)
+    train, val = reader.split_indices(train_split, labelled=True), reader.split_indices(val_split, labelled=True)
     if not len(train) or not len(val):
         raise OccDataError(f"the baseline needs labelled samples in both {train_split!r} ({len(train)}) and "
                            f"{val_split!r} ({len(val)})")

@@ -48,4 +48,4 @@ def test_baseline_scores_as_occdata_eval_scores_the_same_prediction(synth_store,
 def test_baseline_without_a_val_split_is_one_line(synth_store):
     got = CliRunner().invoke(main, ["baseline", "--store", str(synth_store), "--split", "nope"])
     assert got.exit_code != 0
-    assert "split 'nope' not in the store" in got.output
+    assert "split 'nope' is not in store" in got.output
