@@ -277,13 +277,20 @@ def _last_meta(run: Path) -> dict[str, Any]:
 
 
 def score_tta(run: Path, store: str, workers: int) -> dict[str, Any]:
-    """Flip TTA off and on for one run's last.pt, in one process (bench_tta's metrics dict each)."""
+    """Flip TTA off and on for one run's last.pt, in one process (bench_tta's metrics dict each); cached in
+    the run folder (ablate_tta.json) per checkpoint, like the scores."""
     from bench_tta import _metrics
 
     from fastocc.checkpoint import load_model
     from fastocc.infer.evaluate import evaluate
     from fastocc.infer.predict import PredictConfig
 
+    cache = run / "ablate_tta.json"
+    steps = int(_last_meta(run).get("opt_steps", -1))
+    if cache.is_file():
+        cached = json.loads(cache.read_text())
+        if cached.get("opt_steps") == steps and cached.get("store") == store:
+            return cached["tta"]
     model, ckpt = load_model(run / "last.pt")
     out = {}
     for tta in (False, True):
@@ -291,6 +298,8 @@ def score_tta(run: Path, store: str, workers: int) -> dict[str, Any]:
                        progress=False)
         out["on" if tta else "off"] = _metrics(rep)
     out["time_factor"] = out["on"]["infer_seconds"] / out["off"]["infer_seconds"]
+    out["loadavg_1min"] = os.getloadavg()[0]
+    cache.write_text(json.dumps({"opt_steps": steps, "store": store, "tta": out}, indent=1) + "\n")
     return out
 
 
