@@ -470,6 +470,20 @@ def _tta_lines(results: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _budget_line(results: dict[str, Any], epochs: int) -> str:
+    """E, steps per run and the measured wall minutes per run of each row (mean over its seeds)."""
+    walls = {}
+    for row in dict.fromkeys(tr.row for t in TABLES for tr in t.rows):
+        w = _seed_values(results, row, "wall_s")
+        if w:
+            walls[row] = statistics.fmean(w) / 60
+    measured = ", ".join(f"{r} {m:.0f}" for r, m in walls.items()) or "none yet"
+    return (f"Budget: E = {epochs} is {240 * epochs} optimizer steps per run (240 training samples, batch 1). "
+            f"Measured wall minutes per run (mean over seeds; two runs side by side at 1 thread each, with the "
+            f"scoring of finished runs beside them for part of the time): {measured}. 18 runs: the 9 rows below "
+            "x 2 seeds.")
+
+
 def render_markdown(results: dict[str, Any], epochs: int, png: dict[str, str] | None = None,
                     readings: dict[str, str] | None = None) -> str:
     """docs/ablations.md from the results JSON: "pending" where runs are missing (pure function)."""
@@ -482,10 +496,7 @@ def render_markdown(results: dict[str, Any], epochs: int, png: dict[str, str] | 
              "camera mask); s/step = median over epochs of epoch seconds / optimizer steps (machine load and "
              "threads vary between runs: compare the `latency` ratios for cost). Where two rows differ by "
              "less than the larger seed spread (max - min over seeds) the comparison says **not resolved**.", "",
-             f"Budget: E = {epochs} is {240 * epochs} optimizer steps per run (240 training samples, batch 1); at "
-             f"the 18-epoch recipe's 0.69 s/step (alone, 2 threads; docs/training.md) that is "
-             f"~{240 * epochs * 0.69 / 60:.0f} min for the FastOcc row alone, ~{240 * epochs * 1.2 / 60:.0f} min "
-             "with two runs side by side (~1.2 s/step each). 18 runs: the 9 rows below x 2 seeds.", ""]
+             _budget_line(results, epochs), ""]
     for t in TABLES:
         lines += [f"## {t.title}", "", *_table_lines(t, results), "", t.note, ""]
         if t.key == "head":
