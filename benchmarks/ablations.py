@@ -480,8 +480,8 @@ def _budget_line(results: dict[str, Any], epochs: int) -> str:
     measured = ", ".join(f"{r} {m:.0f}" for r, m in walls.items()) or "none yet"
     return (f"Budget: E = {epochs} is {240 * epochs} optimizer steps per run (240 training samples, batch 1). "
             f"Measured wall minutes per run (mean over seeds; two runs side by side at 1 thread each, with the "
-            f"scoring of finished runs beside them for part of the time): {measured}. 18 runs: the 9 rows below "
-            "x 2 seeds.")
+            f"scoring of finished runs beside them for part of the time): {measured}. {len(all_runs())} runs: the "
+            f"{len(all_runs()) // len(SEEDS)} rows below x {len(SEEDS)} seeds.")
 
 
 def render_markdown(results: dict[str, Any], epochs: int, png: dict[str, str] | None = None,
