@@ -29,6 +29,7 @@ and caches per checkpoint, so it can be re-run as runs land.
 from __future__ import annotations
 
 import argparse
+import fcntl
 import json
 import math
 import os
@@ -39,7 +40,7 @@ import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -256,13 +257,9 @@ def score_run(run: Path, store: str, workers: int) -> dict[str, Any]:
     from bench_train import evaluate_checkpoint, run_curve
 
     curve = run_curve(run, store, rayiou=False, workers=workers)
-    cache = run / "ablate_score.json"
-    final = json.loads(cache.read_text()) if cache.is_file() else None
     steps = int(_last_meta(run).get("opt_steps", -1))
-    if final is None or final.get("opt_steps") != steps or final.get("store") != store:
-        final = evaluate_checkpoint(run / "last.pt", store, noise=False, rayiou=True, workers=workers)
-        final["store"] = store
-        cache.write_text(json.dumps(final, indent=1) + "\n")
+    final = _cached(run / "ablate_score.json", steps, store,
+                    lambda: evaluate_checkpoint(run / "last.pt", store, noise=False, rayiou=True, workers=workers))
     wall = json.loads((run / "ablate_run.json").read_text()) if (run / "ablate_run.json").is_file() else {}
     return {"miou": final["miou"], "rayiou": final["rayiou"], "geo_iou": final["geo_iou"],
             "frames_per_s": final.get("frames_per_s"), "opt_steps": steps, "s_per_step": seconds_per_step(run),
@@ -276,6 +273,17 @@ def _last_meta(run: Path) -> dict[str, Any]:
     return load_checkpoint(run / "last.pt").meta
 
 
+def _cached(cache: Path, steps: int, store: str, compute: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+    """compute(), kept in `cache` (a JSON dict) and reused while last.pt's step count and the store match."""
+    if cache.is_file():
+        hit = json.loads(cache.read_text())
+        if hit.get("opt_steps") == steps and hit.get("store") == store:
+            return hit
+    out = {**compute(), "opt_steps": steps, "store": store}
+    cache.write_text(json.dumps(out, indent=1) + "\n")
+    return out
+
+
 def score_tta(run: Path, store: str, workers: int) -> dict[str, Any]:
     """Flip TTA off and on for one run's last.pt, in one process (bench_tta's metrics dict each); cached in
     the run folder (ablate_tta.json) per checkpoint, like the scores."""
@@ -285,22 +293,18 @@ def score_tta(run: Path, store: str, workers: int) -> dict[str, Any]:
     from fastocc.infer.evaluate import evaluate
     from fastocc.infer.predict import PredictConfig
 
-    cache = run / "ablate_tta.json"
-    steps = int(_last_meta(run).get("opt_steps", -1))
-    if cache.is_file():
-        cached = json.loads(cache.read_text())
-        if cached.get("opt_steps") == steps and cached.get("store") == store:
-            return cached["tta"]
     model, ckpt = load_model(run / "last.pt")
-    out = {}
-    for tta in (False, True):
-        rep = evaluate(model, ckpt.model_config, PredictConfig(store=store, split="val", workers=workers, tta=tta),
-                       progress=False)
-        out["on" if tta else "off"] = _metrics(rep)
-    out["time_factor"] = out["on"]["infer_seconds"] / out["off"]["infer_seconds"]
-    out["loadavg_1min"] = os.getloadavg()[0]
-    cache.write_text(json.dumps({"opt_steps": steps, "store": store, "tta": out}, indent=1) + "\n")
-    return out
+
+    def both() -> dict[str, Any]:
+        out = {}
+        for tta in (False, True):
+            cfg = PredictConfig(store=store, split="val", workers=workers, tta=tta)
+            out["on" if tta else "off"] = _metrics(evaluate(model, ckpt.model_config, cfg, progress=False))
+        out["time_factor"] = out["on"]["infer_seconds"] / out["off"]["infer_seconds"]
+        out["loadavg_1min"] = os.getloadavg()[0]
+        return {"tta": out}
+
+    return _cached(run / "ablate_tta.json", int(ckpt.meta.get("opt_steps", -1)), store, both)["tta"]
 
 
 def best_row(results: dict[str, Any]) -> str | None:
@@ -313,6 +317,15 @@ def best_row(results: dict[str, Any]) -> str | None:
 
 
 def score(epochs: int, store: str, workers: int, runs_dir: Path, results_path: Path, tta_row: str | None) -> None:
+    """Score every finished run into results_path. Holds an fcntl lock beside it for the whole
+    read-modify-write, so a background watcher and a manual call cannot overwrite each other's rows."""
+    results_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(results_path.with_name(results_path.name + ".lock"), "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        _score(epochs, store, workers, runs_dir, results_path, tta_row)
+
+
+def _score(epochs: int, store: str, workers: int, runs_dir: Path, results_path: Path, tta_row: str | None) -> None:
     results = load_results(results_path)
     results.update(epochs=epochs, store=store, seeds=list(SEEDS), recipe=str(RECIPE.relative_to(REPO)))
     for row, seed in all_runs():
@@ -340,7 +353,9 @@ def score(epochs: int, store: str, workers: int, runs_dir: Path, results_path: P
 
 def _save(results: dict[str, Any], path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(results, indent=1) + "\n")
+    tmp = path.with_name(path.name + ".tmp")  # a crash mid-write leaves the old file whole
+    tmp.write_text(json.dumps(results, indent=1) + "\n")
+    os.replace(tmp, path)
 
 
 # -- latency --------------------------------------------------------------------------------------------

@@ -156,3 +156,38 @@ def test_tables_keeps_hand_written_readings(tmp_path: Path) -> None:
     res.write_text(json.dumps({"runs": {}, "epochs": 4}))
     with pytest.raises(SystemExit, match="E = 4"):
         ab.tables(res, md, epochs=6)
+
+
+def test_cache_reuses_a_score_until_the_checkpoint_or_store_changes(tmp_path: Path) -> None:
+    calls: list[int] = []
+
+    def compute() -> dict[str, object]:
+        calls.append(1)
+        return {"miou": 0.1 * len(calls)}
+
+    cache = tmp_path / "ablate_score.json"
+    assert ab._cached(cache, 10, "a.zarr", compute)["miou"] == 0.1
+    assert ab._cached(cache, 10, "a.zarr", compute)["miou"] == 0.1 and len(calls) == 1
+    assert ab._cached(cache, 11, "a.zarr", compute)["miou"] == 0.2  # resumed run: new last.pt
+    assert ab._cached(cache, 11, "b.zarr", compute)["miou"] == pytest.approx(0.3)  # other store
+    assert len(calls) == 3
+
+
+def test_score_waits_for_the_lock_and_leaves_no_partial_results(tmp_path: Path) -> None:
+    import fcntl
+    import json
+    import threading
+
+    res = tmp_path / "ab.json"
+    res.write_text(json.dumps({"runs": {"x-s0": {"row": "x"}}}))
+    with open(res.with_name("ab.json.lock"), "a") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)  # another scorer is writing
+        t = threading.Thread(target=ab.score, args=(6, "none.zarr", 0, tmp_path / "runs", res, None))
+        t.start()
+        t.join(1.0)
+        assert t.is_alive() and "epochs" not in json.loads(res.read_text())  # waits, has not written
+    t.join(30)
+    assert not t.is_alive()
+    out = json.loads(res.read_text())
+    assert out["epochs"] == 6 and out["runs"] == {"x-s0": {"row": "x"}}  # kept the other writer's rows
+    assert not res.with_name("ab.json.tmp").exists()
