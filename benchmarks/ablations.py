@@ -19,6 +19,7 @@ Steps:
     python benchmarks/ablations.py run fastocc --seed 0       # fastocc train into runs/ablate/fastocc-s0
     python benchmarks/ablations.py score                      # val mIoU (camera mask), RayIoU, geometry IoU
     python benchmarks/ablations.py latency                    # 3D-side latency of each head / FastOcc head
+    python benchmarks/ablations.py steptime                   # training s/step per row, one run at a time
     python benchmarks/ablations.py tables                     # docs/ablations.md, PNGs, from docs/ablations.json
 
 `run` resumes a run whose folder holds last.pt; it records wall time per call in ablate_run.json in the
@@ -29,6 +30,7 @@ and caches per checkpoint, so it can be re-run as runs land.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import fcntl
 import json
 import math
@@ -36,12 +38,13 @@ import os
 import platform
 import re
 import shlex
+import shutil
 import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -319,10 +322,17 @@ def best_row(results: dict[str, Any]) -> str | None:
 def score(epochs: int, store: str, workers: int, runs_dir: Path, results_path: Path, tta_row: str | None) -> None:
     """Score every finished run into results_path. Holds an fcntl lock beside it for the whole
     read-modify-write, so a background watcher and a manual call cannot overwrite each other's rows."""
-    results_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(results_path.with_name(results_path.name + ".lock"), "a") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
+    with _results_lock(results_path):
         _score(epochs, store, workers, runs_dir, results_path, tta_row)
+
+
+@contextlib.contextmanager
+def _results_lock(path: Path) -> Iterator[None]:
+    """An fcntl lock beside the results JSON, held by every read-modify-write of it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path.with_name(path.name + ".lock"), "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
 
 
 def _score(epochs: int, store: str, workers: int, runs_dir: Path, results_path: Path, tta_row: str | None) -> None:
@@ -378,12 +388,66 @@ def latency(preset: str, repeats: int, rounds: int, threads: int | None, results
            "loadavg_1min": load,
            "command": f"python benchmarks/ablations.py latency --preset {preset} --repeats {repeats} --rounds {rounds}"
                       + (f" --threads {threads}" if threads else "")}
-    results = load_results(results_path)
-    results["latency"] = out
-    _save(results, results_path)
+    with _results_lock(results_path):
+        results = load_results(results_path)
+        results["latency"] = out
+        _save(results, results_path)
     for h in ms:
         print(f"  head {h:<8} {ms[h]:8.1f} ms  x{out['ratio_to_fastocc'][h]:.2f} of the FastOcc head")
     return out
+
+
+def _timed_s_per_step(run: Path) -> float:
+    """Seconds per optimizer step of a timing run's 2nd epoch (the 1st carries the warm-up)."""
+    recs = sorted(epoch_records(run), key=lambda r: r["epoch"])
+    if len(recs) < 2:
+        raise SystemExit(f"{run}: the timing run did not finish 2 epochs (its output is above)")
+    return float(recs[1]["seconds"]) / (int(recs[1]["opt_step"]) - int(recs[0]["opt_step"]))
+
+
+def step_time(rows: Sequence[str], samples: int, rounds: int, threads: int | None, store: str | None,
+              work_dir: Path, results_path: Path) -> dict[str, Any]:
+    """Training seconds per step of each row, one run at a time: the row's config on the first `samples`
+    training samples for 2 epochs, timed on the 2nd; rows interleave round by round so that a drift of the
+    machine's load hits each; medians over rounds, ratios to rows[0] per round. Run it on an idle machine."""
+    per_round: list[dict[str, float]] = []
+    load = os.getloadavg()[0]
+    for k in range(rounds):
+        per_round.append({})
+        for row in rows:
+            cfg = replace(row_config(row, 0, 2, store, work_dir / f"round{k}", threads),
+                          limit_train_samples=samples, keep_epochs=1)
+            shutil.rmtree(cfg.out, ignore_errors=True)
+            Path(cfg.out).mkdir(parents=True)
+            toml = Path(cfg.out) / "timing.toml"
+            toml.write_text(config_to_toml(cfg))
+            cmd = [sys.executable, "-m", "cli.fastocc_cli", "train", "--config", str(toml), "--no-progress"]
+            if subprocess.run(cmd, env={**os.environ, "PYTHONPATH": str(REPO)}).returncode != 0:
+                raise SystemExit(f"timing run of {row} failed: {shlex.join(cmd)}")
+            per_round[-1][row] = _timed_s_per_step(Path(cfg.out))
+            print(f"  round {k + 1}/{rounds} {row:<12} {per_round[-1][row]:.3f} s/step", flush=True)
+    out = {"s_per_step": {r: statistics.median(p[r] for p in per_round) for r in rows},
+           "ratio": {r: statistics.median(p[r] / p[rows[0]] for p in per_round) for r in rows},
+           "rounds": per_round, "samples": samples, "threads": threads, "loadavg_1min": load,
+           "command": f"python benchmarks/ablations.py steptime --rows {','.join(rows)} --samples {samples} "
+                      f"--rounds {rounds}" + (f" --threads {threads}" if threads else "")}
+    with _results_lock(results_path):
+        results = load_results(results_path)
+        results["step_time"] = out
+        _save(results, results_path)
+    return out
+
+
+def _step_time_note(st: dict[str, Any] | None) -> str:
+    if not st:
+        return "Training cost alone: pending (`python benchmarks/ablations.py steptime` on an idle machine)."
+    first = next(iter(st["s_per_step"]))
+    per = ", ".join(f"{r} {v:.2f}" + ("" if r == first else f" ({st['ratio'][r]:.2f}x)")
+                    for r, v in st["s_per_step"].items())
+    return (f"Training cost measured alone (one run at a time on the idle machine, {st['threads'] or 'default'} "
+            f"thread(s), 2nd epoch of a {st['samples']}-sample run, median of {len(st['rounds'])} interleaved "
+            f"rounds; ratio to {first}): s/step {per}; `{st['command']}`. Use these, not the s/step column, "
+            "to compare training cost.")
 
 
 # -- tables ---------------------------------------------------------------------------------------------
@@ -511,7 +575,7 @@ def render_markdown(results: dict[str, Any], epochs: int, png: dict[str, str] | 
              "camera mask); s/step = median over epochs of epoch seconds / optimizer steps (machine load and "
              "threads vary between runs: compare the `latency` ratios for cost). Where two rows differ by "
              "less than the larger seed spread (max - min over seeds) the comparison says **not resolved**.", "",
-             _budget_line(results, epochs), ""]
+             _budget_line(results, epochs), "", _step_time_note(results.get("step_time")), ""]
     for t in TABLES:
         lines += [f"## {t.title}", "", *_table_lines(t, results), "", t.note, ""]
         if t.key == "head":
@@ -547,6 +611,7 @@ def _commands_section(epochs: int) -> list[str]:
             "# prints the nohup commands for the missing runs (two lanes)",
             f"python benchmarks/ablations.py run ROW --seed S --epochs {epochs} [--threads 1]",
             f"python benchmarks/ablations.py score --epochs {epochs}", "python benchmarks/ablations.py latency",
+            "python benchmarks/ablations.py steptime   # on an idle machine",
             f"python benchmarks/ablations.py tables --epochs {epochs}", "```", "",
             f"Rows: {', '.join(f'`{r}`' for r in ROWS)}. Raw numbers: `docs/ablations.json`.", ""]
 
@@ -622,6 +687,12 @@ def _parser() -> argparse.ArgumentParser:
     lat.add_argument("--repeats", type=int, default=5)
     lat.add_argument("--rounds", type=int, default=3, help="whole measurements; medians over them")
     lat.add_argument("--threads", type=int, default=None)
+    st = sub.add_parser("steptime", parents=[common], help="training s/step of rows, one run at a time (idle machine)")
+    st.add_argument("--rows", default="fastocc,3dfcn,deconv,hist0,hist16",
+                    help="comma-separated rows; ratios are to the first (default: %(default)s)")
+    st.add_argument("--samples", type=int, default=40, help="training samples per timing epoch")
+    st.add_argument("--rounds", type=int, default=2, help="interleaved rounds; medians over them")
+    st.add_argument("--threads", type=int, default=1, help="torch threads (the trained rows used 1)")
     t = sub.add_parser("tables", parents=[common], help="write the markdown and PNGs from the results JSON")
     t.add_argument("--md", type=Path, default=DOCS / "ablations.md")
     return ap
@@ -636,6 +707,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         status(args.epochs, args.store, args.runs_dir)
     elif args.cmd == "score":
         score(args.epochs, store, args.workers, args.runs_dir, args.results, args.tta_row)
+    elif args.cmd == "steptime":
+        rows = [r.strip() for r in args.rows.split(",") if r.strip()]
+        if unknown := [r for r in rows if r not in ROWS]:
+            raise SystemExit(f"unknown rows {unknown}; rows: {', '.join(ROWS)}")
+        step_time(rows, args.samples, args.rounds, args.threads, args.store, args.runs_dir / "steptime",
+                  args.results)
     elif args.cmd == "latency":
         latency(args.preset, args.repeats, args.rounds, args.threads, args.results)
     else:

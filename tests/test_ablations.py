@@ -191,3 +191,23 @@ def test_score_waits_for_the_lock_and_leaves_no_partial_results(tmp_path: Path) 
     out = json.loads(res.read_text())
     assert out["epochs"] == 6 and out["runs"] == {"x-s0": {"row": "x"}}  # kept the other writer's rows
     assert not res.with_name("ab.json.tmp").exists()
+
+
+def test_step_time_takes_the_second_epoch_and_renders_ratios(tmp_path: Path) -> None:
+    import json
+
+    recs = [{"kind": "train", "opt_step": 3}, {"kind": "epoch", "epoch": 1, "opt_step": 5, "seconds": 30.0},
+            {"kind": "epoch", "epoch": 2, "opt_step": 9, "seconds": 8.0}]
+    (tmp_path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in recs[:2]))
+    with pytest.raises(SystemExit, match="did not finish 2 epochs"):
+        ab._timed_s_per_step(tmp_path)
+    (tmp_path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in recs))
+    assert ab._timed_s_per_step(tmp_path) == 2.0  # 8 s over steps 5..9, the warm-up epoch left out
+    st = {"s_per_step": {"fastocc": 0.5, "3dfcn": 1.0}, "ratio": {"fastocc": 1.0, "3dfcn": 2.0},
+          "rounds": [{}, {}], "samples": 40, "threads": 1, "command": "python benchmarks/ablations.py steptime"}
+    note = ab._step_time_note(st)
+    assert "s/step fastocc 0.50, 3dfcn 1.00 (2.00x)" in note and "median of 2 interleaved rounds" in note
+    assert note in ab.render_markdown({"runs": {}, "step_time": st}, 6)
+    assert "pending" in ab._step_time_note(None)
+    with pytest.raises(SystemExit, match="unknown rows"):
+        ab.main(["steptime", "--rows", "fastocc,nope"])
