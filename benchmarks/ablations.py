@@ -185,19 +185,45 @@ def run_row(row: str, seed: int, epochs: int, store: str | None, threads: int | 
         cmd.append("--resume")
     print("$", shlex.join(cmd), flush=True)
     t0 = time.time()
+    _open_call(out, t0)
     rc = subprocess.run(cmd, env={**os.environ, "PYTHONPATH": str(REPO)}).returncode
     _record_wall(out, t0, time.time(), rc)
     return rc
 
 
+def _open_call(out: Path, start: float) -> None:
+    """Log a call in ablate_run.json before it trains, so that a call killed with its session (SIGKILL: no
+    end record) still counts. Its wall time is closed here, at the next call, up to the last write of
+    metrics.jsonl (every few steps), and marked estimated."""
+    log = _wall_log(out)
+    metrics = out / "metrics.jsonl"
+    for c in log["calls"]:
+        if c["wall_s"] is None:
+            last = metrics.stat().st_mtime if metrics.is_file() else c["start"]
+            c.update(wall_s=max(0.0, last - c["start"]), rc="killed", estimated=True)
+    log["calls"].append({"start": start, "wall_s": None, "rc": None})
+    _write_wall_log(out, log)
+
+
 def _record_wall(out: Path, start: float, end: float, rc: int) -> None:
+    log = _wall_log(out)
+    call = next((c for c in log["calls"] if c["start"] == start), None)
+    if call is None:
+        call = {"start": start}
+        log["calls"].append(call)
+    call.update(wall_s=end - start, rc=rc, epochs_done=epochs_done(out), loadavg_1min=os.getloadavg()[0])
+    _write_wall_log(out, log)
+
+
+def _wall_log(out: Path) -> dict[str, Any]:
     path = out / "ablate_run.json"
-    log = json.loads(path.read_text()) if path.is_file() else {"calls": []}
-    log["calls"].append({"start": start, "wall_s": end - start, "rc": rc, "epochs_done": epochs_done(out),
-                         "loadavg_1min": os.getloadavg()[0]})
-    log["wall_s"] = sum(c["wall_s"] for c in log["calls"])
-    if out.is_dir():
-        path.write_text(json.dumps(log, indent=1) + "\n")
+    return json.loads(path.read_text()) if path.is_file() else {"calls": []}
+
+
+def _write_wall_log(out: Path, log: dict[str, Any]) -> None:
+    log["wall_s"] = sum(c["wall_s"] or 0.0 for c in log["calls"])
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "ablate_run.json").write_text(json.dumps(log, indent=1) + "\n")
 
 
 # -- status ---------------------------------------------------------------------------------------------

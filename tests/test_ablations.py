@@ -211,3 +211,18 @@ def test_step_time_takes_the_second_epoch_and_renders_ratios(tmp_path: Path) -> 
     assert "pending" in ab._step_time_note(None)
     with pytest.raises(SystemExit, match="unknown rows"):
         ab.main(["steptime", "--rows", "fastocc,nope"])
+
+
+def test_a_killed_call_still_counts_in_the_wall_time(tmp_path: Path) -> None:
+    import json
+    import os
+
+    run = tmp_path / "hist16-s0"
+    ab._open_call(run, 1000.0)  # this call is then SIGKILLed: no end record
+    (run / "metrics.jsonl").write_text("{}\n")
+    os.utime(run / "metrics.jsonl", (1300.0, 1300.0))  # its trainer's last write
+    ab._open_call(run, 2000.0)  # the resuming call closes it
+    ab._record_wall(run, 2000.0, 2500.0, 0)
+    log = json.loads((run / "ablate_run.json").read_text())
+    assert [(c["wall_s"], c["rc"]) for c in log["calls"]] == [(300.0, "killed"), (500.0, 0)]
+    assert log["calls"][0]["estimated"] is True and log["wall_s"] == 800.0
