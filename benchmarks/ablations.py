@@ -157,8 +157,8 @@ def epochs_done(run: Path) -> int:
     return max((int(r["epoch"]) for r in recs), default=0) if (run / "last.pt").is_file() else 0
 
 
-def seconds_per_step(run: Path) -> float | None:
-    """Median over epochs of epoch seconds / optimizer steps in that epoch (metrics.jsonl epoch records)."""
+def epoch_rates(run: Path) -> list[float]:
+    """Epoch seconds / optimizer steps in that epoch, in epoch order (metrics.jsonl epoch records)."""
     recs = sorted(epoch_records(run), key=lambda r: r["epoch"])
     rates, prev = [], 0
     for r in recs:
@@ -166,6 +166,12 @@ def seconds_per_step(run: Path) -> float | None:
         prev = int(r["opt_step"])
         if steps > 0:
             rates.append(float(r["seconds"]) / steps)
+    return rates
+
+
+def seconds_per_step(run: Path) -> float | None:
+    """Median over epochs of epoch seconds / optimizer steps in that epoch."""
+    rates = epoch_rates(run)
     return statistics.median(rates) if rates else None
 
 
@@ -179,16 +185,21 @@ def run_row(row: str, seed: int, epochs: int, store: str | None, threads: int | 
     out.parent.mkdir(parents=True, exist_ok=True)
     toml = out.parent / "configs" / f"{out.name}.toml"
     toml.parent.mkdir(exist_ok=True)
-    toml.write_text(config_to_toml(cfg))
-    cmd = [sys.executable, "-m", "cli.fastocc_cli", "train", "--config", str(toml), "--no-progress"]
-    if (out / "last.pt").is_file():
-        cmd.append("--resume")
-    print("$", shlex.join(cmd), flush=True)
     t0 = time.time()
     _open_call(out, t0)
-    rc = subprocess.run(cmd, env={**os.environ, "PYTHONPATH": str(REPO)}).returncode
+    rc = _train(cfg, toml, resume=(out / "last.pt").is_file())
     _record_wall(out, t0, time.time(), rc)
     return rc
+
+
+def _train(cfg: TrainConfig, toml: Path, resume: bool = False) -> int:
+    """Write cfg to `toml` and run `fastocc train --config toml` from this checkout; the exit code."""
+    toml.write_text(config_to_toml(cfg))
+    cmd = [sys.executable, "-m", "cli.fastocc_cli", "train", "--config", str(toml), "--no-progress"]
+    if resume:
+        cmd.append("--resume")
+    print("$", shlex.join(cmd), flush=True)
+    return subprocess.run(cmd, env={**os.environ, "PYTHONPATH": str(REPO)}).returncode
 
 
 def _open_call(out: Path, start: float) -> None:
@@ -222,8 +233,7 @@ def _wall_log(out: Path) -> dict[str, Any]:
 
 def _write_wall_log(out: Path, log: dict[str, Any]) -> None:
     log["wall_s"] = sum(c["wall_s"] or 0.0 for c in log["calls"])
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "ablate_run.json").write_text(json.dumps(log, indent=1) + "\n")
+    _save(log, out / "ablate_run.json")
 
 
 # -- status ---------------------------------------------------------------------------------------------
@@ -309,7 +319,7 @@ def _cached(cache: Path, steps: int, store: str, compute: Callable[[], dict[str,
         if hit.get("opt_steps") == steps and hit.get("store") == store:
             return hit
     out = {**compute(), "opt_steps": steps, "store": store}
-    cache.write_text(json.dumps(out, indent=1) + "\n")
+    _save(out, cache)
     return out
 
 
@@ -387,10 +397,11 @@ def _score(epochs: int, store: str, workers: int, runs_dir: Path, results_path: 
     print(f"wrote {results_path}")
 
 
-def _save(results: dict[str, Any], path: Path) -> None:
+def _save(data: dict[str, Any], path: Path) -> None:
+    """Write a JSON dict atomically: a crash mid-write leaves the old file whole."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")  # a crash mid-write leaves the old file whole
-    tmp.write_text(json.dumps(results, indent=1) + "\n")
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1) + "\n")
     os.replace(tmp, path)
 
 
@@ -425,10 +436,10 @@ def latency(preset: str, repeats: int, rounds: int, threads: int | None, results
 
 def _timed_s_per_step(run: Path) -> float:
     """Seconds per optimizer step of a timing run's 2nd epoch (the 1st carries the warm-up)."""
-    recs = sorted(epoch_records(run), key=lambda r: r["epoch"])
-    if len(recs) < 2:
+    rates = epoch_rates(run)
+    if len(rates) < 2:
         raise SystemExit(f"{run}: the timing run did not finish 2 epochs (its output is above)")
-    return float(recs[1]["seconds"]) / (int(recs[1]["opt_step"]) - int(recs[0]["opt_step"]))
+    return rates[1]
 
 
 def step_time(rows: Sequence[str], samples: int, rounds: int, threads: int | None, store: str | None,
@@ -443,14 +454,12 @@ def step_time(rows: Sequence[str], samples: int, rounds: int, threads: int | Non
         for row in rows:
             cfg = replace(row_config(row, 0, 2, store, work_dir / f"round{k}", threads),
                           limit_train_samples=samples, keep_epochs=1)
-            shutil.rmtree(cfg.out, ignore_errors=True)
-            Path(cfg.out).mkdir(parents=True)
-            toml = Path(cfg.out) / "timing.toml"
-            toml.write_text(config_to_toml(cfg))
-            cmd = [sys.executable, "-m", "cli.fastocc_cli", "train", "--config", str(toml), "--no-progress"]
-            if subprocess.run(cmd, env={**os.environ, "PYTHONPATH": str(REPO)}).returncode != 0:
-                raise SystemExit(f"timing run of {row} failed: {shlex.join(cmd)}")
-            per_round[-1][row] = _timed_s_per_step(Path(cfg.out))
+            out = Path(cfg.out)
+            shutil.rmtree(out, ignore_errors=True)
+            out.mkdir(parents=True)
+            if _train(cfg, out / "timing.toml") != 0:
+                raise SystemExit(f"timing run of {row} failed (its output is above)")
+            per_round[-1][row] = _timed_s_per_step(out)
             print(f"  round {k + 1}/{rounds} {row:<12} {per_round[-1][row]:.3f} s/step", flush=True)
     out = {"s_per_step": {r: statistics.median(p[r] for p in per_round) for r in rows},
            "ratio": {r: statistics.median(p[r] / p[rows[0]] for p in per_round) for r in rows},
