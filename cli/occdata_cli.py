@@ -82,8 +82,8 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
 @main.command()
 @click.option("--root", required=True, metavar="DIR", help="nuScenes-format dataset root (a folder or a file:// URL).")
 @click.option("--version", default=None, help="Version folder (v1.0-trainval, v1.0-mini, ...); auto if only one.")
-@click.option("--out", default=DEFAULT_STORE, show_default=True, metavar="DIR",
-              help="Output zarr store (a folder or a file:// URL).")
+@click.option("--out", default=DEFAULT_STORE, show_default=True, metavar="STORE",
+              help="Output zarr store: a folder, or an fsspec URL (s3://bucket/data.zarr; needs occdata[s3]).")
 @click.option("--gts", default=None, metavar="DIR",
               help="Occ3D-nuScenes labels folder: <gts>/<scene>/<sample_token>/labels.npz or the flat "
                    "<gts>/<sample_token>/labels.npz. Default: <root>/gts if it exists. Samples without a "
@@ -91,7 +91,11 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
                    "which no sample finds its file is an error.")
 @click.option("--split", "splits", multiple=True,
               help="Keep only scenes of this split (repeatable): train, val, test, mini_train, mini_val, ...")
-@click.option("--workers", type=int, default=1, show_default=True, help="Worker processes converting samples.")
+@click.option("--workers", type=int, default=1, show_default=True,
+              help="Worker processes of the embedded Dask LocalCluster (1: in this process).")
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="Run on an existing Dask cluster (tcp://host:8786; default $DASK_SCHEDULER_ADDRESS) "
+                   "instead of a LocalCluster.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted build of the same inputs and options.")
 @click.option("--on-error", type=click.Choice(["fail", "skip"]), default="fail", show_default=True,
               help="fail: stop at the first bad sample (everything before it stays committed); "
@@ -108,7 +112,7 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
 def build(root: str, version: str | None, out: str, gts: str | None, splits: tuple[str, ...], workers: int,
-          resume: bool, on_error: str, block_samples: int, image_scale: float, jpeg_quality: int,
+          scheduler: str | None, resume: bool, on_error: str, block_samples: int, image_scale: float, jpeg_quality: int,
           lidar_sweeps: int, no_progress: bool) -> None:
     """Convert a nuScenes-format tree (+ Occ3D labels) into one chunked zarr store.
 
@@ -118,6 +122,7 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
     """
     from occdata.store.build import BuildConfig, build_store
     from occdata.store.sample import SampleOptions
+    from occdata.store.storage import is_remote
 
     root_path = local_path(root, "--root")
     gts_path = local_path(gts, "--gts") if gts is not None else None
@@ -128,20 +133,20 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
         click.echo(f"labels: {gts_path} (found in the dataset root)")
     else:
         click.echo(f"labels: none (no --gts, and {root_path / 'gts'} does not exist): the store will be unlabelled")
-    out_path = local_path(out, "--out")
+    out_path = out if is_remote(out) else local_path(out, "--out")
     try:
         report = build_store(BuildConfig(
             root=root_path, out=out_path, version=version, gts=gts_path,
-            labels_required=gts is not None, splits=splits, workers=workers, resume=resume,
+            labels_required=gts is not None, splits=splits, workers=workers, scheduler=scheduler, resume=resume,
             on_error=on_error,  # type: ignore[arg-type]
             block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality,
                                                                  lidar_sweeps=lidar_sweeps),
             progress=not no_progress,
         ))
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (occdata.cluster.Interrupted)
         click.echo(f"\ninterrupted: every sample committed so far is kept in {out_path}; rerun the same command "
                    "with --resume to continue", err=True)
-        sys.exit(130)
+        sys.exit(128 + getattr(exc, "signum", 2))
     for note in report.warnings:
         click.echo(f"warning: {note}", err=True)
     click.echo(

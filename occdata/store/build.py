@@ -1,36 +1,43 @@
 """`occdata build`: a nuScenes-format tree (+ Occ3D labels) -> one chunked zarr store.
 
-Workers convert samples; the main process is the only writer. It writes whole blocks of samples
-(one shard per block for the big arrays), then the per-sample checksums, then the state flags:
-a sample is complete only once its state says so. `--resume` continues after the last committed
-sample and gives a store identical to an uninterrupted build.
+The work runs as tasks on Dask (`occdata.cluster`): one block of `--block-samples` samples per task,
+aligned to the store's chunks and shards, each task writing its own chunks (`occdata.store.blocks`):
+many writers, and only sizes and errors travel back to this process, which places the blocks'
+ragged payloads (chunk-aligned, in block order) and owns the metadata. A sample is complete only
+once its state flag says so; `--resume` commits what an interrupted run converted, converts the
+rest, and gives a store identical to an uninterrupted build, for any number of workers.
 """
 
 from __future__ import annotations
 
-import collections
 import dataclasses
-import multiprocessing as mp
+import json
 import os
 import shutil
-import signal
-import threading
 import zlib
 from collections.abc import Iterator
-from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 import zarr
-from tqdm import tqdm
 from zarr.codecs import ZstdCodec
 
+from occdata.cluster import ClusterConfig, cluster_client, run_tasks
 from occdata.constants import CAMERA_ORDER, CLASS_COLORS, CLASS_NAMES, FREE_LABEL, GRID
 from occdata.errors import OccDataError
 from occdata.nuscenes import LidarRecord, NuScenesDataset, load_nuscenes
 from occdata.nuscenes.reader import confined_path
+from occdata.store.blocks import (
+    BlockSummary,
+    CommitJob,
+    ConvertJob,
+    Placer,
+    flat_footprint,
+    run_job,
+    staged_summary,
+)
 from occdata.store.layout import (
     FLAT_ARRAYS,
     FLAT_OF_OFFSETS,
@@ -45,8 +52,9 @@ from occdata.store.layout import (
     token_width,
 )
 from occdata.store.lock import store_lock
-from occdata.store.reader import StoreReader
-from occdata.store.sample import SampleOptions, SampleResult, process_sample, static_arrays, temporal_indices
+from occdata.store.reader import StoreReader, store_location
+from occdata.store.sample import SampleOptions, static_arrays, temporal_indices
+from occdata.store.storage import is_remote, join, read_bytes, remove_tree, sibling
 
 __all__ = ["BuildConfig", "BuildReport", "build_store", "check_sweep_files", "find_label_files", "identity_diff",
            "label_layouts", "sample_checksums"]
@@ -55,7 +63,7 @@ __all__ = ["BuildConfig", "BuildReport", "build_store", "check_sweep_files", "fi
 @dataclass(frozen=True)
 class BuildConfig:
     root: Path
-    out: Path
+    out: Path | str  # a folder, or an fsspec URL (s3://bucket/data.zarr)
     version: str | None = None
     gts: Path | None = None
     # With labels_required (an explicit --gts), a labels folder in which no sample finds its file
@@ -63,7 +71,8 @@ class BuildConfig:
     # <root>/gts, which may legitimately hold no labels for the selected split (test).
     labels_required: bool = True
     splits: tuple[str, ...] = ()
-    workers: int = 1
+    workers: int = 1  # LocalCluster worker processes (1: in this process)
+    scheduler: str | None = None  # an existing Dask scheduler (tcp://host:8786); None: $DASK_SCHEDULER_ADDRESS
     resume: bool = False
     on_error: Literal["fail", "skip"] = "fail"
     block_samples: int = 32
@@ -154,7 +163,10 @@ def _create(root: zarr.Group, n: int, block: int, attrs: dict[str, Any], tok_wid
             name, shape=(0, *row), dtype=dtype, chunks=(chunk_rows, *row), fill_value=0,
             compressors=_compressor(name),
         )
-    root.attrs.update(attrs)
+    # Every commit flag exists from the start (pending): with many writers, blocks commit in any
+    # order, and an absent state chunk stays a sign of damage (occdata.store.integrity).
+    root["status/state"].with_config({"write_empty_chunks": True})[:] = np.zeros(n, dtype=np.uint8)
+    root.attrs.put(attrs)
 
 
 def _root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str]) -> dict[str, Any]:
@@ -199,6 +211,10 @@ def _root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str]
     }
 
 
+STAGING_SUFFIX = ".staging"  # <store>.staging: converted blocks not yet committed
+_CREATING = "occdata_creating"  # root attribute of a store whose layout is still being written (object stores)
+
+
 def sample_checksums(arrays: dict[str, np.ndarray], flat: dict[str, bytes]) -> np.ndarray:
     """`(A,) uint32` crc32 per checksummed array, in `checksummed_names()` order."""
     out = []
@@ -208,88 +224,6 @@ def sample_checksums(arrays: dict[str, np.ndarray], flat: dict[str, bytes]) -> n
         else:
             out.append(zlib.crc32(np.ascontiguousarray(arrays[name]).tobytes()))
     return np.array(out, dtype=np.uint32)
-
-
-class _Writer:
-    """Commits runs of consecutive sample results to the store (the single writer)."""
-
-    def __init__(self, root: zarr.Group) -> None:
-        self.root = root
-        self.arrays = {s.name: root[s.name] for s in PER_SAMPLE}
-        self.flat = {name: root[name] for name in FLAT_ARRAYS}
-        self.initial_state = _resume_state(root)  # what an earlier (killed) run committed
-        self.cursor = {name: 0 for name in FLAT_ARRAYS}
-        committed = self.initial_state != STATE_PENDING
-        for off_name, flat_name in FLAT_OF_OFFSETS.items():
-            if committed.any():
-                off = self.arrays[off_name][:][committed]
-                self.cursor[flat_name] = int((off[..., 0] + off[..., 1]).max(initial=0))
-        self.fill = {s.name: np.full(self.arrays[s.name].shape[1:], s.fill, dtype=s.dtype) for s in PER_SAMPLE}
-
-    def commit(self, results: list[SampleResult]) -> None:
-        if not results:
-            return
-        i0, i1 = results[0].index, results[-1].index + 1
-        assert [r.index for r in results] == list(range(i0, i1))
-        # Offsets and payloads of the ragged arrays, sample after sample.
-        per_sample_flat: list[dict[str, bytes]] = []
-        offsets = {name: np.zeros((len(results), 6, 2), dtype=np.int64) for name in FLAT_OF_OFFSETS}
-        rows_so_far = dict(self.cursor)
-        for k, r in enumerate(results):
-            parts = {"images/jpeg": list(r.jpeg), "depth/uvd": [u.tobytes() for u in r.uvd]}
-            mine = {}
-            for off_name, flat_name in FLAT_OF_OFFSETS.items():
-                row_bytes = _row_bytes(flat_name)
-                for c, part in enumerate(parts[flat_name]):
-                    offsets[off_name][k, c] = (rows_so_far[flat_name], len(part) // row_bytes)
-                    rows_so_far[flat_name] += len(part) // row_bytes
-                if not parts[flat_name]:  # failed sample: empty ranges at the cursor
-                    offsets[off_name][k, :, 0] = rows_so_far[flat_name]
-                mine[flat_name] = b"".join(parts[flat_name])
-            per_sample_flat.append(mine)
-        # 1. ragged payloads
-        for flat_name in FLAT_ARRAYS:
-            blob = b"".join(m[flat_name] for m in per_sample_flat)
-            row_shape, dtype, _ = FLAT_ARRAYS[flat_name]
-            data = np.frombuffer(blob, dtype=dtype).reshape((-1, *row_shape))
-            start = self.cursor[flat_name]
-            end = start + len(data)
-            arr = self.flat[flat_name]
-            if arr.shape[0] != end:
-                arr.resize((end, *row_shape))
-            if len(data):
-                arr[start:end] = data
-            self.cursor[flat_name] = end
-        # 2. per-sample arrays (failed samples: static arrays only, the rest stays at fill)
-        block: dict[str, np.ndarray] = {}
-        for s in PER_SAMPLE:
-            if s.name.startswith("status/"):
-                continue
-            if s.name in offsets:
-                block[s.name] = offsets[s.name]
-            else:
-                stacked = np.stack([r.arrays.get(s.name, self.fill[s.name]) for r in results])
-                block[s.name] = stacked.astype(s.dtype, copy=False)
-            self.arrays[s.name][i0:i1] = block[s.name]
-        # 3. checksums, then errors, then the state flags (the commit point)
-        sums = np.stack([
-            sample_checksums({n: block[n][k] for n in block}, per_sample_flat[k]) for k in range(len(results))
-        ])
-        self.arrays["status/checksum"][i0:i1] = sums
-        failed = [r for r in results if r.error]
-        old_errors = self.root.attrs.get("errors", [])
-        if failed or any(i0 <= e["index"] < i1 for e in old_errors):  # a retried sample may now succeed
-            errors = [e for e in old_errors if not i0 <= e["index"] < i1]
-            errors += [{"index": r.index, "token": r.token, "reason": r.error} for r in failed]
-            self.root.attrs["errors"] = sorted(errors, key=lambda e: e["index"])
-        self.arrays["status/state"][i0:i1] = np.array(
-            [STATE_ERROR if r.error else STATE_DONE for r in results], dtype=np.uint8
-        )
-
-    def finish(self) -> None:
-        for flat_name, arr in self.flat.items():
-            if arr.shape[0] != self.cursor[flat_name]:
-                arr.resize((self.cursor[flat_name], *arr.shape[1:]))
 
 
 def _resume_state(root: zarr.Group) -> np.ndarray:
@@ -309,48 +243,68 @@ def _resume_state(root: zarr.Group) -> np.ndarray:
     return out
 
 
-def _row_bytes(flat_name: str) -> int:
-    row_shape, dtype, _ = FLAT_ARRAYS[flat_name]
-    return int(np.dtype(dtype).itemsize * int(np.prod(row_shape, dtype=np.int64)))
+def _store_exists(out: str) -> bool:
+    """A store is there once its layout is complete (locally: the folder, published by rename;
+    on an object store: a root `zarr.json` not marked as still being created)."""
+    if not is_remote(out):
+        return os.path.lexists(out)
+    raw = read_bytes(join(out, "zarr.json"))
+    if raw is None:
+        return False
+    try:
+        return not json.loads(raw).get("attributes", {}).get(_CREATING, False)
+    except ValueError:
+        return True  # not ours to overwrite: the resume checks report it
 
 
-def _open_or_create(config: BuildConfig, ds: NuScenesDataset, split_names: list[str]) -> zarr.Group:
-    out = Path(config.out)
-    attrs = _root_attrs(config, ds, split_names)
-    if out.exists():
-        if not config.resume:
-            raise OccDataError(f"store exists: {out} (pass --resume to continue it, or choose another --out)")
+def _open_existing(config: BuildConfig, out: str, attrs: dict[str, Any]) -> zarr.Group:
+    if not config.resume:
+        raise OccDataError(f"store exists: {out} (pass --resume to continue it, or choose another --out)")
+    try:
+        root = zarr.open_group(out, mode="r+")
+    except Exception as exc:  # noqa: BLE001 - any unreadable store is reported the same way
+        raise OccDataError(f"cannot resume {out}: not a readable zarr store ({exc})") from None
+    if root.attrs.get("schema") == SCHEMA_NAME:
         try:
-            root = zarr.open_group(out, mode="r+")
-        except Exception as exc:  # noqa: BLE001 - any unreadable store is reported the same way
-            raise OccDataError(f"cannot resume {out}: not a readable zarr store ({exc})") from None
-        if root.attrs.get("schema") == SCHEMA_NAME:
-            try:
-                StoreReader(out)  # every array there with the schema's shape (edited zarr.json, ...)
-            except OccDataError as exc:
-                raise OccDataError(f"cannot resume: {exc}") from None
-        if root.attrs.get("schema") != SCHEMA_NAME:
-            raise OccDataError(f"cannot resume {out}: not an occdata store (no schema attribute)")
-        stored = root.attrs.get("build_identity")
-        if isinstance(stored, dict) and isinstance(stored.get("options"), dict):
-            stored = {**stored, "options": {"lidar_sweeps": 0, **stored["options"]}}  # stores from before sweeps
-        if stored != attrs["build_identity"]:
-            diffs = identity_diff(stored if isinstance(stored, dict) else {}, attrs["build_identity"])
-            raise OccDataError(
-                f"cannot resume {out}: it was built from other inputs or options: {'; '.join(diffs)}. "
-                "Rerun with the store's values, or use a new --out"
-            )
-        for partial in out.rglob("*.partial"):  # atomic-write leftovers of a killed run
+            StoreReader(out)  # every array there with the schema's shape (edited zarr.json, ...)
+        except OccDataError as exc:
+            raise OccDataError(f"cannot resume: {exc}") from None
+    if root.attrs.get("schema") != SCHEMA_NAME:
+        raise OccDataError(f"cannot resume {out}: not an occdata store (no schema attribute)")
+    stored = root.attrs.get("build_identity")
+    if isinstance(stored, dict) and isinstance(stored.get("options"), dict):
+        stored = {**stored, "options": {"lidar_sweeps": 0, **stored["options"]}}  # stores from before sweeps
+    if stored != attrs["build_identity"]:
+        diffs = identity_diff(stored if isinstance(stored, dict) else {}, attrs["build_identity"])
+        raise OccDataError(
+            f"cannot resume {out}: it was built from other inputs or options: {'; '.join(diffs)}. "
+            "Rerun with the store's values, or use a new --out"
+        )
+    if not is_remote(out):
+        for partial in Path(out).rglob("*.partial"):  # atomic-write leftovers of a killed run
             partial.unlink(missing_ok=True)
-        return root
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".creating")
+    return root
+
+
+def _open_or_create(config: BuildConfig, ds: NuScenesDataset, split_names: list[str]) -> tuple[zarr.Group, str]:
+    """The store to write, and its location (a local path or a URL)."""
+    out = store_location(config.out)
+    attrs = _root_attrs(config, ds, split_names)
+    if _store_exists(out):
+        return _open_existing(config, out, attrs), out
+    remove_tree(sibling(out, STAGING_SUFFIX))  # left by an earlier store of that name: not ours
+    tok_width = token_width(_all_tokens(ds))
+    if is_remote(out):  # no rename on an object store: the root is marked until the layout is complete
+        root = zarr.open_group(out, mode="w", attributes={_CREATING: True})
+        _create(root, len(ds.samples), config.block_samples, attrs, tok_width)
+        return zarr.open_group(out, mode="r+"), out
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(out + ".creating")
     shutil.rmtree(tmp, ignore_errors=True)
     root = zarr.open_group(tmp, mode="w")
-    _create(root, len(ds.samples), config.block_samples, attrs, token_width(_all_tokens(ds)))
+    _create(root, len(ds.samples), config.block_samples, attrs, tok_width)
     tmp.rename(out)  # the store appears only once its layout is complete
-    return zarr.open_group(out, mode="r+")
-
+    return zarr.open_group(out, mode="r+"), out
 
 def _all_tokens(ds: NuScenesDataset) -> Iterator[str]:
     for s in ds.samples:
@@ -359,13 +313,11 @@ def _all_tokens(ds: NuScenesDataset) -> Iterator[str]:
         yield from (c.token for c in s.cameras)
 
 
-def _work(args: tuple[Any, ...]) -> SampleResult:
-    return process_sample(*args)
-
-
-def build_store(config: BuildConfig) -> BuildReport:
+def build_store(config: BuildConfig, client: Any = None) -> BuildReport:
     """Build (or resume) a store. Raises `OccDataError` on bad options or, with on_error=fail,
-    at the first bad sample, after committing every sample before it."""
+    at the first bad sample, after committing every sample before it; `occdata.cluster.Interrupted`
+    on Ctrl-C/SIGTERM. `client`: a `distributed.Client` to use (default: one for `config.workers`
+    and `config.scheduler`, closed at the end)."""
     if config.block_samples < 1 or config.workers < 1:
         raise OccDataError("--workers and --block-samples must be >= 1")
     if not 0.05 <= config.options.image_scale <= 1.0:
@@ -391,8 +343,12 @@ def build_store(config: BuildConfig) -> BuildReport:
     split_code = {name: i for i, name in enumerate(split_names)}
     with store_lock(config.out, "build"):
         try:
-            return _build_locked(config, ds, labels, split_names, split_code, scene_index, prev_index, prev_valid,
-                                 histories)
+            if client is not None:
+                return _build_locked(config, client, ds, labels, split_names, split_code, scene_index, prev_index,
+                                     prev_valid, histories)
+            with cluster_client(ClusterConfig(workers=config.workers, scheduler=config.scheduler)) as own:
+                return _build_locked(config, own, ds, labels, split_names, split_code, scene_index, prev_index,
+                                     prev_valid, histories)
         except OSError as exc:  # a full disk, a read-only folder: committed samples are kept
             where = f" ({exc.filename})" if exc.filename else ""
             raise OccDataError(
@@ -401,65 +357,141 @@ def build_store(config: BuildConfig) -> BuildReport:
             ) from None
 
 
-def _build_locked(config: BuildConfig, ds: NuScenesDataset, labels: list[Path | None], split_names: list[str],
-                  split_code: dict[str, int], scene_index: np.ndarray, prev_index: np.ndarray,
-                  prev_valid: np.ndarray, histories: list[tuple[LidarRecord, ...]]) -> BuildReport:
-    root = _open_or_create(config, ds, split_names)
-    writer = _Writer(root)
-    # Pending samples, and those that failed before (their input may have been fixed since).
-    pending = np.flatnonzero(writer.initial_state != STATE_DONE)
-    if len(pending) and root.attrs.get("complete"):
+class _Coordinator:
+    """Client side of a build run: places converted blocks in block order and hands back their
+    commit jobs; records errors (skip) or stops at the first failed sample (fail)."""
+
+    def __init__(self, root: zarr.Group, out: str, staging: str, spans: list[tuple[int, int, int]],
+                 todo: set[int], on_error: str) -> None:
+        self.root, self.out, self.staging, self.spans, self.todo = root, out, staging, spans, todo
+        self.on_error = on_error
+        self.summaries: dict[int, BlockSummary] = {}
+        self.next = 0  # position in spans of the next block to place
+        self.failure: tuple[int, str, str] | None = None
+        self.errors: list[dict[str, Any]] = []
+        self.footprints: dict[str, dict[int, tuple[int, int] | None]] = {}
+        self.placers: dict[str, Placer] = {}
+        for off_name, flat_name in FLAT_OF_OFFSETS.items():
+            chunk = FLAT_ARRAYS[flat_name][2]
+            offsets = root[off_name][:] if len(todo) < len(spans) else None
+            fp = {b: flat_footprint(offsets[i0:i1], chunk) for b, i0, i1 in spans if b not in todo} if (
+                offsets is not None) else {}
+            self.footprints[flat_name] = fp
+            self.placers[flat_name] = Placer(chunk, [f for f in fp.values() if f is not None])
+
+    def keep(self, job: ConvertJob | CommitJob) -> bool:
+        """After a failure under --on-error fail, blocks after the failed one are not converted."""
+        return not (self.failure is not None and isinstance(job, ConvertJob) and job.i0 > self.failure[0])
+
+    def add(self, summary: BlockSummary) -> list[CommitJob]:
+        self.summaries[summary.block] = summary
+        if self.on_error == "fail" and summary.errors:
+            first = min(summary.errors)
+            if self.failure is None or first[0] < self.failure[0]:
+                self.failure = first
+        jobs: list[CommitJob] = []
+        while self.next < len(self.spans):
+            b, i0, i1 = self.spans[self.next]
+            if b not in self.todo:
+                for name, placer in self.placers.items():
+                    placer.skip(self.footprints[name].get(b))
+                self.next += 1
+                continue
+            s = self.summaries.get(b)
+            if s is None or (self.failure is not None and i0 > self.failure[0]):
+                break
+            jobs.append(self._place(s, i0, i1))
+            self.next += 1
+        return jobs
+
+    def _place(self, s: BlockSummary, i0: int, i1: int) -> CommitJob:
+        starts = {name: placer.place(s.rows[name]) for name, placer in self.placers.items()}
+        for name, placer in self.placers.items():  # grow only; the client alone writes metadata
+            arr = self.root[name]
+            if arr.shape[0] < placer.high:
+                arr.resize((placer.high, *arr.shape[1:]))
+        until = i1
+        if self.failure is not None and i0 <= self.failure[0] < i1:
+            until = self.failure[0]
+        elif s.errors:  # skip: the errors are recorded before the block's state says "error"
+            self.errors += [{"index": int(i), "token": t, "reason": r} for i, t, r in s.errors]
+            self.root.attrs["errors"] = sorted(self.errors, key=lambda e: e["index"])
+        return CommitJob(self.out, self.staging, s.block, i0, i1, starts, until)
+
+
+def _reset_blocks(root: zarr.Group, state: np.ndarray, spans: list[tuple[int, int, int]], todo: set[int]) -> None:
+    """Blocks to (re)build are pending again before any of their data moves; their old errors go."""
+    arr = root["status/state"].with_config({"write_empty_chunks": True})
+    for b, i0, i1 in spans:
+        if b in todo and (state[i0:i1] != STATE_PENDING).any():
+            arr[i0:i1] = np.zeros(i1 - i0, dtype=np.uint8)
+    if root.attrs.get("errors"):
+        root.attrs["errors"] = []
+
+
+def _build_locked(config: BuildConfig, client: Any, ds: NuScenesDataset, labels: list[Path | None],
+                  split_names: list[str], split_code: dict[str, int], scene_index: np.ndarray,
+                  prev_index: np.ndarray, prev_valid: np.ndarray,
+                  histories: list[tuple[LidarRecord, ...]]) -> BuildReport:
+    root, out = _open_or_create(config, ds, split_names)
+    staging = sibling(out, STAGING_SUFFIX)
+    state = _resume_state(root)
+    n, bs = len(ds.samples), config.block_samples
+    spans = [(b, i0, min(i0 + bs, n)) for b, i0 in enumerate(range(0, n, bs))]
+    todo = {b for b, i0, i1 in spans if (state[i0:i1] != STATE_DONE).any()}
+    if todo and root.attrs.get("complete"):
         root.attrs["complete"] = False  # until this run has committed them again
+    _reset_blocks(root, state, spans, todo)
+    coord = _Coordinator(root, out, staging, spans, todo, config.on_error)
     tok_width = int(root["sample/token"].shape[-1])
 
-    def tasks() -> Iterator[tuple[Any, ...]]:
-        for i in pending:
+    def convert_job(b: int, i0: int, i1: int) -> ConvertJob:
+        args = []
+        for i in range(i0, i1):
             s = ds.samples[i]
-            static = static_arrays(
-                s, int(scene_index[i]), split_code[ds.scenes[scene_index[i]].split], prev_index[i], prev_valid[i],
-                tok_width,
-            )
-            yield (int(i), s, static, labels[int(i)], config.options, histories[int(i)])
+            static = static_arrays(s, int(scene_index[i]), split_code[ds.scenes[scene_index[i]].split],
+                                   prev_index[i], prev_valid[i], tok_width)
+            args.append((i, s, static, labels[i], config.options, histories[i]))
+        return ConvertJob(out, staging, b, i0, i1, tuple(args))
 
-    block = config.block_samples
-    run: list[SampleResult] = []
-    processed = 0
-    bar = tqdm(total=len(pending), desc="build", unit="sample", disable=not config.progress, dynamic_ncols=True)
-    stop = _DeferredInterrupt()
-    try:
-        with stop:
-            for result in _results(tasks(), config.workers, stop):
-                if result.error and config.on_error == "fail":
-                    writer.commit(run)
-                    writer.finish()
-                    raise OccDataError(
-                        f"sample {result.index} ({result.token}) failed: {result.error}. "
-                        f"Everything before it is committed; fix the input and rerun with --resume "
-                        f"(or use --on-error skip)."
-                    )
-                if run and result.index != run[-1].index + 1:
-                    writer.commit(run)
-                    run = []
-                run.append(result)
-                processed += 1
-                bar.update(1)
-                if (result.index + 1) % block == 0 or result.index == len(ds.samples) - 1:
-                    writer.commit(run)
-                    run = []
-                if stop.hit:
-                    break
-            writer.commit(run)  # results already received are kept, also on Ctrl-C
-            writer.finish()
-    finally:
-        bar.close()
-    if stop.hit:
-        raise KeyboardInterrupt
+    jobs: list[ConvertJob | CommitJob] = []
+    for b, i0, i1 in spans:
+        if b not in todo:
+            continue
+        staged = staged_summary(staging, b)
+        if staged is not None and not staged.errors:  # converted by an interrupted run: commit it
+            jobs += coord.add(staged)
+        else:
+            jobs.append(convert_job(b, i0, i1))
+    converted = [0]
+
+    def on_result(job: ConvertJob | CommitJob, result: Any) -> list[ConvertJob | CommitJob]:
+        if isinstance(job, ConvertJob):
+            converted[0] += job.i1 - job.i0
+            return list(coord.add(result))
+        return []
+
+    run_tasks(client, run_job, jobs, desc="build", progress=config.progress, on_result=on_result, keep=coord.keep,
+              units=lambda j: j.i1 - j.i0 if isinstance(j, ConvertJob) else 0)
+    if coord.failure is not None:
+        i, token, reason = coord.failure
+        raise OccDataError(
+            f"sample {i} ({token}) failed: {reason}. Everything before it is committed; fix the input and rerun "
+            "with --resume (or use --on-error skip)."
+        )
+    return _finish(config, root, out, staging, ds, converted[0])
+
+
+def _finish(config: BuildConfig, root: zarr.Group, out: str, staging: str, ds: NuScenesDataset,
+            processed: int) -> BuildReport:
+    """The final commit (idempotent): completeness, the run's options, staging removed."""
     final_state = root["status/state"][:]
     complete = bool((final_state != STATE_PENDING).all())
-    root.attrs["complete"] = complete
-    root.attrs["build_config"] = {"workers": config.workers, "on_error": config.on_error}
+    if complete:
+        remove_tree(staging)
+    root.attrs.update({"complete": complete, "build_config": {"workers": config.workers, "on_error": config.on_error}})
     return BuildReport(
-        store=Path(config.out),
+        store=Path(out) if not is_remote(out) else out,  # type: ignore[arg-type]
         n_samples=len(ds.samples),
         n_done=int((final_state == STATE_DONE).sum()),
         n_errors=int((final_state == STATE_ERROR).sum()),
@@ -467,7 +499,6 @@ def _build_locked(config: BuildConfig, ds: NuScenesDataset, labels: list[Path | 
         processed_now=processed,
         warnings=ds.warnings,
     )
-
 
 def check_sweep_files(histories: list[tuple[LidarRecord, ...]], n_sweeps: int) -> None:
     """Raise one `OccDataError` line if any sweep file that `--lidar-sweeps` needs is not a file:
@@ -520,60 +551,3 @@ def find_label_files(
     if any(s.problem for s in samples):
         ds = dataclasses.replace(ds, samples=tuple(samples))
     return found, ds
-
-
-class _DeferredInterrupt:
-    """Ctrl-C sets a flag that the build loop checks after each sample (a commit is never cut in
-    half); a second Ctrl-C interrupts at once. Only in the main thread (signals live there)."""
-
-    def __init__(self) -> None:
-        self.hit = False
-        self._prev: Any = None
-
-    def _handler(self, signum: int, frame: Any) -> None:
-        self.hit = True
-        signal.signal(signal.SIGINT, self._prev)
-
-    def __enter__(self) -> _DeferredInterrupt:
-        if threading.current_thread() is threading.main_thread():
-            self._prev = signal.signal(signal.SIGINT, self._handler)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self._prev is not None:
-            signal.signal(signal.SIGINT, self._prev)
-            self._prev = None
-
-
-def _ignore_sigint() -> None:
-    """Worker initializer: Ctrl-C in a terminal reaches the whole process group; only the main
-    process acts on it (no KeyboardInterrupt tracebacks from workers, no half-dead pool)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _results(tasks: Iterator[tuple[Any, ...]], workers: int, stop: _DeferredInterrupt) -> Iterator[SampleResult]:
-    """Results in task order; at most a few tasks in flight per worker, so memory stays bounded."""
-    if workers == 1:
-        for t in tasks:
-            yield _work(t)
-            if stop.hit:
-                return
-        return
-    window: collections.deque[Future[SampleResult]] = collections.deque()
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_ignore_sigint)
-    try:
-        for t in tasks:
-            if stop.hit:
-                return
-            window.append(pool.submit(_work, t))
-            if len(window) >= 3 * workers:
-                yield window.popleft().result()
-        while window and not stop.hit:
-            yield window.popleft().result()
-    finally:
-        # Interrupted or failed: cancel what no worker has started; the few tasks in flight finish
-        # (workers ignore SIGINT) and the pool shuts down cleanly. Terminating workers instead can
-        # hang the shutdown (a killed worker may hold the call queue's lock), and so can
-        # `concurrent.futures.wait` on futures that the shutdown cancels (never counted as done).
-        pool.shutdown(wait=True, cancel_futures=True)
-
