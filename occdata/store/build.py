@@ -466,8 +466,8 @@ def _build_locked(config: BuildConfig, client: Any, ds: NuScenesDataset, labels:
     converted = [0]
 
     def on_result(job: ConvertJob | CommitJob, result: Any) -> list[ConvertJob | CommitJob]:
-        if isinstance(job, ConvertJob):
-            converted[0] += job.i1 - job.i0
+        if isinstance(job, ConvertJob):  # samples that needed work (a block's done ones are redone with it)
+            converted[0] += int((state[job.i0 : job.i1] != STATE_DONE).sum())
             return list(coord.add(result))
         return []
 
