@@ -57,13 +57,13 @@ class ClusterConfig:
 
     workers: int = 1
     scheduler: str | None = None
-    connect_timeout_s: float = 10.0
+    connect_timeout_s: float | None = None  # None: Dask's distributed.comm.timeouts.connect (30 s)
     memory_limit: str = "auto"  # per LocalCluster worker
 
     def __post_init__(self) -> None:
         if self.workers < 1:
             raise OccDataError(f"--workers must be >= 1, got {self.workers}")
-        if self.connect_timeout_s <= 0:
+        if self.connect_timeout_s is not None and self.connect_timeout_s <= 0:
             raise OccDataError(f"the scheduler connect timeout must be > 0, got {self.connect_timeout_s}")
         if self.scheduler is not None and "://" not in self.scheduler and ":" not in self.scheduler:
             raise OccDataError(f"--scheduler {self.scheduler!r}: expected an address such as tcp://host:8786")
@@ -103,7 +103,8 @@ def cluster_client(config: ClusterConfig) -> Iterator[Client | None]:
     with dask.config.set({"distributed.worker.daemon": False, "logging.distributed": "critical"}):
         if address is not None:
             try:
-                client = Client(address, timeout=config.connect_timeout_s, set_as_default=False)
+                timeout = {} if config.connect_timeout_s is None else {"timeout": config.connect_timeout_s}
+                client = Client(address, set_as_default=False, **timeout)
             except (OSError, TimeoutError) as exc:
                 raise OccDataError(f"cannot reach the Dask scheduler at {address}: {_reason(exc)}") from None
             try:
@@ -112,7 +113,7 @@ def cluster_client(config: ClusterConfig) -> Iterator[Client | None]:
                 _close(client)
             return
         cluster = LocalCluster(n_workers=config.workers, threads_per_worker=1, processes=True,
-                               host="127.0.0.1", dashboard_address=None, memory_limit=config.memory_limit,
+                               host="127.0.0.1", dashboard_address=":0", memory_limit=config.memory_limit,
                                silence_logs=logging.CRITICAL, preload=["occdata.cluster"])
         client = Client(cluster, set_as_default=False)
         try:
@@ -241,11 +242,17 @@ def _run_on(client: Client, fn: Callable[[T], R], queue: _Queue, stop: _StopSign
             if not running:
                 break
             stop.check()
+            if client.status != "running":  # the scheduler went away (the client is reconnecting or closed)
+                raise OccDataError(f"lost the Dask scheduler at {_address(client)} ({client.status}); "
+                                   "everything committed so far is kept: rerun with --resume")
             try:
                 with client.as_current():
                     done, _ = wait(list(running), timeout=0.25, return_when="FIRST_COMPLETED")
             except TimeoutError:
                 done = set()
+            except Exception as exc:  # noqa: BLE001 - futures cancelled because the scheduler connection broke
+                raise OccDataError(f"lost the Dask scheduler at {_address(client)} ({type(exc).__name__}); everything "
+                                   "committed so far is kept: rerun with --resume") from None
             for f in done:
                 task = running.pop(f)
                 result = _result(client, f)
@@ -256,6 +263,13 @@ def _run_on(client: Client, fn: Callable[[T], R], queue: _Queue, stop: _StopSign
     finally:
         if running:
             _cancel(client, list(running))
+
+
+def _address(client: Client) -> str:
+    try:
+        return str(client.scheduler.address)
+    except Exception:  # noqa: BLE001 - no connection object any more
+        return "?"
 
 
 def _nthreads(client: Client) -> dict[str, int]:

@@ -5,22 +5,35 @@ rename, once its layout is complete. It is kept after the writer ends: deleting 
 with a second writer that has it open. The kernel drops the lock when the holder exits, even on
 kill -9, so a stale file never blocks anyone; its content (pid, host, start time, command) only
 serves the message of the writer that is refused.
+
+An object store (s3://...) has no advisory lock. There the lock is twofold: the same `fcntl` lock on
+a local file named after the URL (two writers on one host), and a lease object `<store>.lock`
+holding the holder's host, pid and a heartbeat renewed every `LEASE_RENEW_S`. A writer on another
+host is refused while the lease is younger than `LEASE_STALE_S`; on the holder's own host a lease
+whose local lock is free belongs to a dead process and is taken over at once.
 """
 
 from __future__ import annotations
 
 import datetime
 import fcntl
+import hashlib
 import json
 import os
 import socket
+import tempfile
+import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 from occdata.errors import OccDataError
 
-__all__ = ["StoreLockedError", "lock_path", "store_lock"]
+__all__ = ["LEASE_RENEW_S", "LEASE_STALE_S", "StoreLockedError", "lock_path", "store_lock"]
+
+LEASE_RENEW_S = 20.0
+LEASE_STALE_S = 90.0
 
 
 class StoreLockedError(OccDataError):
@@ -28,6 +41,10 @@ class StoreLockedError(OccDataError):
 
 
 def lock_path(store: str | Path) -> Path:
+    """The local lock file: beside a local store; for a URL, a file named after it in the temp folder."""
+    if "://" in str(store):
+        digest = hashlib.sha256(str(store).rstrip("/").encode()).hexdigest()[:24]
+        return Path(tempfile.gettempdir()) / "occdata-locks" / f"{digest}.lock"
     p = Path(store)
     return p.with_name(p.name + ".lock")
 
@@ -36,11 +53,8 @@ def lock_path(store: str | Path) -> Path:
 def store_lock(store: str | Path, command: str) -> Iterator[None]:
     """Hold the store's write lock for the `with` body; refuse at once if another writer holds it.
 
-    Remote (fsspec URL) stores are not locked: there is no portable lock there.
+    A URL store also takes the lease object `<store>.lock` (see the module docstring).
     """
-    if "://" in str(store):
-        yield
-        return
     path = lock_path(store)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -57,7 +71,11 @@ def store_lock(store: str | Path, command: str) -> Iterator[None]:
                 "started": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
         os.ftruncate(fd, 0)
         os.pwrite(fd, json.dumps(info).encode(), 0)
-        yield
+        if "://" in str(store):
+            with _lease(str(store).rstrip("/") + ".lock", info):
+                yield
+        else:
+            yield
     finally:
         os.close(fd)  # releases the flock
 
@@ -68,3 +86,44 @@ def _holder(path: Path) -> str:
         return f"`occdata {info['command']}`, pid {info['pid']} on host {info['host']}, started {info['started']}"
     except (OSError, ValueError, KeyError, TypeError):
         return "holder unknown"
+
+
+@contextmanager
+def _lease(url: str, info: dict[str, object]) -> Iterator[None]:
+    """Hold the lease object `url` (the local lock is already held) for the `with` body."""
+    from occdata.store.storage import read_bytes, remove_tree, write_atomic
+
+    raw = read_bytes(url)
+    if raw is not None:
+        try:
+            held = json.loads(raw)
+            age = time.time() - float(held["beat"])
+            other_host = held["host"] != info["host"]
+        except (ValueError, KeyError, TypeError):
+            held, age, other_host = {}, LEASE_STALE_S, True
+        if other_host and age < LEASE_STALE_S:
+            raise StoreLockedError(
+                f"{url[:-5]} is being written from host {held.get('host')} (pid {held.get('pid')}, `occdata "
+                f"{held.get('command')}`, heartbeat {age:.0f} s ago); wait for it to finish, or delete {url} "
+                f"if that writer is gone (a lease without heartbeat expires after {LEASE_STALE_S:.0f} s)")
+    stop = threading.Event()
+
+    def beat() -> None:
+        while not stop.wait(LEASE_RENEW_S):
+            try:
+                write_atomic(url, json.dumps({**info, "beat": time.time()}).encode())
+            except Exception:  # noqa: BLE001, S110 - the store is unreachable: the build reports that itself
+                pass
+
+    write_atomic(url, json.dumps({**info, "beat": time.time()}).encode())
+    thread = threading.Thread(target=beat, name="occdata-lease", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+        try:
+            remove_tree(url)
+        except OSError:
+            pass

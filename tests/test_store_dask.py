@@ -1,0 +1,269 @@
+"""Issue 24: `occdata build` on Dask: many writers, same bytes, workers and clients that die.
+
+The reference is a build run in this process (one worker, no cluster); every other build must
+give the same arrays byte for byte (`store_digest`) and pass `occdata verify`. One 2-worker
+LocalCluster is shared by the tests of this module (start-up costs seconds).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import zarr
+from click.testing import CliRunner
+from proc_tools import alive, descendants, wait_for
+from replicated_tree import make_replicated_tree
+from test_store_build import store_digest
+
+from cli.occdata_cli import main
+from occdata.cluster import ClusterConfig, cluster_client, run_tasks
+from occdata.errors import OccDataError
+from occdata.store.blocks import Placer
+from occdata.store.build import BuildConfig, build_store
+
+REPO = Path(__file__).resolve().parents[1]
+N = 24  # samples: 6 blocks of 4
+
+
+@pytest.fixture(scope="module")
+def tree(real_nuscenes_root, real_occ3d_label, tmp_path_factory) -> Path:
+    return make_replicated_tree(real_nuscenes_root, real_occ3d_label, tmp_path_factory.mktemp("dk") / "ns", 2, N // 2)
+
+
+@pytest.fixture(scope="module")
+def reference(tree, tmp_path_factory) -> dict[str, str]:
+    out = tmp_path_factory.mktemp("ref") / "ref.zarr"
+    build_store(BuildConfig(root=tree, out=out, gts=tree / "gts", block_samples=4, progress=False))
+    return store_digest(out)
+
+
+@pytest.fixture(scope="module")
+def client():
+    with cluster_client(ClusterConfig(workers=2)) as c:
+        yield c
+
+
+def _config(tree: Path, out: Path | str, **kw) -> BuildConfig:
+    return BuildConfig(root=tree, out=out, gts=tree / "gts", block_samples=4, progress=False, **kw)
+
+
+def _verify(out: Path | str) -> None:
+    r = CliRunner().invoke(main, ["verify", "--store", str(out), "--no-progress"])
+    assert r.exit_code == 0, r.output
+
+
+def _committed(path: Path) -> int:
+    try:
+        return int((zarr.open_group(str(path), mode="r")["status/state"][:] != 0).sum())
+    except Exception:  # noqa: BLE001 - not created yet
+        return 0
+
+
+# --- the task runner alone -------------------------------------------------------------------------
+def _square(x: int) -> int:
+    return x * x
+
+
+def test_run_tasks_follow_ups_and_keep(client) -> None:
+    """Follow-up tasks run, dropped ones do not, every result reaches on_result once."""
+    for c in (None, client):
+        seen: list[tuple[int, int]] = []
+
+        def on_result(t: int, r: int, seen=seen) -> list[int]:
+            seen.append((t, r))
+            return [t + 100] if t < 3 else []
+
+        run_tasks(c, _square, list(range(6)), desc="t", progress=False, on_result=on_result, keep=lambda t: t != 4)
+        assert sorted(seen) == sorted([(t, t * t) for t in (0, 1, 2, 3, 5, 100, 101, 102)])
+
+
+def test_placer_packs_then_reproduces_around_committed_blocks() -> None:
+    """Hand-computed: chunks of 10 rows; blocks of 25, 0, 7, 31 rows."""
+    fresh = Placer(10, [])
+    assert [fresh.place(r) for r in (25, 0, 7, 31)] == [0, 30, 30, 40]
+    resumed = Placer(10, [(30, 40)])  # block 2 committed; blocks 0, 1, 3 redone with the same sizes
+    starts = [resumed.place(25), resumed.place(0)]
+    resumed.skip((30, 40))
+    starts.append(resumed.place(31))
+    assert starts == [0, 30, 40]
+    grown = Placer(10, [(30, 40)])  # block 0 grew (a fixed input): it must not overwrite block 2
+    assert grown.place(35) == 40 and grown.place(5) == 80
+
+
+# --- many writers ------------------------------------------------------------------------------------
+def test_two_workers_write_the_same_bytes_as_one(tree, reference, client, tmp_path) -> None:
+    out = tmp_path / "two.zarr"
+    report = build_store(_config(tree, out), client=client)
+    assert report.n_done == N
+    assert store_digest(out) == reference
+    assert not Path(str(out) + ".staging").exists()
+    _verify(out)
+
+
+def test_kill9_of_one_worker_mid_build(tree, reference, client, tmp_path) -> None:
+    """A worker killed while it converts a block: Dask reruns its task elsewhere, same bytes."""
+    out = tmp_path / "wk.zarr"
+    pids = client.run(os.getpid)
+    result: dict[str, object] = {}
+
+    def run() -> None:
+        try:
+            result["report"] = build_store(_config(tree, out), client=client)
+        except BaseException as exc:  # noqa: BLE001 - reported by the assertion below
+            result["error"] = exc
+
+    t = threading.Thread(target=run)
+    t.start()
+    assert wait_for(lambda: out.exists(), 60, 0.01)
+    time.sleep(0.3)  # tasks in flight
+    victim = next(iter(pids.values()))
+    os.kill(victim, signal.SIGKILL)
+    t.join(180)
+    assert "error" not in result, result.get("error")
+    assert _committed(out) == N and store_digest(out) == reference
+    _verify(out)
+    assert wait_for(lambda: len(client.nthreads()) == 2, 30)  # the nanny started a new worker
+
+
+# --- the client dies or is stopped -------------------------------------------------------------------
+def _spawn(tree: Path, out: Path | str, *extra: str, env: dict[str, str] | None = None) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "cli.occdata_cli", "build", "--root", str(tree), "--gts", str(tree / "gts"),
+           "--out", str(out), "--block-samples", "4", "--workers", "2", "--no-progress", *extra]
+    env = {**os.environ, "PYTHONPATH": str(REPO), **(env or {})}
+    return subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+
+
+def _resume(tree: Path, out: Path | str) -> None:
+    r = CliRunner().invoke(main, ["build", "--root", str(tree), "--gts", str(tree / "gts"), "--out", str(out),
+                                  "--block-samples", "4", "--workers", "2", "--resume", "--no-progress"])
+    assert r.exit_code == 0, r.output
+
+
+def _wait_started(proc: subprocess.Popen, out: Path) -> list[int]:
+    """The build's processes once it runs its tasks (client + LocalCluster workers)."""
+    assert wait_for(lambda: proc.poll() is not None or (out.exists() and len(descendants(proc.pid)) >= 2), 90, 0.05)
+    assert proc.poll() is None, proc.communicate()
+    time.sleep(0.5)
+    return [proc.pid, *descendants(proc.pid)]
+
+
+@pytest.mark.timeout(300)
+def test_kill9_of_the_client_leaves_no_process_then_resume(tree, reference, tmp_path) -> None:
+    out = tmp_path / "ck.zarr"
+    proc = _spawn(tree, out)
+    family = _wait_started(proc, out)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.communicate()
+    assert wait_for(lambda: not any(alive(p) for p in family), 15), [p for p in family if alive(p)]
+    _resume(tree, out)
+    assert store_digest(out) == reference
+    _verify(out)
+
+
+@pytest.mark.timeout(300)
+def test_sigterm_stops_within_seconds_then_resume(tree, reference, tmp_path) -> None:
+    out = tmp_path / "st.zarr"
+    proc = _spawn(tree, out)
+    family = _wait_started(proc, out)
+    t0 = time.monotonic()
+    os.kill(proc.pid, signal.SIGTERM)  # the client alone, as a batch system or `kill` does
+    _, err = proc.communicate(timeout=30)
+    assert time.monotonic() - t0 < 10, err
+    assert proc.returncode in (0, 143), err
+    assert "Traceback" not in err, err
+    assert wait_for(lambda: not any(alive(p) for p in family), 15)
+    if proc.returncode == 143:
+        assert "--resume" in err
+        _resume(tree, out)
+    assert store_digest(out) == reference
+
+
+# --- schedulers that cannot be reached or go away ----------------------------------------------------
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_unreachable_scheduler_is_one_line(tree, tmp_path) -> None:
+    env = {**os.environ, "PYTHONPATH": str(REPO), "DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT": "2s"}
+    r = subprocess.run([sys.executable, "-m", "cli.occdata_cli", "build", "--root", str(tree), "--out",
+                        str(tmp_path / "u.zarr"), "--scheduler", f"tcp://127.0.0.1:{_free_port()}", "--no-progress"],
+                       cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1, r.stderr
+    assert "Traceback" not in r.stderr and "cannot reach the Dask scheduler at tcp://127.0.0.1:" in r.stderr
+    assert len([ln for ln in r.stderr.splitlines() if ln.strip()]) == 1, r.stderr
+
+
+@pytest.mark.timeout(300)
+def test_scheduler_that_goes_away_is_one_line(tree, reference, tmp_path) -> None:
+    """An external scheduler + worker (the `dask` commands); the scheduler is killed mid-build."""
+    port = _free_port()
+    dask_cmd = [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port),
+                "--no-dashboard"]
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    sched = subprocess.Popen(dask_cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", f"tcp://127.0.0.1:{port}",
+                               "--nthreads", "1", "--no-dashboard", "--death-timeout", "10"],
+                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    out = tmp_path / "sg.zarr"
+    try:
+        proc = _spawn(tree, out, "--scheduler", f"tcp://127.0.0.1:{port}")
+        assert wait_for(lambda: proc.poll() is not None or _committed(out) >= 4, 120, 0.02)
+        sched.kill()
+        _, err = proc.communicate(timeout=60)
+        if proc.returncode != 0:  # it may have finished first
+            assert proc.returncode == 1 and "Traceback" not in err, err
+            assert "lost the Dask scheduler at tcp://127.0.0.1:" in err, err
+            assert len([ln for ln in err.splitlines() if ln.strip()]) == 1, err
+            _resume(tree, out)
+        assert store_digest(out) == reference
+    finally:
+        for p in (sched, worker):
+            p.kill()
+            p.wait()
+
+
+def test_scheduler_option_is_validated() -> None:
+    with pytest.raises(OccDataError, match="expected an address"):
+        ClusterConfig(scheduler="nohost")
+    with pytest.raises(OccDataError, match="--workers"):
+        ClusterConfig(workers=0)
+
+
+def test_on_error_fail_commits_everything_before_the_bad_sample(tree, client, tmp_path) -> None:
+    """A truncated JPEG in sample 9 (block 2): samples 0..8 commit, the rest stays pending, and the
+    message names sample 9; after the fix, --resume completes."""
+    import json
+    import shutil
+
+    from replicated_tree import _tok
+
+    bad_tree = tmp_path / "bad"
+    shutil.copytree(tree, bad_tree, symlinks=True)
+    table = bad_tree / "v1.0-mini" / "sample_data.json"
+    sds = json.loads(table.read_text())
+    token9 = _tok("replay-0000", 9)  # scene 0 holds store indices 0..11
+    row = next(r for r in sds if r["sample_token"] == token9 and r["filename"].endswith(".jpg"))
+    good = (bad_tree / row["filename"]).read_bytes()
+    row["filename"] = "samples/broken.jpg"
+    table.write_text(json.dumps(sds))
+    (bad_tree / "samples" / "broken.jpg").write_bytes(good[: len(good) // 2])
+    out = tmp_path / "f.zarr"
+    with pytest.raises(OccDataError, match=f"sample 9 \\({token9}\\) failed"):
+        build_store(_config(bad_tree, out), client=client)
+    state = zarr.open_group(str(out), mode="r")["status/state"][:]
+    assert (state[:9] == 1).all() and (state[9:] == 0).all()
+    (bad_tree / "samples" / "broken.jpg").write_bytes(good)
+    report = build_store(_config(bad_tree, out, resume=True), client=client)
+    assert report.n_done == N
+    _verify(out)
