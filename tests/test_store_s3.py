@@ -124,6 +124,7 @@ def test_s3_lease_of_another_host_refuses(s3, synth_root: Path) -> None:
     s3.rm(f"{BUCKET}/lease.zarr.lock")
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_s3_client_kill9_then_resume(s3, real_nuscenes_root, real_occ3d_label, tmp_path) -> None:
     """kill -9 of the client mid-build on S3: no process left, the lease of the dead writer on this

@@ -20,7 +20,9 @@ from __future__ import annotations
 import bisect
 import io
 import json
+import warnings
 import zlib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,7 +42,7 @@ from occdata.store.sample import SampleResult, process_sample
 from occdata.store.storage import join, read_bytes, write_atomic
 
 __all__ = ["BlockSummary", "CommitJob", "ConvertJob", "Placer", "commit_block", "convert_block", "flat_footprint",
-           "run_job", "staged_summary", "staging_file"]
+           "open_flat", "open_for_task", "run_job", "staged_summary", "staging_file"]
 
 _OFFSETS_OF_FLAT = {flat: off for off, flat in FLAT_OF_OFFSETS.items()}
 
@@ -88,10 +90,35 @@ def _fill_rows(root: zarr.Group) -> dict[str, np.ndarray]:
     return {s.name: np.full(root[s.name].shape[1:], s.fill, dtype=s.dtype) for s in PER_SAMPLE}
 
 
+def open_for_task(store: str) -> zarr.Group:
+    """The store's root with every array's metadata from one read (consolidated metadata). The flat
+    arrays grow during a build: open them with `open_flat`, never from this group."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # zarr: consolidated metadata is not (yet) in the v3 spec
+        try:
+            return zarr.open_group(store, mode="r+", use_consolidated=True)
+        except ValueError:  # a store from before consolidated metadata
+            return zarr.open_group(store, mode="r+")
+
+
+def open_flat(store: str, name: str) -> zarr.Array:
+    """A flat array with its current shape (its own metadata, not the consolidated copy)."""
+    return zarr.open_array(store, path=name, mode="r+")
+
+
+def _write_rows(writes: list[tuple[zarr.Array, int, int, np.ndarray]]) -> None:
+    """`array[i0:i1] = data` for each, concurrently (on an object store each is a PUT round trip)."""
+    def one(w: tuple[zarr.Array, int, int, np.ndarray]) -> None:
+        w[0][w[1] : w[2]] = w[3]
+
+    with ThreadPoolExecutor(max_workers=8) as pool:
+        list(pool.map(one, writes))
+
+
 def convert_block(job: ConvertJob) -> BlockSummary:
     """Task 1: convert, write the fixed-shape rows, publish the staging object."""
     results = [process_sample(*args) for args in job.samples]
-    root = zarr.open_group(job.store, mode="r+")
+    root = open_for_task(job.store)
     fill = _fill_rows(root)
     block: dict[str, np.ndarray] = {}
     for s in PER_SAMPLE:
@@ -101,7 +128,7 @@ def convert_block(job: ConvertJob) -> BlockSummary:
             block[s.name] = np.zeros((len(results), *root[s.name].shape[1:]), dtype=s.dtype)  # set at commit
             continue
         block[s.name] = np.stack([r.arrays.get(s.name, fill[s.name]) for r in results]).astype(s.dtype, copy=False)
-        root[s.name][job.i0 : job.i1] = block[s.name]
+    _write_rows([(root[n], job.i0, job.i1, a) for n, a in block.items() if n not in FLAT_OF_OFFSETS])
     payload = _payload(results)
     names = checksummed_names()
     sums = np.zeros((len(results), len(names)), dtype=np.uint32)
@@ -166,22 +193,24 @@ def commit_block(job: CommitJob) -> int:
     if z is None:
         where = staging_file(job.staging, job.block)
         raise FileNotFoundError(f"the staging object of block {job.block} is missing: {where}")
-    root = zarr.open_group(job.store, mode="r+")
+    root = open_for_task(job.store)
     sums = z["checksums"].copy()
+    writes: list[tuple[zarr.Array, int, int, np.ndarray]] = []
     names = checksummed_names()
     for name, (row_shape, dtype, chunk_rows) in FLAT_ARRAYS.items():
         data, rows, start = z[f"{name}/data"], z[f"{name}/rows"], job.starts[name]
         if len(data):
             padded = np.zeros((_align(len(data), chunk_rows), *row_shape), dtype=dtype)
             padded[: len(data)] = data
-            root[name][start : start + len(padded)] = padded  # whole chunks: no read-modify-write
+            open_flat(job.store, name)[start : start + len(padded)] = padded  # whole chunks: no read-modify-write
         ends = start + np.cumsum(rows.reshape(-1)).reshape(rows.shape)
         offsets = np.stack([ends - rows, rows], axis=-1).astype(np.int64)  # (n, 6, 2): start, rows
         off_name = _OFFSETS_OF_FLAT[name]
-        root[off_name][job.i0 : job.i1] = offsets
+        writes.append((root[off_name], job.i0, job.i1, offsets))
         col = names.index(off_name)
         sums[:, col] = [zlib.crc32(np.ascontiguousarray(o).tobytes()) for o in offsets]
-    root["status/checksum"][job.i0 : job.i1] = sums
+    writes.append((root["status/checksum"], job.i0, job.i1, sums))
+    _write_rows(writes)  # offsets and checksums before the state flags
     failed = {int(i) for i, _, _ in json.loads(str(z["errors"]))}
     state = np.array([STATE_PENDING if i >= job.commit_until else STATE_ERROR if i in failed else STATE_DONE
                       for i in range(job.i0, job.i1)], dtype=np.uint8)

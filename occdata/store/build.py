@@ -14,6 +14,7 @@ import dataclasses
 import json
 import os
 import shutil
+import warnings
 import zlib
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
@@ -23,6 +24,7 @@ from typing import Any, Literal
 import numpy as np
 import zarr
 from zarr.codecs import ZstdCodec
+from zarr.core.sync import sync
 
 from occdata.cluster import ClusterConfig, cluster_client, run_tasks
 from occdata.constants import CAMERA_ORDER, CLASS_COLORS, CLASS_NAMES, FREE_LABEL, GRID
@@ -35,6 +37,7 @@ from occdata.store.blocks import (
     ConvertJob,
     Placer,
     flat_footprint,
+    open_flat,
     run_job,
     staged_summary,
 )
@@ -261,7 +264,7 @@ def _open_existing(config: BuildConfig, out: str, attrs: dict[str, Any]) -> zarr
     if not config.resume:
         raise OccDataError(f"store exists: {out} (pass --resume to continue it, or choose another --out)")
     try:
-        root = zarr.open_group(out, mode="r+")
+        root = zarr.open_group(out, mode="r+", use_consolidated=False)  # the client sees every array as it is
     except Exception as exc:  # noqa: BLE001 - any unreadable store is reported the same way
         raise OccDataError(f"cannot resume {out}: not a readable zarr store ({exc})") from None
     if root.attrs.get("schema") == SCHEMA_NAME:
@@ -297,14 +300,16 @@ def _open_or_create(config: BuildConfig, ds: NuScenesDataset, split_names: list[
     if is_remote(out):  # no rename on an object store: the root is marked until the layout is complete
         root = zarr.open_group(out, mode="w", attributes={_CREATING: True})
         _create(root, len(ds.samples), config.block_samples, attrs, tok_width)
-        return zarr.open_group(out, mode="r+"), out
+        consolidate(out)
+        return zarr.open_group(out, mode="r+", use_consolidated=False), out
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(out + ".creating")
     shutil.rmtree(tmp, ignore_errors=True)
     root = zarr.open_group(tmp, mode="w")
     _create(root, len(ds.samples), config.block_samples, attrs, tok_width)
+    consolidate(str(tmp))
     tmp.rename(out)  # the store appears only once its layout is complete
-    return zarr.open_group(out, mode="r+"), out
+    return zarr.open_group(out, mode="r+", use_consolidated=False), out
 
 def _all_tokens(ds: NuScenesDataset) -> Iterator[str]:
     for s in ds.samples:
@@ -406,10 +411,15 @@ class _Coordinator:
 
     def _place(self, s: BlockSummary, i0: int, i1: int) -> CommitJob:
         starts = {name: placer.place(s.rows[name]) for name, placer in self.placers.items()}
-        for name, placer in self.placers.items():  # grow only; the client alone writes metadata
-            arr = self.root[name]
-            if arr.shape[0] < placer.high:
-                arr.resize((placer.high, *arr.shape[1:]))
+        grown = False
+        for name, placer in self.placers.items():  # the client alone writes metadata
+            arr = open_flat(self.out, name)
+            if arr.shape[0] < placer.high:  # grow by doubling: few metadata rewrites (trimmed at the end)
+                step = max(placer.high, 2 * arr.shape[0], 16 * arr.chunks[0])
+                arr.resize((_align(step, arr.chunks[0]), *arr.shape[1:]))
+                grown = True
+        if grown:
+            consolidate(self.out)
         until = i1
         if self.failure is not None and i0 <= self.failure[0] < i1:
             until = self.failure[0]
@@ -417,6 +427,29 @@ class _Coordinator:
             self.errors += [{"index": int(i), "token": t, "reason": r} for i, t, r in s.errors]
             self.root.attrs["errors"] = sorted(self.errors, key=lambda e: e["index"])
         return CommitJob(self.out, self.staging, s.block, i0, i1, starts, until)
+
+
+def _align(n: int, chunk: int) -> int:
+    return -(-n // chunk) * chunk
+
+
+def consolidate(out: str) -> None:
+    """Rewrite the consolidated metadata (one read gives every array's metadata, on S3 too)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # zarr: consolidated metadata is not (yet) in the v3 spec
+        zarr.consolidate_metadata(out)
+
+
+def _set_flat_length(out: str, name: str, rows: int) -> None:
+    """The final length of a flat array (grown by steps during the build); a shrink deletes nothing
+    (no chunk lies beyond the placed blocks), so it costs one metadata write, not a listing."""
+    arr = open_flat(out, name)
+    if arr.shape[0] == rows:
+        return
+    try:
+        sync(arr._async_array.resize((rows, *arr.shape[1:]), delete_outside_chunks=False))
+    except TypeError:  # a zarr without that option
+        arr.resize((rows, *arr.shape[1:]))
 
 
 def _reset_blocks(root: zarr.Group, state: np.ndarray, spans: list[tuple[int, int, int]], todo: set[int]) -> None:
@@ -479,17 +512,29 @@ def _build_locked(config: BuildConfig, client: Any, ds: NuScenesDataset, labels:
             f"sample {i} ({token}) failed: {reason}. Everything before it is committed; fix the input and rerun "
             "with --resume (or use --on-error skip)."
         )
-    return _finish(config, root, out, staging, ds, converted[0])
+    return _finish(config, root, out, staging, ds, converted[0], {n: p.high for n, p in coord.placers.items()})
+
+
+def _committed_end(root: zarr.Group, flat_name: str) -> int:
+    """The end of the last range that a committed sample uses in a flat array (chunk-aligned)."""
+    off_name = next(o for o, f in FLAT_OF_OFFSETS.items() if f == flat_name)
+    off = root[off_name][:]
+    used = off[..., 1] > 0
+    end = int((off[..., 0] + off[..., 1])[used].max()) if used.any() else 0
+    return _align(end, FLAT_ARRAYS[flat_name][2])
 
 
 def _finish(config: BuildConfig, root: zarr.Group, out: str, staging: str, ds: NuScenesDataset,
-            processed: int) -> BuildReport:
+            processed: int, high: dict[str, int]) -> BuildReport:
     """The final commit (idempotent): completeness, the run's options, staging removed."""
     final_state = root["status/state"][:]
     complete = bool((final_state != STATE_PENDING).all())
     if complete:
         remove_tree(staging)
+        for name, rows in high.items():
+            _set_flat_length(out, name, max(rows, _committed_end(root, name)))
     root.attrs.update({"complete": complete, "build_config": {"workers": config.workers, "on_error": config.on_error}})
+    consolidate(out)
     return BuildReport(
         store=Path(out) if not is_remote(out) else out,  # type: ignore[arg-type]
         n_samples=len(ds.samples),
