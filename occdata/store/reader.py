@@ -49,7 +49,9 @@ class StoreReader:
     def __init__(self, root: str | Path) -> None:
         self.path = store_location(root)
         try:
-            self.group = zarr.open_group(self.path, mode="r")
+            # Each array's own zarr.json, not the consolidated copy in the root: a damaged or edited
+            # array metadata file must be seen (the copy only speeds up the build's tasks).
+            self.group = zarr.open_group(self.path, mode="r", use_consolidated=False)
         except Exception as exc:  # noqa: BLE001 - every failure to open reads the same to a user
             raise OccDataError(f"not a readable occdata store: {self.path} ({type(exc).__name__})") from None
         attrs = dict(self.group.attrs)
