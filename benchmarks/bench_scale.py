@@ -1,0 +1,227 @@
+"""Scale figures for `occdata build` on Dask (issue 24), for docs/scale.md.
+
+    python benchmarks/bench_scale.py --synth-samples 40 --write-samples 256 --json docs/bench_scale.json
+    python benchmarks/bench_scale.py --root TREE --gts TREE/gts ...      # an existing nuScenes-format tree
+
+1. build: samples/s with 1 worker (in this process) and 2 LocalCluster workers (start-up timed
+   apart), peak RSS of each worker;
+2. the write path alone: P writer processes (1, 2, 4), each writing its own blocks (random payloads
+   of nuScenes-like sizes, the store's real layout and codecs) to local disk and to a local S3
+   server (moto, a separate process on 127.0.0.1);
+3. Dask's overhead per task: the round trip of an empty task against a block task's own time;
+4. labels: a slot for `occdata labels` (filled by its author).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import platform
+import resource
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from occdata.cluster import ClusterConfig, cluster_client, run_tasks  # noqa: E402
+from occdata.store.build import BuildConfig, _create, build_store  # noqa: E402
+from occdata.store.layout import FLAT_ARRAYS, PER_SAMPLE  # noqa: E402
+
+JPEG_BYTES_PER_SAMPLE = 6 * 160_000  # ~nuScenes: 6 JPEGs of 1600x900 at ~160 kB
+UVD_ROWS_PER_SAMPLE = 20_000  # keyframe LiDAR points that land in a camera
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _noop(x: int) -> int:
+    return x
+
+
+# --- 1. build ---------------------------------------------------------------------------------------
+def bench_build(root: Path, gts: Path | None, block: int, tmp: Path) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    t0 = time.perf_counter()
+    r1 = build_store(BuildConfig(root=root, out=tmp / "w1.zarr", gts=gts, block_samples=block, progress=False))
+    out["workers_1"] = {"seconds": time.perf_counter() - t0, "samples": r1.n_samples,
+                        "samples_per_s": r1.n_samples / (time.perf_counter() - t0)}
+    t0 = time.perf_counter()
+    with cluster_client(ClusterConfig(workers=2)) as client:
+        out["localcluster_2_startup_s"] = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        r2 = build_store(BuildConfig(root=root, out=tmp / "w2.zarr", gts=gts, block_samples=block, workers=2,
+                                     progress=False), client=client)
+        dt = time.perf_counter() - t1
+        out["workers_2"] = {"seconds": dt, "samples": r2.n_samples, "samples_per_s": r2.n_samples / dt}
+        out["worker_peak_rss_mb"] = sorted(client.run(_peak_rss_mb).values())
+        out["dask_overhead"] = bench_overhead(client)
+    out["client_peak_rss_mb"] = _peak_rss_mb()
+    out["speedup_2_over_1"] = out["workers_2"]["samples_per_s"] / out["workers_1"]["samples_per_s"]
+    blocks = -(-r1.n_samples // block)
+    out["block_task_s_1_worker"] = out["workers_1"]["seconds"] / blocks  # convert + commit of one block
+    return out
+
+
+def bench_overhead(client: Any, n: int = 200) -> dict[str, float]:
+    """Per-task cost of the scheduler round trips: empty tasks through run_tasks (window of 4)."""
+    t0 = time.perf_counter()
+    run_tasks(client, _noop, list(range(n)), desc="noop", progress=False, window=4)
+    return {"tasks": n, "seconds_per_task": (time.perf_counter() - t0) / n}
+
+
+# --- 2. the write path alone --------------------------------------------------------------------------
+def _fake_rows(n: int, rng: np.random.Generator, tok_width: int) -> dict[str, np.ndarray]:
+    rows = {}
+    for s in PER_SAMPLE:
+        shape = (n, *((s.shape[:-1] + (tok_width,)) if s.name.endswith("token") else s.shape))
+        if s.name == "status/checksum":
+            continue
+        if s.sharded:  # labels: mostly one value, as real occupancy grids compress
+            rows[s.name] = np.full(shape, 17, dtype=s.dtype)
+            rows[s.name][:, 90:110, 90:110] = rng.integers(0, 17, (n, 20, 20, *shape[3:])).astype(s.dtype)
+        else:
+            rows[s.name] = rng.integers(0, 100, shape).astype(s.dtype)
+    return rows
+
+
+def _write_blocks(args: tuple[str, list[int], int, int, Any]) -> tuple[int, float, float]:
+    """One writer process: whole blocks of fixed rows + its chunk-aligned flat regions. The payloads
+    are made first; all writers start together (barrier). Returns (bytes, start, end) wall times."""
+    import zarr
+
+    from occdata.store.blocks import open_flat, open_for_task
+
+    store, blocks, block, n, barrier = args
+    rng = np.random.default_rng(blocks[0] if blocks else 0)
+    todo = []
+    for b in blocks:
+        i0, i1 = b * block, min(n, (b + 1) * block)
+        flat = {}
+        for name, (row, dtype, chunk) in FLAT_ARRAYS.items():
+            per = JPEG_BYTES_PER_SAMPLE if name == "images/jpeg" else UVD_ROWS_PER_SAMPLE
+            rows = -(-(per * block) // chunk) * chunk
+            if name == "images/jpeg":
+                flat[name] = (b * rows, rng.integers(0, 255, rows, dtype=np.uint8))
+            else:  # depth points: u, v in pixels, depth in metres (float32, as stored)
+                flat[name] = (b * rows, (rng.random((rows, *row), dtype=np.float32) * [1600, 900, 60]).astype(dtype))
+        todo.append((i0, i1, _fake_rows(i1 - i0, rng, 32), flat))
+    root = open_for_task(store)
+    barrier.wait()
+    t0 = time.time()
+    written = 0
+    for i0, i1, fixed, flat in todo:
+        for name, data in fixed.items():
+            root[name][i0:i1] = data
+        for name, (start, data) in flat.items():
+            open_flat(store, name)[start : start + len(data)] = data
+            written += data.nbytes
+        zarr.open_array(store, path="status/state", mode="r+")[i0:i1] = 1
+    return written, t0, time.time()
+
+
+def _fresh_store(url: str, n: int, block: int) -> None:
+    import zarr
+
+    from occdata.store.build import consolidate
+
+    root = zarr.open_group(url, mode="w")
+    _create(root, n, block, {"schema": "bench"}, 32)
+    for name, (row, _, chunk) in FLAT_ARRAYS.items():
+        per = JPEG_BYTES_PER_SAMPLE if name == "images/jpeg" else UVD_ROWS_PER_SAMPLE
+        rows = -(-(per * block) // chunk) * chunk * (-(-n // block))
+        root[name].resize((rows, *row))
+    consolidate(url)
+
+
+def bench_write(url_of: Any, n: int, block: int, writers: tuple[int, ...]) -> dict[str, Any]:
+    out = {}
+    ctx = mp.get_context("spawn")
+    for p in writers:
+        url = url_of(p)
+        _fresh_store(url, n, block)
+        blocks = list(range(-(-n // block)))
+        with ctx.Manager() as manager, ctx.Pool(p) as pool:
+            barrier = manager.Barrier(p)
+            done = pool.map(_write_blocks, [(url, blocks[k::p], block, n, barrier) for k in range(p)])
+        nbytes = sum(d[0] for d in done)
+        dt = max(d[2] for d in done) - min(d[1] for d in done)
+        out[f"writers_{p}"] = {"seconds": dt, "samples_per_s": n / dt, "MB_per_s": nbytes / dt / 1e6}
+    return out
+
+
+def _moto(port: int) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    for _ in range(100):
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
+            return proc
+        except OSError:
+            time.sleep(0.1)
+    proc.kill()
+    raise RuntimeError("moto server did not start")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--root", type=Path)
+    ap.add_argument("--gts", type=Path)
+    ap.add_argument("--synth-samples", type=int, default=40, help="synthetic world size (2 scenes), if no --root")
+    ap.add_argument("--block-samples", type=int, default=8)
+    ap.add_argument("--write-samples", type=int, default=256)
+    ap.add_argument("--writers", type=int, nargs="+", default=[1, 2, 4])
+    ap.add_argument("--no-s3", action="store_true")
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    tmp = Path(tempfile.mkdtemp(prefix="bench_scale_"))
+    try:
+        root, gts = args.root, args.gts
+        if root is None:
+            from occdata.synth import SynthConfig, synthesize
+
+            root = synthesize(SynthConfig(out=tmp / "world", scenes=2, samples=args.synth_samples // 2, progress=False))
+            gts = root / "gts"
+        result: dict[str, Any] = {
+            "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+                        "note": "2-core VM shared with other developers: ratios within one run, noisy absolutes"},
+            "build": bench_build(root, gts, args.block_samples, tmp),
+            "write_local": bench_write(lambda p: str(tmp / f"wr{p}.zarr"), args.write_samples, 32,
+                                       tuple(args.writers)),
+            "labels": "slot: filled by the author of `occdata labels`",
+        }
+        if not args.no_s3:
+            port = 5000 + os.getpid() % 1000
+            os.environ.update({"AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}", "AWS_ACCESS_KEY_ID": "bench",
+                               "AWS_SECRET_ACCESS_KEY": "bench", "AWS_DEFAULT_REGION": "us-east-1"})
+            server = _moto(port)
+            try:
+                import fsspec
+
+                fsspec.filesystem("s3").mkdir("bench")
+                result["write_s3_moto"] = bench_write(lambda p: f"s3://bench/wr{p}.zarr", args.write_samples, 32,
+                                                      tuple(args.writers))
+            finally:
+                server.kill()
+                server.wait()
+        text = json.dumps(result, indent=2)
+        print(text)
+        if args.json:
+            args.json.write_text(text + "\n")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
