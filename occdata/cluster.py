@@ -81,6 +81,12 @@ def dask_setup(worker: Any) -> None:
     Ctrl-C, which reaches the whole process group, is handled by the client alone."""
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:  # one single-threaded task per worker process: no OpenCV thread pool on top (oversubscription)
+        import cv2
+
+        cv2.setNumThreads(1)
+    except ImportError:
+        pass
 
 
 def _quiet_dask() -> None:
@@ -112,9 +118,14 @@ def cluster_client(config: ClusterConfig) -> Iterator[Client | None]:
             finally:
                 _close(client)
             return
-        cluster = LocalCluster(n_workers=config.workers, threads_per_worker=1, processes=True,
-                               host="127.0.0.1", dashboard_address=":0", memory_limit=config.memory_limit,
-                               silence_logs=logging.CRITICAL, preload=["occdata.cluster"])
+        try:
+            cluster = LocalCluster(n_workers=config.workers, threads_per_worker=1, processes=True,
+                                   host="127.0.0.1", dashboard_address=":0", memory_limit=config.memory_limit,
+                                   silence_logs=logging.CRITICAL, preload=["occdata.cluster"])
+        except Exception as exc:  # noqa: BLE001 - e.g. a script without `if __name__ == "__main__":`
+            raise OccDataError(f"cannot start a Dask LocalCluster of {config.workers} workers: {_reason(exc)} "
+                               "(a script that builds must guard its top level with `if __name__ == "
+                               "\"__main__\":`, as for multiprocessing)") from None
         client = Client(cluster, set_as_default=False)
         try:
             yield client
