@@ -235,12 +235,14 @@ def predict(checkpoint: Path, store: str, split: str, out: Path, tta: bool, png:
     """Predict a store split with a checkpoint and write the Occ3D layout (score it with `occdata eval`).
 
     Samples run in scene order (the temporal queue of models with history is carried); each file is
-    written atomically.
+    written atomically. Under torchrun each rank writes its shard of whole scenes (as `eval`).
     """
     from fastocc.infer.write import PredictRun, run_predict
 
     cfg = _predict_config(store, split, batch_size, workers, tta, device)
     summary = run_predict(PredictRun(checkpoint=checkpoint, out=out, predict=cfg, png=png, progress=not quiet))
+    if os.environ.get("RANK", "0") != "0":  # under torchrun every rank holds the combined summary
+        return
     click.echo(f"wrote {summary.files} predictions to {summary.out} in {summary.seconds:.1f} s"
                + (f"; {len(summary.pictures)} pictures in {summary.out / 'pictures'}" if summary.pictures else ""))
 

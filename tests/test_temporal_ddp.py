@@ -163,3 +163,36 @@ def test_torchrun_eval_of_a_temporal_checkpoint_equals_one_process(uneven_store:
         got = _eval_json([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", str(ranks),
                           "--master_port", port, *args])
         assert got == one, ranks  # the same confusion matrices and ray counts: the same predictions
+
+
+def _predict_files(cmd: list[str], out: Path, timeout: int = 300) -> dict[str, bytes]:
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([*cmd, "--out", str(out)], cwd=REPO, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        stdout, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        raise AssertionError(f"{cmd[:4]} did not end within {timeout} s (hang)") from None
+    assert proc.returncode == 0, stdout + err
+    assert stdout.count("wrote ") == 1, stdout  # one summary line (rank 0), counting every rank's files
+    return {p.relative_to(out).as_posix(): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.slow
+def test_torchrun_predict_of_a_temporal_checkpoint_writes_the_files_of_one_process(uneven_store: Path,
+                                                                                  tmp_path: Path) -> None:
+    """Issue 24 item 6: `fastocc predict` under torchrun shards whole scenes over the ranks; the files
+    (labels.npz and pictures) are those of one process, byte for byte."""
+    model, cfg = _temporal_model()
+    ckpt = tmp_path / "temporal.pt"
+    save_checkpoint(ckpt, cfg, model.state_dict())
+    args = ["-m", "cli.fastocc_cli", "predict", "--checkpoint", str(ckpt), "--store", str(uneven_store), "--split",
+            "train", "--png", "3", "--no-progress"]
+    one = _predict_files([sys.executable, *args], tmp_path / "one")
+    assert sum(k.endswith("labels.npz") for k in one) == 9 and sum(k.endswith(".png") for k in one) == 3
+    port = str(29800 + os.getpid() % 1000)
+    two = _predict_files([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
+                          port, *args], tmp_path / "two")
+    assert two.keys() == one.keys()
+    assert all(two[k] == one[k] for k in one), [k for k in one if two[k] != one[k]]

@@ -10,7 +10,7 @@ a truncated file behind (files already written stay valid). `occdata eval --pred
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -85,8 +85,13 @@ def _write_picture(reader: StoreReader, path: Path, index: int, pred: np.ndarray
 
 
 def write_predictions(model: nn.Module, model_cfg: ModelConfig, out: Path, cfg: PredictConfig, png: int = 0,
-                      progress: bool = True) -> PredictSummary:
-    """Predict the split of `cfg` and write `OUT/<scene>/<token>/labels.npz` (+ `png` pictures)."""
+                      progress: bool = True, rank: int | None = None,
+                      world_size: int | None = None) -> PredictSummary:
+    """Predict the split of `cfg` and write `OUT/<scene>/<token>/labels.npz` (+ `png` pictures).
+
+    `rank`/`world_size` (None: from torch.distributed when initialised): this rank predicts and
+    writes its shard only (whole scenes, in order, as `fastocc eval` shards), so the ranks write
+    disjoint files; the summary counts this rank's files."""
     t0 = time.perf_counter()
     out = Path(out)
     reader = open_store(cfg.store)
@@ -98,8 +103,12 @@ def write_predictions(model: nn.Module, model_cfg: ModelConfig, out: Path, cfg: 
     wanted = {idx: k for k, idx in enumerate(picture_indices(indices, png))}
     pictures: list[Path] = []
     files = 0
-    with tqdm(total=len(indices), desc="predict", unit="sample", disable=not progress, dynamic_ncols=True) as bar:
-        for batch, probs in predict_split(model, model_cfg, cfg):
+    sharded = (world_size or 1) > 1 or (world_size is None and torch.distributed.is_available()
+                                        and torch.distributed.is_initialized()
+                                        and torch.distributed.get_world_size() > 1)
+    with tqdm(total=None if sharded else len(indices), desc="predict", unit="sample", disable=not progress,
+              dynamic_ncols=True) as bar:
+        for batch, probs in predict_split(model, model_cfg, cfg, rank=rank, world_size=world_size):
             pred = probs.argmax(1).to(torch.uint8).numpy()
             del probs
             for b in range(len(batch)):
@@ -120,8 +129,29 @@ def write_predictions(model: nn.Module, model_cfg: ModelConfig, out: Path, cfg: 
 
 
 def run_predict(run: PredictRun) -> PredictSummary:
-    """`fastocc predict`: load the checkpoint (its own model config) and `write_predictions`."""
+    """`fastocc predict`: load the checkpoint (its own model config) and `write_predictions`.
+
+    Under torchrun (WORLD_SIZE > 1) the processes join a process group and each writes its shard of
+    the split (whole scenes, so temporal queues are intact): the files are those of one process,
+    byte for byte. Every rank returns the combined summary (all files, all pictures)."""
+    from fastocc.train import dist as D
+
     check_device(run.predict.device)
     split_indices(run.predict.store, run.predict.split)  # unknown split / bad store before loading weights
-    model, ckpt = load_model(run.checkpoint, device=run.predict.device, prefer_ema=run.prefer_ema)
-    return write_predictions(model, ckpt.model_config, run.out, run.predict, png=run.png, progress=run.progress)
+    joined = not (torch.distributed.is_available() and torch.distributed.is_initialized())
+    info = D.setup(run.predict.device)
+    try:
+        cfg = replace(run.predict, device=str(info.device)) if info.enabled else run.predict  # cuda:LOCAL_RANK
+        model, ckpt = load_model(run.checkpoint, device=cfg.device, prefer_ema=run.prefer_ema)
+        summary = write_predictions(model, ckpt.model_config, run.out, cfg, png=run.png,
+                                    progress=run.progress and info.is_main)
+        if not info.enabled:
+            return summary
+        files = sum(D.gather_ints(summary.files, info))
+        pictures: list[object] = [None] * info.world_size
+        torch.distributed.all_gather_object(pictures, [str(p) for p in summary.pictures])
+        every = tuple(sorted(Path(p) for part in pictures for p in part))  # type: ignore[union-attr]
+        return replace(summary, files=files, pictures=every)
+    finally:
+        if joined:
+            D.teardown(info)
