@@ -170,12 +170,17 @@ def test_kill9_of_the_client_leaves_no_process_then_resume(tree, reference, tmp_
 
 
 @pytest.mark.timeout(300)
-def test_sigterm_stops_within_seconds_then_resume(tree, reference, tmp_path) -> None:
+@pytest.mark.parametrize("target", ["client", "group"])
+def test_sigterm_stops_within_seconds_then_resume(tree, reference, tmp_path, target: str) -> None:
+    """SIGTERM to the client alone (`kill`), or to the whole process group (as SLURM sends it)."""
     out = tmp_path / "st.zarr"
     proc = _spawn(tree, out)
     family = _wait_started(proc, out)
     t0 = time.monotonic()
-    os.kill(proc.pid, signal.SIGTERM)  # the client alone, as a batch system or `kill` does
+    if target == "client":
+        os.kill(proc.pid, signal.SIGTERM)
+    else:
+        os.killpg(proc.pid, signal.SIGTERM)
     _, err = proc.communicate(timeout=30)
     assert time.monotonic() - t0 < 10, err
     assert proc.returncode in (0, 143), err

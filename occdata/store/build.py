@@ -452,11 +452,14 @@ def _set_flat_length(out: str, name: str, rows: int) -> None:
         arr.resize((rows, *arr.shape[1:]))
 
 
-def _reset_blocks(root: zarr.Group, state: np.ndarray, spans: list[tuple[int, int, int]], todo: set[int]) -> None:
-    """Blocks to (re)build are pending again before any of their data moves; their old errors go."""
+def _reset_blocks(root: zarr.Group, state: np.ndarray, spans: list[tuple[int, int, int]], todo: set[int],
+                  every: bool) -> None:
+    """Blocks to (re)build are pending again before any of their data moves; their old errors go.
+    `every` (a resumed store): also write the flags that are pending already, so that a store from
+    before issue 24 (no state chunk for its pending tail) has every state chunk from now on."""
     arr = root["status/state"].with_config({"write_empty_chunks": True})
     for b, i0, i1 in spans:
-        if b in todo and (state[i0:i1] != STATE_PENDING).any():
+        if b in todo and (every or (state[i0:i1] != STATE_PENDING).any()):
             arr[i0:i1] = np.zeros(i1 - i0, dtype=np.uint8)
     if root.attrs.get("errors"):
         root.attrs["errors"] = []
@@ -466,6 +469,7 @@ def _build_locked(config: BuildConfig, client: Any, ds: NuScenesDataset, labels:
                   split_names: list[str], split_code: dict[str, int], scene_index: np.ndarray,
                   prev_index: np.ndarray, prev_valid: np.ndarray,
                   histories: list[tuple[LidarRecord, ...]]) -> BuildReport:
+    resumed = _store_exists(store_location(config.out))
     root, out = _open_or_create(config, ds, split_names)
     staging = sibling(out, STAGING_SUFFIX)
     state = _resume_state(root)
@@ -474,7 +478,7 @@ def _build_locked(config: BuildConfig, client: Any, ds: NuScenesDataset, labels:
     todo = {b for b, i0, i1 in spans if (state[i0:i1] != STATE_DONE).any()}
     if todo and root.attrs.get("complete"):
         root.attrs["complete"] = False  # until this run has committed them again
-    _reset_blocks(root, state, spans, todo)
+    _reset_blocks(root, state, spans, todo, every=resumed)
     coord = _Coordinator(root, out, staging, spans, todo, config.on_error)
     tok_width = int(root["sample/token"].shape[-1])
 

@@ -13,9 +13,11 @@ committed sample in it has the checksum of a fill row for that array. Rules:
 - flat arrays (`images/jpeg`, `depth/uvd`): an absent chunk under a committed sample's non-empty
   range is corruption (JPEG bytes and depths > 0 are never a whole chunk of zeros).
 - `status/checksum`: absent under a committed sample is corruption.
-- `status/state` (the commit flag; pending = 0 = its fill value): blocks are committed in sample
-  order, so an absent state chunk is corruption when the store says it is complete or when a
-  later state chunk is stored; otherwise those samples are simply pending.
+- `status/state` (the commit flag; pending = 0 = its fill value): the builder writes every state
+  chunk when it creates (or resumes) a store, so there an absent state chunk comes from damage.
+  Stores from before that rule committed blocks in sample order with no chunk for the pending tail,
+  and the check cannot tell the two apart: an absent state chunk is corruption when the store says
+  it is complete or when a later state chunk is stored; otherwise those samples count as pending.
 
 Listings are one `list_prefix` per array, cached per `StoreIntegrity`.
 """
