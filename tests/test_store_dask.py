@@ -272,3 +272,35 @@ def test_on_error_fail_commits_everything_before_the_bad_sample(tree, client, tm
     report = build_store(_config(bad_tree, out, resume=True), client=client)
     assert report.n_done == N
     _verify(out)
+
+
+def test_resume_commits_staged_blocks_without_converting_them(tree, reference, tmp_path, monkeypatch) -> None:
+    """A run stopped after block 2 was converted (staged) but before it was committed: --resume
+    commits it from the staging object and converts only blocks 3..5; same bytes."""
+    import occdata.store.blocks as blocks
+
+    out = tmp_path / "rs.zarr"
+    real_commit, real_convert = blocks.commit_block, blocks.convert_block
+
+    def commit_until_block_2(job):
+        if job.block == 2:
+            raise RuntimeError("stopped before committing block 2")
+        return real_commit(job)
+
+    monkeypatch.setattr(blocks, "commit_block", commit_until_block_2)
+    with pytest.raises(RuntimeError, match="block 2"):
+        build_store(_config(tree, out))
+    assert (Path(str(out) + ".staging") / "block_0000002.npz").is_file()
+    assert _committed(out) == 8
+    converted: list[int] = []
+
+    def counting_convert(job):
+        converted.append(job.block)
+        return real_convert(job)
+
+    monkeypatch.setattr(blocks, "commit_block", real_commit)
+    monkeypatch.setattr(blocks, "convert_block", counting_convert)
+    build_store(_config(tree, out, resume=True))
+    assert converted == [3, 4, 5]
+    assert store_digest(out) == reference
+    _verify(out)
