@@ -106,7 +106,7 @@ def cluster_client(config: ClusterConfig) -> Iterator[Client | None]:
 
     _quiet_dask()
     address = config.address()
-    with dask.config.set({"distributed.worker.daemon": False, "logging.distributed": "critical"}):
+    with dask.config.set({"logging.distributed": "critical"}):
         if address is not None:
             try:
                 timeout = {} if config.connect_timeout_s is None else {"timeout": config.connect_timeout_s}
