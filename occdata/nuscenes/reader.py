@@ -29,6 +29,7 @@ __all__ = [
     "SPLIT_TAG",
     "TableIndex",
     "confined_path",
+    "dataset_root",
     "find_version",
     "load_lidar_points",
     "load_nuscenes",
@@ -61,15 +62,31 @@ def find_version(root: Path, version: str | None) -> str:
     return found[0]
 
 
-def confined_path(root: Path, relative: Any, where: str) -> Path:
-    """`root / relative`, refused unless it stays inside `root` (DESIGN: paths from tables are data).
+def dataset_root(root: Path | str) -> Path:
+    """The absolute form of a dataset root, with its symlinks kept (DESIGN §3: record paths).
 
-    The check is lexical (`..` and absolute paths are refused); symlinks that the user placed in
-    the tree are followed as usual. Raises `OccDataError` naming `where` (the row).
+    Record paths are `dataset_root(root) / filename`: a root that is a symlink (or lies under one,
+    as on clusters) stays as the user named it, so paths compare equal to `root / filename`. Only
+    a root with a `..` component is resolved, since `..` after a symlink means the link target's
+    parent, which no lexical rule gets right.
+    """
+    path = Path(root).absolute()
+    if ".." in path.parts:
+        return path.resolve()
+    return Path(os.path.normpath(path))
+
+
+def confined_path(root: Path, relative: Any, where: str) -> Path:
+    """`dataset_root(root) / relative`, refused unless it stays inside the root (DESIGN: paths from
+    tables are data).
+
+    The check is lexical (`..` and absolute paths are refused); symlinks are neither resolved nor
+    refused: a symlinked root and symlinks that the user placed in the tree are followed as usual.
+    Raises `OccDataError` naming `where` (the row).
     """
     if not isinstance(relative, str) or not relative or "\0" in relative:
         raise OccDataError(f"{where}: path {short(relative)} is not a non-empty string")
-    root = Path(os.path.abspath(root))
+    root = dataset_root(root)
     path = Path(os.path.normpath(root / relative))
     if os.path.isabs(relative) or path == root or not path.is_relative_to(root):
         raise OccDataError(f"{where}: path {relative!r} points outside {root}")
@@ -187,6 +204,8 @@ def load_nuscenes(
     `first_sample_token`). Each scene gets a split: the official one for nuScenes scene names
     (mini_train/mini_val for v1.0-mini), else a `split=NAME` tag in its description, else
     "unassigned". With `check_files`, every keyframe sensor file must be a readable regular file.
+    `NuScenesDataset.root` is `dataset_root(root)` and every record path is that root joined with the
+    row's filename: symlinks (a symlinked root included) are kept, not resolved.
 
     With `sweeps`, the non-keyframe LIDAR_TOP rows are read too: each keyframe gets the sweeps that
     its LIDAR_TOP `prev` links pass through before reaching the previous keyframe's LIDAR_TOP (the
@@ -201,7 +220,7 @@ def load_nuscenes(
     path outside `root`, a missing file with `check_files`) does not raise: that sample's record
     carries it in `problem` and `validate_sample` rejects it.
     """
-    root = Path(root).resolve()
+    root = dataset_root(root)
     version = find_version(root, version)
     idx = read_tables(root, version, sweeps)
     notes = list(idx.notes)
