@@ -393,6 +393,7 @@ def _lidar_record(idx: TableIndex, sd: dict[str, Any], check_files: bool) -> Lid
         T_ego_from_lidar=pose(idx.calibs[sd["calibrated_sensor_token"]], "calibrated_sensor"),
         T_global_from_ego=_ego_pose(idx, sd),
         timestamp=_timestamp(sd),
+        sample_token=sd["sample_token"],
     )
 
 
@@ -428,7 +429,7 @@ def _placeholder_sample(
         for c in CAMERA_ORDER
     )
     lidar = LidarRecord(channel=LIDAR_CHANNEL, token=sds[LIDAR_CHANNEL]["token"], path=idx.root,
-                        T_ego_from_lidar=nan4, T_global_from_ego=nan4, timestamp=0)
+                        T_ego_from_lidar=nan4, T_global_from_ego=nan4, timestamp=0, sample_token=s_tok)
     ts = row.get("timestamp")
     return SampleRecord(
         token=s_tok, scene_token=row["scene_token"], scene_name=scene_name, index_in_scene=index,
