@@ -22,7 +22,7 @@ import numpy as np
 
 from occdata.errors import OccDataError
 from occdata.nuscenes.records import LidarRecord, NuScenesDataset
-from occdata.nuscenes.rows import RowProblem, field, floats, integer, ref
+from occdata.nuscenes.rows import RowProblem, field, floats, integer, ref, short
 from occdata.nuscenes.tables import load_table
 
 __all__ = ["Annotations", "BoxRecord", "boxes_for_lidar", "load_annotations", "slerp_wxyz"]
@@ -195,11 +195,11 @@ def load_annotations(root: Path, version: str, sample_tokens: Collection[str] | 
         return wanted is None or row.get("sample_token") in wanted
 
     rows = load_table(ann_path, keep=keep)
-    _check_tracks(rows, every_token)
     boxes: dict[str, list[BoxRecord]] = {}
     for row in rows.values():
         box = _box_record(row, sample_ts, instance_category)
         boxes.setdefault(box.sample_token, []).append(box)
+    _check_tracks(rows, every_token)
     return Annotations(
         boxes_by_sample={tok: tuple(b) for tok, b in boxes.items()}, instance_category=instance_category
     )
@@ -263,7 +263,10 @@ def _box_record(
 
 def _finite_floats(row: dict[str, Any], key: str, n: int, src: str) -> np.ndarray:
     """`row[key]` as `(n,) float64`, finite; `RowProblem` naming `src` and the field otherwise."""
-    values = floats(field(row, key, "sample_annotation"), (n,), f"{src} {key}")
+    raw = field(row, key, "sample_annotation")
+    if isinstance(raw, list) and any(isinstance(v, (str, bool)) for v in raw):
+        raise RowProblem(f"{src} {key} is not numeric ({short(raw)})")
+    values = floats(raw, (n,), f"{src} {key}")
     if not np.isfinite(values).all():
         raise RowProblem(f"{src} {key} {values.tolist()} is not finite")
     return values
