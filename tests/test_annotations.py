@@ -7,6 +7,7 @@ real tables are read from ../shared or copied to a temp folder for damage; never
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -213,7 +214,7 @@ def test_hand_made_interpolation() -> None:
     assert late.timestamp == 9_000_000
     # A sign-flipped quaternion is the same rotation: the shorter arc gives the same pose.
     a1 = ann.boxes_by_sample["s1"][0]
-    flipped = BoxRecord(**{**vars(a1), "rotation_wxyz": -a1.rotation_wxyz})
+    flipped = dataclasses.replace(a1, rotation_wxyz=-a1.rotation_wxyz)
     ann2 = Annotations({"s0": ann.boxes_by_sample["s0"], "s1": (flipped,)}, ann.instance_category)
     (a2,) = ann2.boxes_at("s1", "s0", 1_000_000, 1_500_000, 1_250_000)
     np.testing.assert_allclose(a2.T_global_from_box(), a.T_global_from_box(), atol=1e-12)

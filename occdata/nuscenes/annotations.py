@@ -16,19 +16,19 @@ from __future__ import annotations
 from collections.abc import Collection
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from occdata.errors import OccDataError
 from occdata.nuscenes.records import LidarRecord, NuScenesDataset
 from occdata.nuscenes.rows import RowProblem, field, floats, integer, ref, short
-from occdata.nuscenes.tables import load_table
+from occdata.nuscenes.tables import iter_table_rows, load_table
 
 __all__ = ["Annotations", "BoxRecord", "boxes_for_lidar", "load_annotations", "slerp_wxyz"]
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, slots=True)
 class BoxRecord:
     """One annotated 3D box (a `sample_annotation` row), or that box moved to another time.
 
@@ -168,11 +168,14 @@ def load_annotations(root: Path, version: str, sample_tokens: Collection[str] | 
 
     With `sample_tokens`, only those samples' boxes are kept (interpolating a sweep needs its sample
     and that sample's `prev`). No instance.json and no sample_annotation.json (a test split): empty
-    `Annotations`. Raises `OccDataError`, one line naming the table and token, on a broken tree: one
-    of the two tables without the other, a sample_token / instance_token / category_token that is
-    not in its table, prev/next naming a token not in sample_annotation.json or a box of another
-    instance, prev/next links that disagree, a non-numeric, non-finite or wrongly sized translation,
-    size or rotation, a size that is not positive or a rotation that is not a unit quaternion.
+    `Annotations`. The box arrays are read-only views into one array per field.
+
+    Raises `OccDataError`, one line naming the table and token, on a broken tree: one of the two
+    tables without the other, a sample_token / instance_token / category_token that is not in its
+    table, prev/next naming a token not in sample_annotation.json or a box of another instance,
+    prev/next links that disagree, a token twice with different content, a missing field, a
+    non-numeric, non-finite or wrongly sized translation, size or rotation, a size that is not
+    positive, a rotation that is not a unit quaternion, a non-integer num_lidar_pts.
     """
     vdir = Path(root) / version
     ann_path, inst_path = vdir / "sample_annotation.json", vdir / "instance.json"
@@ -184,25 +187,142 @@ def load_annotations(root: Path, version: str, sample_tokens: Collection[str] | 
     categories = load_table(vdir / "category.json")
     instances = load_table(inst_path)
     instance_category = {tok: _category_name(categories, tok, row) for tok, row in instances.items()}
-    sample_ts = {tok: field(row, "timestamp", "sample") for tok, row in load_table(vdir / "sample.json").items()}
-    every_token: set[str] = set()
-    wanted = None if sample_tokens is None else set(sample_tokens)
-
-    def keep(row: dict[str, Any]) -> bool:
-        token = row.get("token")
-        if isinstance(token, str):
-            every_token.add(token)
-        return wanted is None or row.get("sample_token") in wanted
-
-    rows = load_table(ann_path, keep=keep)
-    boxes: dict[str, list[BoxRecord]] = {}
-    for row in rows.values():
-        box = _box_record(row, sample_ts, instance_category)
-        boxes.setdefault(box.sample_token, []).append(box)
+    sample_rows = load_table(vdir / "sample.json")
+    rows, every_token = _read_rows(ann_path, None if sample_tokens is None else set(sample_tokens))
+    timestamps = _references(rows, sample_rows, instance_category)
+    columns = {key: _numbers(rows, key) for key in ("translation", "size", "rotation")}
+    n_pts = _counts(rows)
     _check_tracks(rows, every_token)
+    boxes: dict[str, list[BoxRecord]] = {}
+    for i, row in enumerate(rows):
+        boxes.setdefault(row.sample, []).append(BoxRecord(
+            token=row.token, instance_token=row.instance, sample_token=row.sample,
+            category=instance_category[row.instance], center_global=columns["translation"][i],
+            size_wlh=columns["size"][i], rotation_wxyz=columns["rotation"][i], timestamp=timestamps[i],
+            num_lidar_pts=int(n_pts[i]),
+        ))
     return Annotations(
         boxes_by_sample={tok: tuple(b) for tok, b in boxes.items()}, instance_category=instance_category
     )
+
+
+class _Row(NamedTuple):
+    """The fields of one sample_annotation row that boxes use (values as in the JSON)."""
+
+    token: str
+    sample: Any
+    instance: Any
+    prev: Any
+    next: Any
+    translation: Any
+    size: Any
+    rotation: Any
+    num_lidar_pts: Any
+
+
+def _read_rows(path: Path, wanted: set[str] | None) -> tuple[list[_Row], set[str]]:
+    """The rows of the wanted samples (all with `wanted` None), in table order, and every token of
+    the table. Identical duplicates are kept once; a token twice with different content is an error."""
+    rows: dict[str, _Row] = {}
+    every_token: set[str] = set()
+    for raw in iter_table_rows(path):
+        token = raw.get("token")
+        if not isinstance(token, str) or not token:
+            raise OccDataError(f"malformed table {path}: a row has no string 'token' field")
+        every_token.add(token)
+        sample = raw.get("sample_token")
+        if wanted is not None and not (isinstance(sample, str) and sample in wanted):
+            continue
+        row = _Row(
+            token, field(raw, "sample_token", "sample_annotation"), field(raw, "instance_token", "sample_annotation"),
+            raw.get("prev", ""), raw.get("next", ""),
+            *(field(raw, key, "sample_annotation") for key in ("translation", "size", "rotation", "num_lidar_pts")),
+        )
+        seen = rows.setdefault(token, row)
+        if seen is not row and seen != row:
+            raise OccDataError(f"duplicate token in {path.name}: {token!r} appears twice with different content")
+    return list(rows.values()), every_token
+
+
+def _references(
+    rows: list[_Row], sample_rows: dict[str, dict[str, Any]], instance_category: dict[str, str]
+) -> list[int]:
+    """Check each row's sample and instance exist; the timestamp (us) of each row's sample."""
+    sample_ts: dict[str, int] = {}
+    out = []
+    for row in rows:
+        src = f"sample_annotation {row.token!r}"
+        if not isinstance(row.instance, str) or row.instance not in instance_category:
+            raise OccDataError(f"dangling token: {src} refers to instance {row.instance!r}, not in instance.json")
+        ts = sample_ts.get(row.sample) if isinstance(row.sample, str) else None
+        if ts is None:
+            sample = ref(sample_rows, row.sample, "sample", src)
+            try:
+                ts = integer(field(sample, "timestamp", "sample"), f"sample {row.sample!r} timestamp")
+            except RowProblem as exc:
+                raise OccDataError(f"sample.json: {exc}") from None
+            sample_ts[row.sample] = ts
+        out.append(ts)
+    return out
+
+
+_WIDTH = {"translation": 3, "size": 3, "rotation": 4}
+
+
+def _numbers(rows: list[_Row], key: str) -> np.ndarray:
+    """`(N, 3|4) float64` read-only column of a numeric field, checked: finite; sizes positive;
+    rotations unit quaternions (within 1e-3). `OccDataError` naming the first bad row."""
+    n = _WIDTH[key]
+    values = [getattr(row, key) for row in rows]
+    try:
+        arr = np.array(values) if values else np.zeros((0, n))
+    except ValueError:  # ragged
+        arr = np.zeros(0)
+    if arr.dtype.kind not in "fiu" or arr.shape != (len(rows), n):
+        for row in rows:  # find the row and say what is wrong with it
+            _finite_floats(row, key, n)
+        raise OccDataError(f"sample_annotation.json: a {key} value is not {n} numbers")  # (bools only)
+    arr = arr.astype(np.float64)
+    bad = ~np.isfinite(arr).all(axis=1)
+    what = "is not finite"
+    if key == "size" and not bad.any():
+        bad, what = ~(arr > 0).all(axis=1), "is not positive"
+    if key == "rotation" and not bad.any():
+        bad, what = np.abs(np.linalg.norm(arr, axis=1) - 1.0) > 1e-3, "is not a unit quaternion"
+    if bad.any():
+        i = int(np.argmax(bad))
+        src = f"sample_annotation {rows[i].token!r}"
+        raise OccDataError(f"sample_annotation.json: {src} {key} {arr[i].tolist()} {what}")
+    arr.flags.writeable = False
+    return arr
+
+
+def _counts(rows: list[_Row]) -> np.ndarray:
+    """`(N,) int64` num_lidar_pts, each a JSON integer."""
+    values = [row.num_lidar_pts for row in rows]
+    arr = np.array(values) if values else np.zeros(0, np.int64)
+    if arr.dtype.kind not in "iu" or arr.shape != (len(rows),):
+        for row in rows:
+            try:
+                integer(row.num_lidar_pts, f"sample_annotation {row.token!r} num_lidar_pts")
+            except RowProblem as exc:
+                raise OccDataError(f"sample_annotation.json: {exc}") from None
+        arr = np.array([int(v) for v in values], dtype=np.int64)  # integral floats
+    return arr
+
+
+def _finite_floats(row: _Row, key: str, n: int) -> None:
+    """Raise `OccDataError` naming the row if its `key` is not `n` finite numbers."""
+    src = f"sample_annotation {row.token!r}"
+    raw = getattr(row, key)
+    try:
+        if isinstance(raw, list) and any(isinstance(v, (str, bool)) for v in raw):
+            raise RowProblem(f"{src} {key} is not numeric ({short(raw)})")
+        values = floats(raw, (n,), f"{src} {key}")
+    except RowProblem as exc:
+        raise OccDataError(f"sample_annotation.json: {exc}") from None
+    if not np.isfinite(values).all():
+        raise OccDataError(f"sample_annotation.json: {src} {key} {values.tolist()} is not finite")
 
 
 def _category_name(categories: dict[str, dict[str, Any]], inst_tok: str, inst: dict[str, Any]) -> str:
@@ -213,60 +333,21 @@ def _category_name(categories: dict[str, dict[str, Any]], inst_tok: str, inst: d
     return name
 
 
-def _check_tracks(rows: dict[str, dict[str, Any]], every_token: set[str]) -> None:
+def _check_tracks(rows: list[_Row], every_token: set[str]) -> None:
     """Every prev/next names a box of the table, of the same instance, that links back."""
-    for tok, row in rows.items():
+    by_token = {row.token: row for row in rows}
+    for row in rows:
         for link, back in (("prev", "next"), ("next", "prev")):
-            other_tok = row.get(link, "")
+            other_tok = getattr(row, link)
             if not other_tok:
                 continue
-            where = f"sample_annotation.json: row {tok!r} {link}"
+            where = f"sample_annotation.json: row {row.token!r} {link}"
             if not isinstance(other_tok, str) or other_tok not in every_token:
                 raise OccDataError(f"{where} {other_tok!r} is not in sample_annotation.json")
-            other = rows.get(other_tok)
+            other = by_token.get(other_tok)
             if other is None:  # outside the selected samples
                 continue
-            if other.get("instance_token") != row.get("instance_token"):
+            if other.instance != row.instance:
                 raise OccDataError(f"{where} {other_tok!r} is a box of another instance")
-            if other.get(back, "") != tok:
-                raise OccDataError(f"{where} is {other_tok!r}, but that row's {back} is {other.get(back, '')!r}")
-
-
-def _box_record(
-    row: dict[str, Any], sample_ts: dict[str, Any], instance_category: dict[str, str]
-) -> BoxRecord:
-    tok = row["token"]
-    src = f"sample_annotation {tok!r}"
-    sample_tok = field(row, "sample_token", "sample_annotation")
-    inst_tok = field(row, "instance_token", "sample_annotation")
-    if sample_tok not in sample_ts:
-        raise OccDataError(f"dangling token: {src} refers to sample {sample_tok!r}, not in sample.json")
-    if inst_tok not in instance_category:
-        raise OccDataError(f"dangling token: {src} refers to instance {inst_tok!r}, not in instance.json")
-    try:
-        center = _finite_floats(row, "translation", 3, src)
-        size = _finite_floats(row, "size", 3, src)
-        rotation = _finite_floats(row, "rotation", 4, src)
-        timestamp = integer(sample_ts[sample_tok], f"sample {sample_tok!r} timestamp")
-        n_pts = integer(field(row, "num_lidar_pts", "sample_annotation"), f"{src} num_lidar_pts")
-    except RowProblem as exc:
-        raise OccDataError(f"sample_annotation.json: {exc}") from None
-    if not (size > 0).all():
-        raise OccDataError(f"sample_annotation.json: {src} size {size.tolist()} is not positive")
-    if abs(np.linalg.norm(rotation) - 1.0) > 1e-3:
-        raise OccDataError(f"sample_annotation.json: {src} rotation {rotation.tolist()} is not a unit quaternion")
-    return BoxRecord(
-        token=tok, instance_token=inst_tok, sample_token=sample_tok, category=instance_category[inst_tok],
-        center_global=center, size_wlh=size, rotation_wxyz=rotation, timestamp=timestamp, num_lidar_pts=n_pts,
-    )
-
-
-def _finite_floats(row: dict[str, Any], key: str, n: int, src: str) -> np.ndarray:
-    """`row[key]` as `(n,) float64`, finite; `RowProblem` naming `src` and the field otherwise."""
-    raw = field(row, key, "sample_annotation")
-    if isinstance(raw, list) and any(isinstance(v, (str, bool)) for v in raw):
-        raise RowProblem(f"{src} {key} is not numeric ({short(raw)})")
-    values = floats(raw, (n,), f"{src} {key}")
-    if not np.isfinite(values).all():
-        raise RowProblem(f"{src} {key} {values.tolist()} is not finite")
-    return values
+            if getattr(other, back) != row.token:
+                raise OccDataError(f"{where} is {other_tok!r}, but that row's {back} is {getattr(other, back)!r}")
