@@ -174,6 +174,16 @@ def test_boxes_for_lidar_on_real_sweeps_without_devkit(seq_root: Path, real_ann:
     assert "\n" not in str(info.value)
 
 
+def test_identical_duplicate_is_kept_once_and_arrays_are_read_only(seq_root: Path, tmp_path: Path) -> None:
+    root = _copy_tables(seq_root, tmp_path)
+    _edit(root, "sample_annotation", lambda rows: rows.append(dict(rows[5])))
+    ann = load_annotations(root, "v1.0-mini")
+    assert sum(map(len, ann.boxes_by_sample.values())) == 2424
+    box = next(iter(ann.boxes_by_sample.values()))[0]
+    for arr in (box.center_global, box.size_wlh, box.rotation_wxyz):
+        assert arr.dtype == np.float64 and not arr.flags.writeable
+
+
 def test_subset_of_samples(seq_root: Path, real_ann: Annotations) -> None:
     ds = load_nuscenes(seq_root)
     keep = {s.token for s in ds.samples[3:6]}
@@ -268,6 +278,10 @@ BROKEN = {
     "translation_text": ("sample_annotation", lambda rows: rows[5].update(translation=["1", "2", "3"]),
                          "translation is not numeric"),
     "no_size_field": ("sample_annotation", lambda rows: rows[5].pop("size"), "has no field 'size'"),
+    "num_pts_text": ("sample_annotation", lambda rows: rows[5].update(num_lidar_pts="many"),
+                     "num_lidar_pts is not an integer ('many')"),
+    "duplicate_differs": ("sample_annotation", lambda rows: rows.append({**rows[5], "size": [9.0, 9.0, 9.0]}),
+                          "appears twice with different content"),
 }
 
 
