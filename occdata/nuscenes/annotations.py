@@ -100,6 +100,7 @@ def _interpolated(prev: BoxRecord | None, cur: BoxRecord, t0: int, t1: int, t: i
     else:
         center = (cur.center_global - prev.center_global) / (t1 - t0) * (t - t0) + prev.center_global
     rotation = slerp_wxyz(prev.rotation_wxyz, cur.rotation_wxyz, (t - t0) / (t1 - t0))
+    center.flags.writeable = rotation.flags.writeable = False  # like the loaded records' arrays
     return replace(cur, center_global=center, rotation_wxyz=rotation, timestamp=t_us)
 
 
