@@ -32,7 +32,9 @@ __all__ = [
     "annotate_keyframe",
     "annotation_rows",
     "object_boxes",
+    "object_parts",
     "points_in_boxes",
+    "rays_hit_parts",
     "visibility_levels",
 ]
 
@@ -139,14 +141,19 @@ def points_in_boxes(points: np.ndarray, boxes: ObjectBoxes, margin: float = POIN
     """`(N, B) bool`: point n `(N, 3)` (the boxes' frame) lies in box b: within `margin` of it, but
     more than `margin` above its bottom face (module docstring)."""
     inside = np.zeros((len(points), len(boxes)), bool)
+    order = np.argsort(points[:, 0], kind="stable")  # candidates of a box: a slice of the x-sorted points
+    xs = points[order, 0]
     for b in range(len(boxes)):
+        w, length, h = boxes.size_wlh[b]
+        reach = 0.5 * float(np.hypot(w, length)) + margin + 1e-6
+        lo, hi = np.searchsorted(xs, [boxes.center[b, 0] - reach, boxes.center[b, 0] + reach])
+        cand = order[lo:hi]
         c, s = np.cos(boxes.yaw[b]), np.sin(boxes.yaw[b])
-        d = points - boxes.center[b]
+        d = points[cand] - boxes.center[b]
         lx = c * d[:, 0] + s * d[:, 1]
         ly = -s * d[:, 0] + c * d[:, 1]
-        w, length, h = boxes.size_wlh[b]
-        inside[:, b] = ((np.abs(lx) <= length / 2 + margin) & (np.abs(ly) <= w / 2 + margin)
-                        & (d[:, 2] <= h / 2 + margin) & (d[:, 2] > -h / 2 + margin))
+        inside[cand, b] = ((np.abs(lx) <= length / 2 + margin) & (np.abs(ly) <= w / 2 + margin)
+                           & (d[:, 2] <= h / 2 + margin) & (d[:, 2] > -h / 2 + margin))
     return inside
 
 
@@ -160,7 +167,7 @@ def _slab(o: np.ndarray | float, d: np.ndarray, lo: float, hi: float) -> tuple[n
     return t_in, t_out
 
 
-def _rays_hit_parts(origin: np.ndarray, dirs: np.ndarray, parts: np.ndarray, t_max: float) -> np.ndarray:
+def rays_hit_parts(origin: np.ndarray, dirs: np.ndarray, parts: np.ndarray, t_max: float) -> np.ndarray:
     """`(N,) bool`: a ray (origin `(3,)`, unit dirs `(N, 3)`, global) meets one of the primitives
     `(K, 9)` (global) within `t_max` when nothing else is in the world."""
     hit = np.zeros(len(dirs), bool)
@@ -200,9 +207,11 @@ def visibility_levels(
     for b, key in enumerate(boxes.keys):
         rel = boxes.center[b] - origin
         radius = 0.5 * float(np.linalg.norm(boxes.size_wlh[b])) + 0.01
+        if float(np.linalg.norm(rel)) > t_max + radius:
+            continue  # out of range: no ray can meet it
         along = dirs @ rel
         near = (along > -radius) & (rel @ rel - along**2 <= radius**2)
-        n_alone = int(_rays_hit_parts(origin, dirs[near], object_parts(world, key, t_us), t_max).sum())
+        n_alone = int(rays_hit_parts(origin, dirs[near], object_parts(world, key, t_us), t_max).sum())
         if n_alone > 0:
             levels[b] = 1 + int(np.searchsorted(_VISIBILITY_BOUNDS, num_points[b] / n_alone, side="left"))
     return levels
