@@ -129,6 +129,7 @@ def _nearest_sorted(
     query: np.ndarray, ref: np.ndarray, ref_cls: np.ndarray, keys: np.ndarray, orig: np.ndarray, radius: float
 ) -> np.ndarray:
     out = np.full(query.shape[0], NO_LABEL, np.uint8)
+    dist2 = np.full(query.shape[0], np.inf)
     r2 = radius * radius
     for q in prange(query.shape[0]):
         x, y, z = query[q, 0], query[q, 1], query[q, 2]
@@ -147,7 +148,8 @@ def _nearest_sorted(
                         j += 1
         if best_j >= 0:
             out[q] = ref_cls[best_j]
-    return out
+            dist2[q] = best
+    return out, dist2
 
 
 @dataclass(frozen=True, eq=False)
@@ -172,18 +174,19 @@ class NearestIndex:
         return NearestIndex(ref[order], np.ascontiguousarray(np.asarray(ref_cls, np.uint8)[order]), keys[order],
                             order.astype(np.int64), float(radius))
 
-    def query(self, points: np.ndarray) -> np.ndarray:
-        """`(Q,) uint8`: class of the nearest reference within `radius` (inclusive) of each point of
-        `points (Q, 3)`, or NO_LABEL; ties go to the reference first in input order."""
+    def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`(Q,) uint8` class of the nearest reference within `radius` (inclusive) of each point of
+        `points (Q, 3)`, or NO_LABEL; and `(Q,) float64` its squared distance (inf: none). Ties go
+        to the reference first in input order."""
         points = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
         if len(self.ref) == 0:
-            return np.full(len(points), NO_LABEL, np.uint8)
+            return np.full(len(points), NO_LABEL, np.uint8), np.full(len(points), np.inf)
         return _nearest_sorted(points, self.ref, self.cls, self.keys, self.orig, self.radius)
 
 
 def nearest_labels(query: np.ndarray, ref: np.ndarray, ref_cls: np.ndarray, radius: float) -> np.ndarray:
-    """One-off `NearestIndex.build(ref, ref_cls, radius).query(query)`."""
-    return NearestIndex.build(ref, ref_cls, radius).query(query)
+    """One-off `NearestIndex.build(ref, ref_cls, radius).query(query)`, classes only."""
+    return NearestIndex.build(ref, ref_cls, radius).query(query)[0]
 
 
 def nearest_labels_reference(query: np.ndarray, ref: np.ndarray, ref_cls: np.ndarray, radius: float) -> np.ndarray:
