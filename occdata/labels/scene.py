@@ -47,13 +47,15 @@ class LabelOptions:
     point finds a labelled keyframe point (none: the point is dropped, counted). box_margin: metres
     added to each box's sides and top when deciding membership (LiDAR returns lie on the surface).
     floor_margin: without lidarseg, points this close above a box's floor stay static (ground).
-    static_class: the Occ3D class of static points when there is no lidarseg."""
+    static_class: the Occ3D class of static points when there is no lidarseg. use_boxes=False is
+    the control that aggregates every point in the global frame (moving objects smear)."""
 
     lidar_sweeps: bool = False
     knn_radius: float = 0.5
     box_margin: float = 0.1
     floor_margin: float = 0.15
     static_class: int = 0
+    use_boxes: bool = True  # False: naive global aggregation, every point static (the smearing control)
 
     def __post_init__(self) -> None:
         if not 0 < self.knn_radius <= 5:
@@ -157,7 +159,7 @@ def _frame_points(rec: LidarRecord) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
 def _in_boxes(points: np.ndarray, boxes: tuple[BoxRecord, ...], opts: LabelOptions) -> np.ndarray:
     """`(N,) int32` index of the (margin-grown) box holding each global point `(N, 3)`, or -1."""
-    if not boxes:
+    if not boxes or not opts.use_boxes:
         return np.full(len(points), -1, np.int32)
     T, half = _box_frames(boxes, opts.box_margin)
     return points_in_boxes(np.ascontiguousarray(points), T, half)
@@ -243,7 +245,7 @@ def _semantics(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tupl
     lower = np.array(GRID.lower, np.float64)
     counts = np.zeros((int(shape.prod()), NUM_CLASSES - 1), np.int32)
     vote_voxels(counts, static[0], static[1], T_keyego_from_global, lower, GRID.voxel_size, shape)
-    for box in boxes:
+    for box in boxes:  # (none placed in the control: it has no instance points)
         pts, cls = cloud.instance(box.instance_token)
         if len(pts):
             T = T_keyego_from_global @ box.T_global_from_box()
