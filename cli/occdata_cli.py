@@ -164,11 +164,14 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
                    "i.e. 'occupied, not an annotated object'). Recorded in labels.json.")
 @click.option("--knn-radius", type=click.FloatRange(0.01, 5.0), default=0.5, show_default=True,
               help="Metres within which a sweep point takes the class of the nearest labelled keyframe point.")
+@click.option("--no-boxes", is_flag=True,
+              help="The control: aggregate every point in the global frame, ignoring boxes (moving objects smear).")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run: finished scenes are skipped.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
 def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], scenes: tuple[str, ...],
-           lidar_sweeps: bool, static_class: int, knn_radius: float, resume: bool, no_progress: bool) -> None:
+           lidar_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, resume: bool,
+           no_progress: bool) -> None:
     """Generate Occ3D-style occupancy labels from LiDAR and 3D boxes (and lidarseg when present).
 
     Per scene: LiDAR points aggregated over time, static points in the global frame, points inside a
@@ -183,7 +186,8 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
         report = generate_labels(LabelsConfig(
             root=local_path(root, "--root"), out=out_path, version=version, splits=splits or None,
             scenes=scenes or None, resume=resume, progress=not no_progress,
-            options=LabelOptions(lidar_sweeps=lidar_sweeps, static_class=static_class, knn_radius=knn_radius),
+            options=LabelOptions(lidar_sweeps=lidar_sweeps, static_class=static_class, knn_radius=knn_radius,
+                                 use_boxes=not no_boxes),
         ))
     except KeyboardInterrupt:
         click.echo(f"\ninterrupted: finished scenes are kept in {out_path}; rerun with --resume to continue", err=True)

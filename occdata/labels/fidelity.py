@@ -14,7 +14,8 @@ import numpy as np
 
 from occdata.constants import FREE_LABEL, GRID
 
-__all__ = ["Fidelity", "instance_containment", "observable_surface", "voxel_fidelity"]
+__all__ = ["Fidelity", "SceneScore", "instance_containment", "moving_tracks", "observable_surface", "score_scene",
+           "voxel_fidelity"]
 
 
 @dataclass
@@ -102,3 +103,59 @@ def instance_containment(generated: np.ndarray, cls: int, track: list[tuple[np.n
         corridor &= ~_in_box(centers, T, size, dilate)
     inside = _in_box(centers, *track[now], dilate) & corridor
     return int(inside.sum()), int(corridor.sum())
+
+
+@dataclass
+class SceneScore:
+    """A scene's fidelity counts and, per moving instance, (inside, total) voxels summed over keyframes."""
+
+    voxels: Fidelity
+    moving: dict[str, tuple[int, int]]
+
+    def moving_fraction(self) -> float:
+        """Share of all moving instances' generated voxels that lie in their box (pooled)."""
+        inside = sum(v[0] for v in self.moving.values())
+        return inside / max(sum(v[1] for v in self.moving.values()), 1)
+
+    def worst_instance(self, min_voxels: int = 20) -> float:
+        """The lowest per-instance share among instances with at least `min_voxels` voxels."""
+        shares = [i / t for i, t in self.moving.values() if t >= min_voxels]
+        return min(shares, default=1.0)
+
+
+def moving_tracks(boxes_by_keyframe: list[list], min_travel: float = 1.0) -> set[str]:
+    """Instance tokens whose box centre travels more than `min_travel` metres over the scene;
+    `boxes_by_keyframe`: per keyframe, its BoxRecords."""
+    centers: dict[str, list[np.ndarray]] = {}
+    for boxes in boxes_by_keyframe:
+        for b in boxes:
+            centers.setdefault(b.instance_token, []).append(np.asarray(b.center_global, np.float64))
+    return {k for k, c in centers.items() if np.ptp(np.stack(c), axis=0)[:2].max() > min_travel}
+
+
+def score_scene(generated: list[np.ndarray], truth: list[tuple[np.ndarray, np.ndarray]],
+                T_keyego_from_global: list[np.ndarray], boxes_by_keyframe: list[list],
+                class_of: dict[str, int]) -> SceneScore:
+    """Score one scene's keyframes: `generated[k] (X, Y, Z) uint8`, `truth[k] = (semantics,
+    mask_lidar)`, the key-ego transform and the BoxRecords of keyframe k; `class_of`: instance ->
+    its Occ3D class."""
+    total = Fidelity()
+    moving: dict[str, tuple[int, int]] = {}
+    movers = moving_tracks(boxes_by_keyframe)
+    tracks: dict[str, list] = {}
+    for boxes in boxes_by_keyframe:
+        for b in boxes:
+            tracks.setdefault(b.instance_token, []).append(b)
+    for k, gen in enumerate(generated):
+        total.add(voxel_fidelity(gen, *truth[k]))
+        T = T_keyego_from_global[k]
+        for b in boxes_by_keyframe[k]:
+            if b.instance_token not in movers:
+                continue
+            track = [(T @ o.T_global_from_box(), o.size_wlh) for o in tracks[b.instance_token]]
+            now = next(i for i, o in enumerate(tracks[b.instance_token]) if o.token == b.token)
+            others = [(T @ o.T_global_from_box(), o.size_wlh) for o in boxes_by_keyframe[k] if o is not b]
+            i, t = instance_containment(gen, class_of[b.instance_token], track, now, others)
+            old = moving.get(b.instance_token, (0, 0))
+            moving[b.instance_token] = (old[0] + i, old[1] + t)
+    return SceneScore(total, moving)
