@@ -14,8 +14,8 @@ import numpy as np
 
 from occdata.constants import FREE_LABEL, GRID
 
-__all__ = ["Fidelity", "SceneScore", "instance_containment", "moving_tracks", "observable_surface", "score_scene",
-           "voxel_fidelity"]
+__all__ = ["Fidelity", "SceneScore", "instance_containment", "moving_containment", "moving_tracks",
+           "observable_surface", "score_scene", "voxel_fidelity"]
 
 
 @dataclass
@@ -133,21 +133,18 @@ def moving_tracks(boxes_by_keyframe: list[list], min_travel: float = 1.0) -> set
     return {k for k, c in centers.items() if np.ptp(np.stack(c), axis=0)[:2].max() > min_travel}
 
 
-def score_scene(generated: list[np.ndarray], truth: list[tuple[np.ndarray, np.ndarray]],
-                T_keyego_from_global: list[np.ndarray], boxes_by_keyframe: list[list],
-                class_of: dict[str, int]) -> SceneScore:
-    """Score one scene's keyframes: `generated[k] (X, Y, Z) uint8`, `truth[k] = (semantics,
-    mask_lidar)`, the key-ego transform and the BoxRecords of keyframe k; `class_of`: instance ->
-    its Occ3D class."""
-    total = Fidelity()
-    moving: dict[str, tuple[int, int]] = {}
+def moving_containment(generated: list[np.ndarray], T_keyego_from_global: list[np.ndarray],
+                       boxes_by_keyframe: list[list], class_of: dict[str, int]) -> dict[str, tuple[int, int]]:
+    """Per moving instance, `(inside, total)` generated voxels summed over the keyframes
+    (`instance_containment`); `generated[k] (X, Y, Z) uint8`, the key-ego transform and the
+    BoxRecords of keyframe k; `class_of`: instance -> its Occ3D class."""
     movers = moving_tracks(boxes_by_keyframe)
     tracks: dict[str, list] = {}
     for boxes in boxes_by_keyframe:
         for b in boxes:
             tracks.setdefault(b.instance_token, []).append(b)
+    out: dict[str, tuple[int, int]] = {}
     for k, gen in enumerate(generated):
-        total.add(voxel_fidelity(gen, *truth[k]))
         T = T_keyego_from_global[k]
         for b in boxes_by_keyframe[k]:
             if b.instance_token not in movers:
@@ -156,6 +153,17 @@ def score_scene(generated: list[np.ndarray], truth: list[tuple[np.ndarray, np.nd
             now = next(i for i, o in enumerate(tracks[b.instance_token]) if o.token == b.token)
             others = [(T @ o.T_global_from_box(), o.size_wlh) for o in boxes_by_keyframe[k] if o is not b]
             i, t = instance_containment(gen, class_of[b.instance_token], track, now, others)
-            old = moving.get(b.instance_token, (0, 0))
-            moving[b.instance_token] = (old[0] + i, old[1] + t)
-    return SceneScore(total, moving)
+            old = out.get(b.instance_token, (0, 0))
+            out[b.instance_token] = (old[0] + i, old[1] + t)
+    return out
+
+
+def score_scene(generated: list[np.ndarray], truth: list[tuple[np.ndarray, np.ndarray]],
+                T_keyego_from_global: list[np.ndarray], boxes_by_keyframe: list[list],
+                class_of: dict[str, int]) -> SceneScore:
+    """Score one scene's keyframes: `generated[k]`, `truth[k] = (semantics, mask_lidar)` and the
+    arguments of `moving_containment`."""
+    total = Fidelity()
+    for gen, (sem, mask) in zip(generated, truth, strict=True):
+        total.add(voxel_fidelity(gen, sem, mask))
+    return SceneScore(total, moving_containment(generated, T_keyego_from_global, boxes_by_keyframe, class_of))
