@@ -15,7 +15,11 @@ from occdata.constants import CAMERA_ORDER, LIDAR_CHANNEL
 from occdata.fileio import write_atomic
 
 __all__ = [
+    "ATTRIBUTES",
+    "LIDARSEG_CATEGORIES",
     "TABLE_NAMES",
+    "attribute_rows",
+    "category_rows",
     "make_token",
     "npz_bytes",
     "static_tables",
@@ -35,29 +39,77 @@ def make_token(seed: int, *parts: object) -> str:
     return hashlib.md5(key.encode()).hexdigest()
 
 
+# The 32 nuScenes-lidarseg categories in `index` order, with a short description of our own.
+LIDARSEG_CATEGORIES: tuple[tuple[str, str], ...] = (
+    ("noise", "Points of no surface: reflections, dust, sensor artefacts."),
+    ("animal", "Any animal."),
+    ("human.pedestrian.adult", "An adult person walking or standing."),
+    ("human.pedestrian.child", "A child."),
+    ("human.pedestrian.construction_worker", "A person at work on a construction site."),
+    ("human.pedestrian.personal_mobility", "A person on a scooter, skateboard or similar small vehicle."),
+    ("human.pedestrian.police_officer", "A police officer."),
+    ("human.pedestrian.stroller", "A stroller or pram."),
+    ("human.pedestrian.wheelchair", "A wheelchair."),
+    ("movable_object.barrier", "A temporary barrier on or beside the road."),
+    ("movable_object.debris", "Loose debris on the road."),
+    ("movable_object.pushable_pullable", "A cart, bin or other object pushed or pulled by hand."),
+    ("movable_object.trafficcone", "A traffic cone."),
+    ("static_object.bicycle_rack", "A rack for parking bicycles."),
+    ("vehicle.bicycle", "A bicycle, with or without rider."),
+    ("vehicle.bus.bendy", "An articulated bus."),
+    ("vehicle.bus.rigid", "A bus with one rigid body."),
+    ("vehicle.car", "A passenger car, van or pick-up."),
+    ("vehicle.construction", "A vehicle for construction work."),
+    ("vehicle.emergency.ambulance", "An ambulance."),
+    ("vehicle.emergency.police", "A police vehicle."),
+    ("vehicle.motorcycle", "A motorcycle or moped, with or without rider."),
+    ("vehicle.trailer", "A trailer towed by another vehicle."),
+    ("vehicle.truck", "A vehicle for carrying goods."),
+    ("flat.driveable_surface", "Road surface that cars may drive on."),
+    ("flat.other", "Other flat ground: gravel, parking areas, traffic islands."),
+    ("flat.sidewalk", "Pavement for pedestrians."),
+    ("flat.terrain", "Grass, soil and other natural ground."),
+    ("static.manmade", "Buildings, walls, poles and other built structures."),
+    ("static.other", "Other static matter."),
+    ("static.vegetation", "Trees, bushes and other plants above the ground."),
+    ("vehicle.ego", "The recording vehicle itself."),
+)
+
+# nuScenes attribute names with a short description of our own.
+ATTRIBUTES: tuple[tuple[str, str], ...] = (
+    ("vehicle.moving", "The vehicle is moving."),
+    ("vehicle.stopped", "The vehicle has stopped briefly, e.g. in traffic, with a driver in it."),
+    ("vehicle.parked", "The vehicle is parked."),
+    ("cycle.with_rider", "A bicycle or motorcycle with a rider on it."),
+    ("cycle.without_rider", "A bicycle or motorcycle without a rider."),
+    ("pedestrian.sitting_lying_down", "The person is sitting or lying down."),
+    ("pedestrian.standing", "The person is standing."),
+    ("pedestrian.moving", "The person is moving."),
+)
+
+
+def category_rows(seed: int) -> list[dict[str, Any]]:
+    """The 32 nuScenes-lidarseg categories with their `index` (the label value in lidarseg files)."""
+    return [{"token": make_token(seed, "category", name), "name": name, "description": desc, "index": i}
+            for i, (name, desc) in enumerate(LIDARSEG_CATEGORIES)]
+
+
+def attribute_rows(seed: int) -> list[dict[str, Any]]:
+    return [{"token": make_token(seed, "attribute", name), "name": name, "description": desc}
+            for name, desc in ATTRIBUTES]
+
+
 def static_tables(seed: int) -> dict[str, list[dict[str, Any]]]:
-    """Tables that do not depend on the drive: sensor, category, attribute, visibility (the last
-    three minimal but valid; this world carries no box annotations)."""
+    """Tables that do not depend on the drive: sensor, category (the 32 lidarseg categories),
+    attribute, visibility; instance and sample_annotation empty (filled per scene)."""
     sensors = [
         {"token": make_token(seed, "sensor", ch), "channel": ch, "modality": "camera"} for ch in CAMERA_ORDER
     ] + [{"token": make_token(seed, "sensor", LIDAR_CHANNEL), "channel": LIDAR_CHANNEL, "modality": "lidar"}]
-    categories = [
-        ("human.pedestrian.adult", "Adult subcategory."),
-        ("vehicle.car", "Vehicle designed primarily for personal use."),
-        ("vehicle.bus.rigid", "Rigid bus."),
-        ("vehicle.truck", "Vehicles primarily designed to haul cargo."),
-        ("vehicle.bicycle", "Human or electric powered 2-wheeled vehicle."),
-        ("vehicle.motorcycle", "Gasoline or electric powered 2-wheeled vehicle."),
-        ("movable_object.barrier", "Temporary road barrier."),
-        ("movable_object.trafficcone", "Traffic cone."),
-    ]
-    attributes = [("vehicle.moving", "Vehicle is moving."), ("vehicle.parked", "Vehicle is parked."),
-                  ("pedestrian.moving", "The human is moving."), ("pedestrian.standing", "The human is standing.")]
     levels = [("v0-40", "0 and 40%"), ("v40-60", "40 and 60%"), ("v60-80", "60 and 80%"), ("v80-100", "80 and 100%")]
     return {
         "sensor": sensors,
-        "category": [{"token": make_token(seed, "category", n), "name": n, "description": d} for n, d in categories],
-        "attribute": [{"token": make_token(seed, "attribute", n), "name": n, "description": d} for n, d in attributes],
+        "category": category_rows(seed),
+        "attribute": attribute_rows(seed),
         "visibility": [
             {"token": str(i + 1), "level": lv, "description": f"visibility of whole object is between {d}"}
             for i, (lv, d) in enumerate(levels)
@@ -81,9 +133,10 @@ def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
 
 
 def write_tables(table_dir: Path, tables: dict[str, list[dict[str, Any]]]) -> None:
-    """Write all 13 tables as `<table_dir>/<name>.json` (atomic, deterministic formatting)."""
+    """Write all 13 tables, and any extra ones (lidarseg), as `<table_dir>/<name>.json` (atomic,
+    deterministic formatting)."""
     missing = set(TABLE_NAMES) - set(tables)
     if missing:
         raise ValueError(f"missing tables: {sorted(missing)}")
-    for name in TABLE_NAMES:
+    for name in (*TABLE_NAMES, *sorted(set(tables) - set(TABLE_NAMES))):
         write_atomic(table_dir / f"{name}.json", json.dumps(tables[name], indent=0).encode())
