@@ -148,6 +148,8 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
         f"{report.store}: {report.n_done}/{report.n_samples} samples done, {report.n_errors} errors, "
         f"{report.n_labelled} labelled ({report.processed_now} processed in this run)"
     )
+    if report.n_errors:
+        click.echo("errors are recorded in the store: see `occdata info --store ...`", err=True)
 
 
 @main.command()
@@ -195,8 +197,6 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
     seg = "lidarseg classes" if report.with_lidarseg else f"no lidarseg: static points are class {static_class}"
     click.echo(f"{out_path}: {report.scenes_done} scene(s) labelled, {report.scenes_skipped} already done, "
                f"{report.keyframes} keyframes ({seg}); manifest {report.manifest}")
-    if report.n_errors:
-        click.echo("errors are recorded in the store: see `occdata info --store ...`", err=True)
 
 
 # A plain string, not click.Path: click would turn an fsspec URL such as file:///x/y.zarr into file:/x/y.zarr.
