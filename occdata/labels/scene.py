@@ -48,14 +48,15 @@ class LabelOptions:
     added to each box's sides and top when deciding membership (LiDAR returns lie on the surface).
     floor_margin: without lidarseg, points this close above a box's floor stay static (ground).
     static_class: the Occ3D class of static points when there is no lidarseg. use_boxes=False is
-    the control that aggregates every point in the global frame (moving objects smear)."""
+    the control that aggregates every point in the global frame (moving objects smear); without
+    lidarseg its boxes still give their points' classes."""
 
     lidar_sweeps: bool = False
     knn_radius: float = 0.5
     box_margin: float = 0.1
     floor_margin: float = 0.15
     static_class: int = 0
-    use_boxes: bool = True  # False: naive global aggregation, every point static (the smearing control)
+    use_boxes: bool = True  # False: naive global aggregation, the smearing control
 
     def __post_init__(self) -> None:
         if not 0 < self.knn_radius <= 5:
@@ -159,7 +160,7 @@ def _frame_points(rec: LidarRecord) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
 def _in_boxes(points: np.ndarray, boxes: tuple[BoxRecord, ...], opts: LabelOptions) -> np.ndarray:
     """`(N,) int32` index of the (margin-grown) box holding each global point `(N, 3)`, or -1."""
-    if not boxes or not opts.use_boxes:
+    if not boxes:
         return np.full(len(points), -1, np.int32)
     T, half = _box_frames(boxes, opts.box_margin)
     return points_in_boxes(np.ascontiguousarray(points), T, half)
@@ -188,7 +189,11 @@ def _add_keyframe(cloud: _Cloud, points: np.ndarray, cls: np.ndarray | None, box
         sel = idx == b
         box = boxes[b]
         c = cls[sel] if cls is not None else np.full(int(sel.sum()), box_class(box), np.uint8)
-        cloud.add_object(box.instance_token, transform_points(invert_rigid(box.T_global_from_box()), points[sel]), c)
+        if opts.use_boxes:
+            p_box = transform_points(invert_rigid(box.T_global_from_box()), points[sel])
+            cloud.add_object(box.instance_token, p_box, c)
+        else:  # the control: the box gives the class only, the point stays where it was seen
+            cloud.add_static(points[sel], c)
     static = idx < 0
     c = cls[static] if cls is not None else np.full(int(static.sum()), opts.static_class, np.uint8)
     cloud.add_static(points[static], c)
@@ -205,7 +210,7 @@ def _add_sweep(cloud: _Cloud, points: np.ndarray, boxes: tuple[BoxRecord, ...], 
     if static_index is None:
         _add_keyframe(cloud, points, None, boxes, opts, counts)
         return
-    idx = _in_boxes(points, boxes, opts)
+    idx = _in_boxes(points, boxes if opts.use_boxes else (), opts)
     cls_s, d2_s = static_index.query(points)
     for b in np.unique(idx[idx >= 0]):
         sel = np.flatnonzero(idx == b)
