@@ -206,3 +206,20 @@ def test_kill_leaves_no_half_file_and_resume_completes(tmp_path: Path) -> None:
     assert got == sorted(p.relative_to(ref) for p in ref.rglob("*") if p.is_file())
     for rel in got:
         assert (ref / rel).read_bytes() == (tmp_path / "o" / rel).read_bytes(), rel
+
+
+def test_build_then_train_on_generated_labels(world: Path, generated: dict[str, Path], tmp_path: Path) -> None:
+    """`occdata build --gts <generated>` then `fastocc train` end to end (a tiny run on the CPU)."""
+    store = tmp_path / "gen.zarr"
+    cli = [sys.executable, "-m"]
+    subprocess.run([*cli, "cli.occdata_cli", "build", "--root", str(world), "--gts", str(generated["ours"]),
+                    "--out", str(store), "--no-progress"], check=True, cwd=REPO, capture_output=True)
+    cfg = tmp_path / "tiny.toml"
+    cfg.write_text('input_hw = [64, 176]\nepochs = 1\nworkers = 0\nthreads = 1\nval_every = 0\n'
+                   'limit_train_samples = 2\nlr_scaling = "none"\n')
+    r = subprocess.run([*cli, "cli.fastocc_cli", "train", "--config", str(cfg), "--store", str(store), "--out",
+                        str(tmp_path / "run"), "--batch-size", "1", "--no-progress"], cwd=REPO, capture_output=True,
+                       text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (tmp_path / "run" / "last.pt").is_file()
+    assert "done:" in r.stdout
