@@ -133,19 +133,32 @@ def _nearest_sorted(
     r2 = radius * radius
     for q in prange(query.shape[0]):
         x, y, z = query[q, 0], query[q, 1], query[q, 2]
-        cx, cy, cz = int(np.floor(x / radius)), int(np.floor(y / radius)), int(np.floor(z / radius))
+        fx, fy, fz = np.floor(x / radius), np.floor(y / radius), np.floor(z / radius)
+        cx, cy, cz = int(fx), int(fy), int(fz)
+        # Distances from the point to its cell's lower and upper faces, per axis.
+        lo = np.array([x - fx * radius, y - fy * radius, z - fz * radius])
+        hi = radius - lo
         best, best_j = r2, -1
-        for dx in range(-1, 2):
-            for dy in range(-1, 2):
-                for dz in range(-1, 2):
-                    k = _cell_key(cx + dx, cy + dy, cz + dz)
-                    j = np.searchsorted(keys, k)
-                    while j < keys.shape[0] and keys[j] == k:
-                        d2 = (ref[j, 0] - x) ** 2 + (ref[j, 1] - y) ** 2 + (ref[j, 2] - z) ** 2
-                        # Nearest wins; an equal distance goes to the reference first in input order.
-                        if d2 <= r2 and (best_j < 0 or d2 < best or (d2 == best and orig[j] < orig[best_j])):
-                            best, best_j = d2, j
-                        j += 1
+        for n in range(27):  # own cell first (n = 13 is (0, 0, 0)), then the neighbours
+            m = (n + 13) % 27
+            dx, dy, dz = m // 9 - 1, (m // 3) % 3 - 1, m % 3 - 1
+            # Skip a neighbour cell that cannot hold anything nearer than the best so far.
+            gap = 0.0
+            for axis, d in ((0, dx), (1, dy), (2, dz)):
+                if d < 0:
+                    gap += lo[axis] ** 2
+                elif d > 0:
+                    gap += hi[axis] ** 2
+            if gap > best:
+                continue
+            k = _cell_key(cx + dx, cy + dy, cz + dz)
+            j = np.searchsorted(keys, k)
+            while j < keys.shape[0] and keys[j] == k:
+                d2 = (ref[j, 0] - x) ** 2 + (ref[j, 1] - y) ** 2 + (ref[j, 2] - z) ** 2
+                # Nearest wins; an equal distance goes to the reference first in input order.
+                if d2 <= r2 and (best_j < 0 or d2 < best or (d2 == best and orig[j] < orig[best_j])):
+                    best, best_j = d2, j
+                j += 1
         if best_j >= 0:
             out[q] = ref_cls[best_j]
             dist2[q] = best
