@@ -152,6 +152,53 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
         click.echo("errors are recorded in the store: see `occdata info --store ...`", err=True)
 
 
+@main.command()
+@click.option("--root", required=True, metavar="DIR", help="nuScenes-format dataset root (a folder or a file:// URL).")
+@click.option("--version", default=None, help="Version folder (v1.0-trainval, v1.0-mini, ...); auto if only one.")
+@click.option("--out", required=True, metavar="DIR",
+              help="Output folder: <out>/<scene>/<sample_token>/labels.npz (Occ3D's layout) + labels.json.")
+@click.option("--split", "splits", multiple=True, help="Only scenes of this split (repeatable).")
+@click.option("--scene", "scenes", multiple=True, help="Only this scene (repeatable), e.g. scene-0916.")
+@click.option("--lidar-sweeps", is_flag=True,
+              help="Also aggregate the non-keyframe LiDAR sweeps (needs the sweeps/ files): denser labels.")
+@click.option("--static-class", type=click.IntRange(0, 16), default=0, show_default=True,
+              help="Without lidarseg only: the Occ3D class given to every point outside a box (0 = others, "
+                   "i.e. 'occupied, not an annotated object'). Recorded in labels.json.")
+@click.option("--knn-radius", type=click.FloatRange(0.01, 5.0), default=0.5, show_default=True,
+              help="Metres within which a sweep point takes the class of the nearest labelled keyframe point.")
+@click.option("--no-boxes", is_flag=True,
+              help="The control: aggregate every point in the global frame, ignoring boxes (moving objects smear).")
+@click.option("--resume", is_flag=True, help="Continue an interrupted run: finished scenes are skipped.")
+@click.option("--no-progress", is_flag=True, help="No progress bar.")
+@friendly_errors
+def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], scenes: tuple[str, ...],
+           lidar_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, resume: bool,
+           no_progress: bool) -> None:
+    """Generate Occ3D-style occupancy labels from LiDAR and 3D boxes (and lidarseg when present).
+
+    Per scene: LiDAR points aggregated over time, static points in the global frame, points inside a
+    box in that box's frame (moving objects stay sharp), a majority vote of point classes per 0.4 m
+    voxel of each keyframe's grid, then LiDAR and camera visibility masks. The output is read by
+    `occdata build --gts OUT`. See docs/labels.md.
+    """
+    from occdata.labels import LabelOptions, LabelsConfig, generate_labels
+
+    out_path = local_path(out, "--out")
+    try:
+        report = generate_labels(LabelsConfig(
+            root=local_path(root, "--root"), out=out_path, version=version, splits=splits or None,
+            scenes=scenes or None, resume=resume, progress=not no_progress,
+            options=LabelOptions(lidar_sweeps=lidar_sweeps, static_class=static_class, knn_radius=knn_radius,
+                                 use_boxes=not no_boxes),
+        ))
+    except KeyboardInterrupt:
+        click.echo(f"\ninterrupted: finished scenes are kept in {out_path}; rerun with --resume to continue", err=True)
+        sys.exit(130)
+    seg = "lidarseg classes" if report.with_lidarseg else f"no lidarseg: static points are class {static_class}"
+    click.echo(f"{out_path}: {report.scenes_done} scene(s) labelled, {report.scenes_skipped} already done, "
+               f"{report.keyframes} keyframes ({seg}); manifest {report.manifest}")
+
+
 # A plain string, not click.Path: click would turn an fsspec URL such as file:///x/y.zarr into file:/x/y.zarr.
 _store_opt = click.option("--store", default=DEFAULT_STORE, show_default=True, metavar="STORE",
                           help="An occdata zarr store: a folder or an fsspec URL (file://, s3://, ...).")
