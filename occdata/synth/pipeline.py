@@ -13,6 +13,7 @@ from tqdm import tqdm
 
 from occdata.constants import CAMERA_ORDER, GRID, LIDAR_CHANNEL
 from occdata.errors import OccDataError
+from occdata.fileio import npz_bytes
 from occdata.geometry import invert_rigid, quaternion_wxyz_from_matrix, transform_points
 from occdata.synth import render
 from occdata.synth.annotations import (
@@ -25,7 +26,7 @@ from occdata.synth.annotations import (
 )
 from occdata.synth.labels import world_semantics
 from occdata.synth.rig import CAMERA_TIME_OFFSETS_US, RIG, camera_K
-from occdata.synth.tables import make_token, npz_bytes, static_tables, write_atomic, write_tables
+from occdata.synth.tables import make_token, static_tables, write_atomic, write_tables
 from occdata.synth.world import Primitives, SceneWorld, make_world
 from occdata.visibility import camera_mask, lidar_mask
 

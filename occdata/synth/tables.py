@@ -3,25 +3,20 @@
 from __future__ import annotations
 
 import hashlib
-import io
 import json
-import zipfile
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from occdata.constants import CAMERA_ORDER, LIDAR_CHANNEL
 from occdata.fileio import write_atomic
+from occdata.nuscenes.lidarseg import LIDARSEG_NAMES
 
 __all__ = [
     "ATTRIBUTES",
-    "LIDARSEG_CATEGORIES",
     "TABLE_NAMES",
     "attribute_rows",
     "category_rows",
     "make_token",
-    "npz_bytes",
     "static_tables",
     "write_atomic",
     "write_tables",
@@ -39,40 +34,40 @@ def make_token(seed: int, *parts: object) -> str:
     return hashlib.md5(key.encode()).hexdigest()
 
 
-# The 32 nuScenes-lidarseg categories in `index` order, with a short description of our own.
-LIDARSEG_CATEGORIES: tuple[tuple[str, str], ...] = (
-    ("noise", "Points of no surface: reflections, dust, sensor artefacts."),
-    ("animal", "Any animal."),
-    ("human.pedestrian.adult", "An adult person walking or standing."),
-    ("human.pedestrian.child", "A child."),
-    ("human.pedestrian.construction_worker", "A person at work on a construction site."),
-    ("human.pedestrian.personal_mobility", "A person on a scooter, skateboard or similar small vehicle."),
-    ("human.pedestrian.police_officer", "A police officer."),
-    ("human.pedestrian.stroller", "A stroller or pram."),
-    ("human.pedestrian.wheelchair", "A wheelchair."),
-    ("movable_object.barrier", "A temporary barrier on or beside the road."),
-    ("movable_object.debris", "Loose debris on the road."),
-    ("movable_object.pushable_pullable", "A cart, bin or other object pushed or pulled by hand."),
-    ("movable_object.trafficcone", "A traffic cone."),
-    ("static_object.bicycle_rack", "A rack for parking bicycles."),
-    ("vehicle.bicycle", "A bicycle, with or without rider."),
-    ("vehicle.bus.bendy", "An articulated bus."),
-    ("vehicle.bus.rigid", "A bus with one rigid body."),
-    ("vehicle.car", "A passenger car, van or pick-up."),
-    ("vehicle.construction", "A vehicle for construction work."),
-    ("vehicle.emergency.ambulance", "An ambulance."),
-    ("vehicle.emergency.police", "A police vehicle."),
-    ("vehicle.motorcycle", "A motorcycle or moped, with or without rider."),
-    ("vehicle.trailer", "A trailer towed by another vehicle."),
-    ("vehicle.truck", "A vehicle for carrying goods."),
-    ("flat.driveable_surface", "Road surface that cars may drive on."),
-    ("flat.other", "Other flat ground: gravel, parking areas, traffic islands."),
-    ("flat.sidewalk", "Pavement for pedestrians."),
-    ("flat.terrain", "Grass, soil and other natural ground."),
-    ("static.manmade", "Buildings, walls, poles and other built structures."),
-    ("static.other", "Other static matter."),
-    ("static.vegetation", "Trees, bushes and other plants above the ground."),
-    ("vehicle.ego", "The recording vehicle itself."),
+# A short description of our own for each of the 32 nuScenes-lidarseg categories, in `index` order.
+_LIDARSEG_DESCRIPTIONS: tuple[str, ...] = (
+    "Points of no surface: reflections, dust, sensor artefacts.",  # noise
+    "Any animal.",  # animal
+    "An adult person walking or standing.",  # human.pedestrian.adult
+    "A child.",  # human.pedestrian.child
+    "A person at work on a construction site.",  # human.pedestrian.construction_worker
+    "A person on a scooter, skateboard or similar small vehicle.",  # human.pedestrian.personal_mobility
+    "A police officer.",  # human.pedestrian.police_officer
+    "A stroller or pram.",  # human.pedestrian.stroller
+    "A wheelchair.",  # human.pedestrian.wheelchair
+    "A temporary barrier on or beside the road.",  # movable_object.barrier
+    "Loose debris on the road.",  # movable_object.debris
+    "A cart, bin or other object pushed or pulled by hand.",  # movable_object.pushable_pullable
+    "A traffic cone.",  # movable_object.trafficcone
+    "A rack for parking bicycles.",  # static_object.bicycle_rack
+    "A bicycle, with or without rider.",  # vehicle.bicycle
+    "An articulated bus.",  # vehicle.bus.bendy
+    "A bus with one rigid body.",  # vehicle.bus.rigid
+    "A passenger car, van or pick-up.",  # vehicle.car
+    "A vehicle for construction work.",  # vehicle.construction
+    "An ambulance.",  # vehicle.emergency.ambulance
+    "A police vehicle.",  # vehicle.emergency.police
+    "A motorcycle or moped, with or without rider.",  # vehicle.motorcycle
+    "A trailer towed by another vehicle.",  # vehicle.trailer
+    "A vehicle for carrying goods.",  # vehicle.truck
+    "Road surface that cars may drive on.",  # flat.driveable_surface
+    "Other flat ground: gravel, parking areas, traffic islands.",  # flat.other
+    "Pavement for pedestrians.",  # flat.sidewalk
+    "Grass, soil and other natural ground.",  # flat.terrain
+    "Buildings, walls, poles and other built structures.",  # static.manmade
+    "Other static matter.",  # static.other
+    "Trees, bushes and other plants above the ground.",  # static.vegetation
+    "The recording vehicle itself.",  # vehicle.ego
 )
 
 # nuScenes attribute names with a short description of our own.
@@ -91,7 +86,7 @@ ATTRIBUTES: tuple[tuple[str, str], ...] = (
 def category_rows(seed: int) -> list[dict[str, Any]]:
     """The 32 nuScenes-lidarseg categories with their `index` (the label value in lidarseg files)."""
     return [{"token": make_token(seed, "category", name), "name": name, "description": desc, "index": i}
-            for i, (name, desc) in enumerate(LIDARSEG_CATEGORIES)]
+            for i, (name, desc) in enumerate(zip(LIDARSEG_NAMES, _LIDARSEG_DESCRIPTIONS, strict=True))]
 
 
 def attribute_rows(seed: int) -> list[dict[str, Any]]:
@@ -117,19 +112,6 @@ def static_tables(seed: int) -> dict[str, list[dict[str, Any]]]:
         "instance": [],
         "sample_annotation": [],
     }
-
-
-def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
-    """A compressed .npz archive with fixed zip timestamps (np.savez stamps the current time)."""
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for name, arr in arrays.items():
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = zipfile.ZIP_DEFLATED
-            member = io.BytesIO()
-            np.lib.format.write_array(member, np.ascontiguousarray(arr), allow_pickle=False)
-            zf.writestr(info, member.getvalue())
-    return buf.getvalue()
 
 
 def write_tables(table_dir: Path, tables: dict[str, list[dict[str, Any]]]) -> None:
