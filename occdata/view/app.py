@@ -210,22 +210,19 @@ class LiveViewer:
         return s
 
     def _draw(self, req: Request, t0: float, client: Any) -> None:
-        last = self._drawn
-        if (last is not None and dataclasses.replace(last.options, hidden=req.options.hidden) == req.options
-                and (last.scene, last.position) == (req.scene, req.position)):
+        last, sample = self._drawn, self._load(req)
+        same_drawing = (last is not None and (last.scene, last.position) == (req.scene, req.position)
+                        and dataclasses.replace(last.options, hidden=req.options.hidden) == req.options)
+        if same_drawing:  # class toggles, a new browser: no new geometry
             self.drawer.set_hidden(req.options.hidden)
-            self._drawn = req
-            self._update_panels(self._load(req))
-            return
-        sample = self._load(req)
-        frame = compose_frame(sample, req.options)
-        with self.server.atomic():
-            self.drawer.draw(sample, frame, req.options)
+        else:
+            frame = compose_frame(sample, req.options)
+            with self.server.atomic():
+                self.drawer.draw(sample, frame, req.options)
+            self._update_text(frame, req)
         self._drawn = req
         self._update_panels(sample)
-        self._update_text(sample, frame, req)
-        ms = self._time_drawn(t0, client)
-        self._update_status(sample, ms)
+        self._update_status(sample, req.options, self._time_drawn(t0, client))
 
     def _time_drawn(self, t0: float, client: Any) -> float | None:
         """Milliseconds from the request to the asking browser having rendered it (None: no browser)."""
@@ -254,7 +251,7 @@ class LiveViewer:
                     self.panels.append(self.server.gui.add_image(img, label=sample.camera_names[k], format="jpeg",
                                                                  jpeg_quality=80))
 
-    def _update_text(self, sample: SampleData, frame: Any, req: Request) -> None:
+    def _update_text(self, frame: Any, req: Request) -> None:
         self.notes.content = "  \n".join(f"**{n}**" for n in frame.notes)
         rows = []
         if req.options.view == "error":
@@ -266,10 +263,12 @@ class LiveViewer:
             rows.append(_swatch(GHOST_COLOR, f"outside the {req.options.mask} mask"))
         self.legend.content = "".join(rows) or "<i>no voxels drawn</i>"
 
-    def _update_status(self, sample: SampleData, ms: float | None) -> None:
+    def _update_status(self, sample: SampleData, options: FrameOptions, ms: float | None) -> None:
+        view = VIEWS[options.view].split(" (")[0]
+        mask = f" · mask {options.mask}" if options.mask != "none" else ""
         drawn = f" · drawn in {ms:.0f} ms" if ms is not None else ""
         self.status.content = (f"**{sample.scene}** · keyframe {sample.position + 1}/{sample.n_in_scene} · "
-                               f"sample {sample.token[:12]}{drawn}")
+                               f"{view} view{mask} · sample {sample.token[:12]}{drawn}")
 
     def _play_loop(self) -> None:
         while not self._stop.is_set():
