@@ -86,7 +86,8 @@ class LiveViewer:
         reason = src.empty_reason()
         if reason:
             self.notes.content = f"**{reason}**"
-            self.server.scene.add_label("/note", reason, position=(0.0, 0.0, 4.0), font_screen_scale=1.3)
+            self.server.scene.add_label("/note", reason, position=(0.0, 0.0, 4.0), font_screen_scale=1.3,
+                                       anchor="bottom-center")
             self.status.content = "nothing to draw"
             return
         first = src.scene(self.cfg.scene) if self.cfg.scene else src.scenes[0]

@@ -120,7 +120,7 @@ class SceneDrawer:
         self._sensors(sample, frame, opts, new)
         if not frame.groups and frame.notes:
             new["/note"] = (self.scene.add_label("/note", " ".join(frame.notes), position=(0.0, 0.0, 4.0),
-                                                 font_screen_scale=1.2), None)
+                                                 anchor="bottom-center", font_screen_scale=1.2), None)
         for name in set(self._nodes) - set(new):
             self._nodes[name][0].remove()
         self._nodes = new
