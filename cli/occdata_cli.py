@@ -8,7 +8,7 @@ import sys
 import click
 import numpy as np
 
-from cli._common import DEFAULT_STORE, friendly_errors, local_path
+from cli._common import DEFAULT_STORE, friendly_errors, local_path, stop_on_sigterm
 
 __all__ = ["main"]
 
@@ -476,6 +476,43 @@ def check_projection(store: str, index: int, out: str) -> None:
     from occdata.store.reader import open_store
 
     click.echo(str(draw_projection(open_store(store), index, local_path(out, "--out"))))
+
+
+@main.command()
+@_store_opt
+@click.option("--pred", default=None, metavar="DIR", help="Prediction folder (as `occdata eval --pred`).")
+@click.option("--scene", default=None, help="Scene to show first (the one exported with --export).")
+@click.option("--split", default=None, help="Only the scenes of this split (default: all).")
+@click.option("--view", "view_name", type=click.Choice(["label", "prediction", "side", "error"]), default=None,
+              help="Initial view (default: side with --pred, else label).")
+@click.option("--mask", default="none", show_default=True,
+              type=click.Choice(["none", "camera", "lidar", "camera (occdata visibility)",
+                                 "lidar (occdata visibility)"]),
+              help="Voxels outside this mask are grey (camera: what mIoU scores).")
+@click.option("--style", type=click.Choice(["flat", "cubes"]), default="flat", show_default=True,
+              help="flat: exact class colours; cubes: lit boxes.")
+@click.option("--lidar", is_flag=True, help="Also draw the stored LiDAR depth points in 3D.")
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address to serve on (others expose the data).")
+@click.option("--port", default=8080, show_default=True, type=int, help="Port (0: any free port; taken: the next).")
+@click.option("--export", default=None, metavar="FILE.html", help="Write one scene as a self-contained HTML file.")
+@friendly_errors
+@stop_on_sigterm
+def view(store: str, pred: str | None, scene: str | None, split: str | None, view_name: str | None, mask: str,
+         style: str, lidar: bool, host: str, port: int, export: str | None) -> None:
+    """The scene in 3D in a browser: labels, predictions, error view, masks, cameras, LiDAR (docs/view.md).
+
+    Serves a local web viewer and prints its URL (Ctrl-C stops it); with --export, writes one scene
+    as an HTML file that opens in any browser with no server. Needs `pip install -e '.[view]'`.
+    """
+    from pathlib import Path
+
+    from occdata.view import FrameOptions, ViewConfig, run_view
+
+    name = view_name or ("side" if pred else "label")
+    cfg = ViewConfig(store=store, pred=local_path(pred, "--pred") if pred else None, scene=scene, split=split,
+                     host=host, port=port, export=Path(local_path(export, "--export")) if export else None,
+                     frame=FrameOptions(view=name, mask=mask, style=style, lidar=lidar))  # type: ignore[arg-type]
+    run_view(cfg, echo=lambda m: click.echo(m), warn=lambda m: click.echo(m, err=True))
 
 
 if __name__ == "__main__":
