@@ -4,7 +4,7 @@ moving-object figure (ours vs the global-aggregation control) and pictures of th
     python benchmarks/labels_real.py [--root ../shared/data/nuscenes-real-seq] [--pictures docs] [--json out.json]
 
 The real data stays outside the repository: labels go to a temporary folder; only the pictures
-(renderings of the generated labels next to the camera images) and the figures are written.
+(renderings of the generated labels, without the camera images) and the figures are written.
 """
 
 from __future__ import annotations
@@ -75,9 +75,8 @@ def main() -> None:
             s = ds.sample(sc.sample_tokens[k])
             ours = _load(work / "ours", sc.name, s.token)
             control = _load(work / "control", sc.name, s.token)
-            images = [cv2.imread(str(c.path))[:, :, ::-1] for c in s.cameras]
-            pic = prediction_picture(images, ours["semantics"], control["semantics"], ours["mask_camera"],
-                                     [c.channel for c in s.cameras], width=1200,
+            # No camera images: the pictures go into the repository, the real data must not.
+            pic = prediction_picture([], ours["semantics"], control["semantics"], ours["mask_camera"], width=1200,
                                      title=f"{sc.name} keyframe {k}; black = static, class unknown (no lidarseg)",
                                      names=("occdata labels (boxes)", "control: global aggregation"))
             path = a.pictures / f"labels_real_k{k:02d}.png"

@@ -226,7 +226,7 @@ def prediction_picture(
     """The `fastocc predict --png` picture, `(H, width, 3) uint8` RGB, top to bottom (`names`: the
     titles of the two label panels):
 
-    - the 6 camera images, 2 rows of 3 (front row, back row, the store's camera order);
+    - the 6 camera images, 2 rows of 3 (front row, back row, the store's camera order), if given;
     - 3D voxel renderings of prediction | ground truth (whole grid, same viewpoint and scale);
     - BEV top views of prediction | ground truth, columns outside the camera mask greyed (the official
       mIoU scores only camera-visible voxels);
@@ -234,13 +234,14 @@ def prediction_picture(
     Without ground truth (test split) the truth panels are left blank and say so.
     """
     third = width // 3
-    tiles = [_fit(img, third) for img in images]
-    for tile, name in zip(tiles, camera_names, strict=False):
-        cv2.putText(tile, name, (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 2, cv2.LINE_AA)
-    h = min(t.shape[0] for t in tiles)
-    tiles = [t[:h] for t in tiles]
-    cams = np.vstack([np.hstack(tiles[:3]), np.hstack(tiles[3:6])])
-    cams = _pad_to(cams, width)
+    cams = []
+    if len(images):
+        tiles = [_fit(img, third) for img in images]
+        for tile, name in zip(tiles, camera_names, strict=False):
+            cv2.putText(tile, name, (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 2, cv2.LINE_AA)
+        h = min(t.shape[0] for t in tiles)
+        tiles = [t[:h] for t in tiles]
+        cams = [_pad_to(np.vstack([np.hstack(tiles[:3]), np.hstack(tiles[3:6])]), width)]
 
     half = width // 2
     size3d = (round(half * 0.75), half)
@@ -262,7 +263,7 @@ def prediction_picture(
     present = sorted({int(c) for g in (pred, gt) if g is not None for c in np.unique(g) if c < FREE_LABEL})
     legend = class_legend(present + [18], width)
     note = "top views: grey = outside the camera mask" if m is not None else ""
-    parts = [cams, row3d, bev_row, legend]
+    parts = [*cams, row3d, bev_row, legend]
     if title or note:
         head = np.full((30, width, 3), 255, dtype=np.uint8)
         cv2.putText(head, "   ".join(t for t in (title, note) if t), (8, 21), cv2.FONT_HERSHEY_SIMPLEX, 0.6,
