@@ -49,18 +49,24 @@ class LabelOptions:
     floor_margin: without lidarseg, points this close above a box's floor stay static (ground).
     static_class: the Occ3D class of static points when there is no lidarseg. use_boxes=False is
     the control that aggregates every point in the global frame (moving objects smear); without
-    lidarseg its boxes still give their points' classes."""
+    lidarseg its boxes still give their points' classes. hold_static: an instance whose box moves
+    less than this many metres over the scene is parked: at keyframes where it has no box
+    (annotation stops once an object is out of sight) it is drawn at its nearest annotated pose
+    (0: never)."""
 
     lidar_sweeps: bool = False
     knn_radius: float = 0.5
     box_margin: float = 0.1
     floor_margin: float = 0.15
     static_class: int = 0
+    hold_static: float = 1.0
     use_boxes: bool = True  # False: naive global aggregation, the smearing control
 
     def __post_init__(self) -> None:
         if not 0 < self.knn_radius <= 5:
             raise ValueError("knn_radius must be in (0, 5] m")
+        if not 0 <= self.hold_static <= 10:
+            raise ValueError("hold_static must be in [0, 10] m")
         if not 0 <= self.box_margin <= 1 or not 0 <= self.floor_margin <= 1:
             raise ValueError("box_margin and floor_margin must be in [0, 1] m")
         if not 0 <= self.static_class < NUM_CLASSES - 1:
@@ -274,6 +280,25 @@ def _masks(semantics: np.ndarray, sample: SampleRecord, rays: tuple[np.ndarray, 
     return m_lidar, camera_mask(semantics, m_lidar, K, T_cam_from_grid, size, lower, GRID.voxel_size)
 
 
+def _held_static(keyframe_boxes: list[tuple[BoxRecord, ...]], travel: float) -> list[tuple[BoxRecord, ...]]:
+    """Per keyframe, the boxes of parked instances (centre moving < `travel` m over their track)
+    that have no box there: each instance's box at its nearest annotated keyframe."""
+    track: dict[str, list[tuple[int, BoxRecord]]] = defaultdict(list)
+    for k, boxes in enumerate(keyframe_boxes):
+        for b in boxes:
+            track[b.instance_token].append((k, b))
+    out: list[list[BoxRecord]] = [[] for _ in keyframe_boxes]
+    for items in track.values():
+        centers = np.stack([b.center_global for _, b in items])
+        if travel <= 0 or np.ptp(centers, axis=0).max() >= travel:
+            continue
+        seen = np.array([k for k, _ in items])
+        for k in range(len(keyframe_boxes)):
+            if k not in seen:
+                out[k].append(items[int(np.argmin(np.abs(seen - k)))][1])
+    return [tuple(b) for b in out]
+
+
 def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions
                 ) -> tuple[dict[str, dict[str, np.ndarray]], SceneCounts]:
     """Labels of every keyframe of `scene`: sample token -> {"semantics", "mask_lidar",
@@ -314,9 +339,11 @@ def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions
     static = cloud.static()
     static = (np.ascontiguousarray(static[0]), np.ascontiguousarray(static[1]))
     out = {}
-    for i in indices:
+    keyframe_boxes = [boxes_for_lidar(inputs.annotations, ds, i, ds.samples[i].lidar) for i in indices]
+    held = _held_static(keyframe_boxes, opts.hold_static)
+    for n, i in enumerate(indices):
         s = ds.samples[i]
-        boxes = boxes_for_lidar(inputs.annotations, ds, i, s.lidar)
+        boxes = keyframe_boxes[n] + held[n]
         semantics = _semantics(static, cloud, boxes, invert_rigid(s.T_global_from_keyego))
         m_lidar, m_camera = _masks(semantics, s, rays[s.token])
         out[s.token] = {"semantics": semantics, "mask_lidar": m_lidar, "mask_camera": m_camera}
