@@ -223,3 +223,20 @@ def test_build_then_train_on_generated_labels(world: Path, generated: dict[str, 
     assert r.returncode == 0, r.stderr[-2000:]
     assert (tmp_path / "run" / "last.pt").is_file()
     assert "done:" in r.stdout
+
+
+def test_parked_instances_are_held_where_annotation_stops() -> None:
+    """Hand-made tracks: a parked car annotated at keyframes 0-1 of 4 is drawn at keyframes 2-3 with
+    its keyframe-1 box; a car that drives 5 m is not held; hold_static 0 holds nothing."""
+    from occdata.labels.scene import _held_static
+    from occdata.nuscenes.annotations import BoxRecord
+
+    def box(tok: str, inst: str, x: float) -> BoxRecord:
+        return BoxRecord(tok, inst, "s", "vehicle.car", np.array([x, 0.0, 1.0]), np.array([2.0, 4.0, 1.5]),
+                         np.array([1.0, 0, 0, 0]), 0, 10)
+
+    frames = [(box("a0", "park", 0.0), box("m0", "move", 10.0)), (box("a1", "park", 0.05), box("m1", "move", 15.0)),
+              (), ()]
+    held = _held_static(frames, 1.0)
+    assert [[b.token for b in h] for h in held] == [[], [], ["a1"], ["a1"]]
+    assert _held_static(frames, 0.0) == [(), (), (), ()]
