@@ -171,6 +171,20 @@ def test_bad_inputs_are_one_line(world: Path, tmp_path: Path) -> None:
     assert "short.bin" in r.stderr
 
 
+def test_broken_box_track_is_one_line(world: Path, tmp_path: Path) -> None:
+    root = _copy_tables(world, tmp_path / "track")
+    path = root / "v1.0-mini" / "sample_annotation.json"
+    rows = json.loads(path.read_text())
+    row = next(r for r in rows if r["next"])
+    row["next"] = "f" * 32
+    path.write_text(json.dumps(rows))
+    r = subprocess.run([sys.executable, "-m", "cli.occdata_cli", "labels", "--root", str(root), "--out",
+                        str(tmp_path / "o"), "--no-progress"], capture_output=True, text=True, cwd=REPO)
+    assert r.returncode != 0
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "f" * 32 in r.stderr or row["token"] in r.stderr
+
+
 def test_missing_sweep_is_one_line(world: Path, tmp_path: Path) -> None:
     root = tmp_path / "nosweep"
     root.mkdir()
