@@ -8,7 +8,7 @@ import sys
 import click
 import numpy as np
 
-from cli._common import DEFAULT_STORE, friendly_errors, local_path
+from cli._common import DEFAULT_STORE, friendly_errors, local_path, stop_on_sigterm
 
 __all__ = ["main"]
 
@@ -155,6 +155,53 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
     )
     if report.n_errors:
         click.echo("errors are recorded in the store: see `occdata info --store ...`", err=True)
+
+
+@main.command()
+@click.option("--root", required=True, metavar="DIR", help="nuScenes-format dataset root (a folder or a file:// URL).")
+@click.option("--version", default=None, help="Version folder (v1.0-trainval, v1.0-mini, ...); auto if only one.")
+@click.option("--out", required=True, metavar="DIR",
+              help="Output folder: <out>/<scene>/<sample_token>/labels.npz (Occ3D's layout) + labels.json.")
+@click.option("--split", "splits", multiple=True, help="Only scenes of this split (repeatable).")
+@click.option("--scene", "scenes", multiple=True, help="Only this scene (repeatable), e.g. scene-0916.")
+@click.option("--lidar-sweeps", is_flag=True,
+              help="Also aggregate the non-keyframe LiDAR sweeps (needs the sweeps/ files): denser labels.")
+@click.option("--static-class", type=click.IntRange(0, 16), default=0, show_default=True,
+              help="Without lidarseg only: the Occ3D class given to every point outside a box (0 = others, "
+                   "i.e. 'occupied, not an annotated object'). Recorded in labels.json.")
+@click.option("--knn-radius", type=click.FloatRange(0.01, 5.0), default=0.5, show_default=True,
+              help="Metres within which a sweep point takes the class of the nearest labelled keyframe point.")
+@click.option("--no-boxes", is_flag=True,
+              help="The control: aggregate every point in the global frame, ignoring boxes (moving objects smear).")
+@click.option("--resume", is_flag=True, help="Continue an interrupted run: finished scenes are skipped.")
+@click.option("--no-progress", is_flag=True, help="No progress bar.")
+@friendly_errors
+def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], scenes: tuple[str, ...],
+           lidar_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, resume: bool,
+           no_progress: bool) -> None:
+    """Generate Occ3D-style occupancy labels from LiDAR and 3D boxes (and lidarseg when present).
+
+    Per scene: LiDAR points aggregated over time, static points in the global frame, points inside a
+    box in that box's frame (moving objects stay sharp), a majority vote of point classes per 0.4 m
+    voxel of each keyframe's grid, then LiDAR and camera visibility masks. The output is read by
+    `occdata build --gts OUT`. See docs/labels.md.
+    """
+    from occdata.labels import LabelOptions, LabelsConfig, generate_labels
+
+    out_path = local_path(out, "--out")
+    try:
+        report = generate_labels(LabelsConfig(
+            root=local_path(root, "--root"), out=out_path, version=version, splits=splits or None,
+            scenes=scenes or None, resume=resume, progress=not no_progress,
+            options=LabelOptions(lidar_sweeps=lidar_sweeps, static_class=static_class, knn_radius=knn_radius,
+                                 use_boxes=not no_boxes),
+        ))
+    except KeyboardInterrupt:
+        click.echo(f"\ninterrupted: finished scenes are kept in {out_path}; rerun with --resume to continue", err=True)
+        sys.exit(130)
+    seg = "lidarseg classes" if report.with_lidarseg else f"no lidarseg: static points are class {static_class}"
+    click.echo(f"{out_path}: {report.scenes_done} scene(s) labelled, {report.scenes_skipped} already done, "
+               f"{report.keyframes} keyframes ({seg}); manifest {report.manifest}")
 
 
 # A plain string, not click.Path: click would turn an fsspec URL such as file:///x/y.zarr into file:/x/y.zarr.
@@ -434,6 +481,43 @@ def check_projection(store: str, index: int, out: str) -> None:
     from occdata.store.reader import open_store
 
     click.echo(str(draw_projection(open_store(store), index, local_path(out, "--out"))))
+
+
+@main.command()
+@_store_opt
+@click.option("--pred", default=None, metavar="DIR", help="Prediction folder (as `occdata eval --pred`).")
+@click.option("--scene", default=None, help="Scene to show first (the one exported with --export).")
+@click.option("--split", default=None, help="Only the scenes of this split (default: all).")
+@click.option("--view", "view_name", type=click.Choice(["label", "prediction", "side", "error"]), default=None,
+              help="Initial view (default: side with --pred, else label).")
+@click.option("--mask", default="none", show_default=True,
+              type=click.Choice(["none", "camera", "lidar", "camera (occdata visibility)",
+                                 "lidar (occdata visibility)"]),
+              help="Voxels outside this mask are grey (camera: what mIoU scores).")
+@click.option("--style", type=click.Choice(["flat", "cubes"]), default="flat", show_default=True,
+              help="flat: exact class colours; cubes: lit boxes.")
+@click.option("--lidar", is_flag=True, help="Also draw the stored LiDAR depth points in 3D.")
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address to serve on (others expose the data).")
+@click.option("--port", default=8080, show_default=True, type=int, help="Port (0: any free port; taken: the next).")
+@click.option("--export", default=None, metavar="FILE.html", help="Write one scene as a self-contained HTML file.")
+@friendly_errors
+@stop_on_sigterm
+def view(store: str, pred: str | None, scene: str | None, split: str | None, view_name: str | None, mask: str,
+         style: str, lidar: bool, host: str, port: int, export: str | None) -> None:
+    """The scene in 3D in a browser: labels, predictions, error view, masks, cameras, LiDAR (docs/view.md).
+
+    Serves a local web viewer and prints its URL (Ctrl-C stops it); with --export, writes one scene
+    as an HTML file that opens in any browser with no server. Needs `pip install -e '.[view]'`.
+    """
+    from pathlib import Path
+
+    from occdata.view import FrameOptions, ViewConfig, run_view
+
+    name = view_name or ("side" if pred else "label")
+    cfg = ViewConfig(store=store, pred=local_path(pred, "--pred") if pred else None, scene=scene, split=split,
+                     host=host, port=port, export=Path(local_path(export, "--export")) if export else None,
+                     frame=FrameOptions(view=name, mask=mask, style=style, lidar=lidar))  # type: ignore[arg-type]
+    run_view(cfg, echo=lambda m: click.echo(m), warn=lambda m: click.echo(m, err=True))
 
 
 if __name__ == "__main__":

@@ -9,14 +9,18 @@ the temporary file is given `0666 & ~umask` first, so the result has the mode `o
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import tempfile
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import BinaryIO
 
-__all__ = ["TMP_SUFFIX", "atomic_open", "copy_atomic", "current_umask", "remove_stale_temps", "replace_synced",
-           "write_atomic"]
+import numpy as np
+
+__all__ = ["TMP_SUFFIX", "atomic_open", "copy_atomic", "current_umask", "npz_bytes", "remove_stale_temps",
+           "replace_synced", "write_atomic"]
 
 TMP_SUFFIX = ".tmp"
 
@@ -89,3 +93,17 @@ def remove_stale_temps(folder: str | Path) -> list[Path]:
             p.unlink(missing_ok=True)
             removed.append(p)
     return removed
+
+
+def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    """A compressed .npz archive with fixed zip timestamps (np.savez stamps the current time), so the
+    same arrays always give the same bytes."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name, arr in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            member = io.BytesIO()
+            np.lib.format.write_array(member, np.ascontiguousarray(arr), allow_pickle=False)
+            zf.writestr(info, member.getvalue())
+    return buf.getvalue()

@@ -221,10 +221,12 @@ def prediction_picture(
     camera_names: Sequence[str] = (),
     title: str = "",
     width: int = 1600,
+    names: tuple[str, str] = ("prediction", "ground truth"),
 ) -> np.ndarray:
-    """The `fastocc predict --png` picture, `(H, width, 3) uint8` RGB, top to bottom:
+    """The `fastocc predict --png` picture, `(H, width, 3) uint8` RGB, top to bottom (`names`: the
+    titles of the two label panels):
 
-    - the 6 camera images, 2 rows of 3 (front row, back row, the store's camera order);
+    - the 6 camera images, 2 rows of 3 (front row, back row, the store's camera order), if given;
     - 3D voxel renderings of prediction | ground truth (whole grid, same viewpoint and scale);
     - BEV top views of prediction | ground truth, columns outside the camera mask greyed (the official
       mIoU scores only camera-visible voxels);
@@ -232,27 +234,28 @@ def prediction_picture(
     Without ground truth (test split) the truth panels are left blank and say so.
     """
     third = width // 3
-    tiles = [_fit(img, third) for img in images]
-    for tile, name in zip(tiles, camera_names, strict=False):
-        cv2.putText(tile, name, (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 2, cv2.LINE_AA)
-    h = min(t.shape[0] for t in tiles)
-    tiles = [t[:h] for t in tiles]
-    cams = np.vstack([np.hstack(tiles[:3]), np.hstack(tiles[3:6])])
-    cams = _pad_to(cams, width)
+    cams = []
+    if len(images):
+        tiles = [_fit(img, third) for img in images]
+        for tile, name in zip(tiles, camera_names, strict=False):
+            cv2.putText(tile, name, (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 2, cv2.LINE_AA)
+        h = min(t.shape[0] for t in tiles)
+        tiles = [t[:h] for t in tiles]
+        cams = [_pad_to(np.vstack([np.hstack(tiles[:3]), np.hstack(tiles[3:6])]), width)]
 
     half = width // 2
     size3d = (round(half * 0.75), half)
     m = mask_camera
-    pred3d = _title(render_voxels(pred, size3d), "prediction")
+    pred3d = _title(render_voxels(pred, size3d), names[0])
     if gt is not None:
-        gt3d = _title(render_voxels(gt, size3d), "ground truth")
+        gt3d = _title(render_voxels(gt, size3d), names[1])
     else:
-        gt3d = _title(np.full_like(pred3d, 255), "ground truth: none (unlabelled sample)")
+        gt3d = _title(np.full_like(pred3d, 255), f"{names[1]}: none (unlabelled sample)")
     row3d = _pad_to(np.hstack([pred3d, gt3d]), width)
 
     cell = max(1, min(half // pred.shape[1], 3))
-    bev_p = _title(bev_top_view(pred, m, cell), "prediction, top view")
-    bev_g = _title(bev_top_view(gt, m, cell), "ground truth, top view") if gt is not None else np.full_like(bev_p, 255)
+    bev_p = _title(bev_top_view(pred, m, cell), f"{names[0]}, top view")
+    bev_g = _title(bev_top_view(gt, m, cell), f"{names[1]}, top view") if gt is not None else np.full_like(bev_p, 255)
     pad = np.full((bev_p.shape[0], half - bev_p.shape[1], 3), 255, dtype=np.uint8)
     bev_row = np.hstack([bev_p, pad, bev_g, pad[:, : max(0, width - half - bev_g.shape[1])]])
     bev_row = _pad_to(bev_row, width)
@@ -260,7 +263,7 @@ def prediction_picture(
     present = sorted({int(c) for g in (pred, gt) if g is not None for c in np.unique(g) if c < FREE_LABEL})
     legend = class_legend(present + [18], width)
     note = "top views: grey = outside the camera mask" if m is not None else ""
-    parts = [cams, row3d, bev_row, legend]
+    parts = [*cams, row3d, bev_row, legend]
     if title or note:
         head = np.full((30, width, 3), 255, dtype=np.uint8)
         cv2.putText(head, "   ".join(t for t in (title, note) if t), (8, 21), cv2.FONT_HERSHEY_SIMPLEX, 0.6,

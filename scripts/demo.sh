@@ -33,3 +33,5 @@ print(f"demo done in {total_s // 60} min {total_s % 60} s (training {train_s // 
       + f" against {100 * base['miou_camera_mask']:.1f}% for the image-free baseline; checkpoint {out}/run/best.pt, "
       f"pictures {out}/pred/pictures/")
 PY
+echo "look at it in 3D (labels beside predictions; needs pip install -e '.[view]'; Ctrl-C stops the server):"
+echo "  occdata view --store $OUT/data.zarr --pred $OUT/pred --split val"

@@ -169,17 +169,21 @@ def _tables(root: Path) -> dict[str, list[dict]]:
 
 def test_tables_complete_and_linked(synth_root: Path) -> None:
     t = _tables(synth_root)
-    assert set(t) == {"attribute", "calibrated_sensor", "category", "ego_pose", "instance", "log", "map", "sample",
-                      "sample_annotation", "sample_data", "scene", "sensor", "visibility"}
+    assert set(t) == {"attribute", "calibrated_sensor", "category", "ego_pose", "instance", "lidarseg", "log", "map",
+                      "sample", "sample_annotation", "sample_data", "scene", "sensor", "visibility"}
     by = {name: {r["token"]: r for r in rows} for name, rows in t.items()}
+    targets = {"first_sample_token": "sample", "last_sample_token": "sample",
+               "first_annotation_token": "sample_annotation", "last_annotation_token": "sample_annotation"}
     for name, rows in t.items():
         for r in rows:
             if name != "visibility":
                 assert len(r["token"]) == 32 and int(r["token"], 16) >= 0
             for key, val in r.items():
-                if key.endswith("_token") and key not in ("first_sample_token", "last_sample_token"):
-                    target = key[: -len("_token")]
+                if key.endswith("_token"):
+                    target = targets.get(key, key[: -len("_token")])
                     assert val in by[target], f"{name}.{key} -> {val} unresolved"
+                if key == "attribute_tokens":
+                    assert all(a in by["attribute"] for a in val), f"{name}.{key} unresolved"
     assert [s["name"] for s in t["scene"]] == ["synth-0000", "synth-0001"]
     assert ["split=train" in s["description"] for s in t["scene"]] == [True, False]
     assert "split=val" in t["scene"][1]["description"]

@@ -11,6 +11,8 @@ from __future__ import annotations
 import os
 import re
 from collections import Counter, defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -19,10 +21,21 @@ import numpy as np
 from occdata.constants import CAMERA_ORDER, LIDAR_CHANNEL
 from occdata.errors import OccDataError
 from occdata.nuscenes.records import CameraRecord, LidarRecord, NuScenesDataset, SampleRecord, SceneRecord
+from occdata.nuscenes.rows import RowProblem, field, floats, integer, pose, ref, short
 from occdata.nuscenes.splits import official_split
 from occdata.nuscenes.tables import load_table, usable_as_file_name
 
-__all__ = ["SPLIT_TAG", "confined_path", "find_version", "load_lidar_points", "load_nuscenes", "validate_sample"]
+__all__ = [
+    "SPLIT_TAG",
+    "TableIndex",
+    "confined_path",
+    "dataset_root",
+    "find_version",
+    "load_lidar_points",
+    "load_nuscenes",
+    "read_tables",
+    "validate_sample",
+]
 
 # Non-official scenes (synthetic or custom data) may carry "split=<name>" in their description.
 SPLIT_TAG = re.compile(r"\bsplit=([A-Za-z0-9_]+)")
@@ -49,91 +62,137 @@ def find_version(root: Path, version: str | None) -> str:
     return found[0]
 
 
-def _get(row: dict[str, Any], key: str, table: str) -> Any:
-    try:
-        return row[key]
-    except KeyError:
-        raise OccDataError(f"{table}.json: row {row.get('token', '?')!r} has no field {key!r}") from None
+def dataset_root(root: Path | str) -> Path:
+    """The absolute form of a dataset root, with its symlinks kept (DESIGN §3: record paths).
 
-
-def _ref(rows: dict[str, dict[str, Any]], token: str, table: str, src: str) -> dict[str, Any]:
-    try:
-        return rows[token]
-    except (KeyError, TypeError):
-        raise OccDataError(f"dangling token: {src} refers to {table} {token!r}, not in {table}.json") from None
-
-
-class _RowProblem(Exception):
-    """A value in one sample's rows that cannot be used; becomes `SampleRecord.problem`."""
-
-
-def _short(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 40 else text[:37] + "..."
-
-
-def _floats(value: Any, shape: tuple[int, ...], where: str) -> np.ndarray:
-    """`value` as a float64 array of `shape`; NaN stays (validate_sample reports it)."""
-    if isinstance(value, (str, bytes)) or value is None:
-        raise _RowProblem(f"{where} is not numeric ({_short(value)})")
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise _RowProblem(f"{where} is not numeric ({_short(value)})") from None
-    if arr.shape != shape:
-        size = "x".join(map(str, shape)) if len(shape) > 1 else f"{shape[0]} values"
-        raise _RowProblem(f"{where} has shape {arr.shape}, expected {size}")
-    return arr
-
-
-def _integer(value: Any, where: str) -> int:
-    """A JSON integer (an integral float is accepted); anything else is a row problem."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise _RowProblem(f"{where} is not an integer ({_short(value)})")
-    if isinstance(value, float) and not value.is_integer():
-        raise _RowProblem(f"{where} is not an integer ({_short(value)})")
-    return int(value)
-
-
-def _rotation(q_wxyz: Any, where: str) -> np.ndarray:
-    """Rotation matrix of a (w, x, y, z) quaternion. Rounding in the files is normalised away; a
-    quaternion far from unit length is kept as is, so `validate_sample` reports a non-orthonormal
-    rotation. A value that is not 4 numbers raises `_RowProblem`."""
-    q = _floats(q_wxyz, (4,), f"{where} rotation (quaternion w, x, y, z)")
-    n = np.linalg.norm(q)
-    if np.isfinite(n) and abs(n - 1.0) < 1e-3:
-        q = q / n
-    w, x, y, z = q
-    return np.array(
-        [
-            [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
-        ]
-    )
-
-
-def _pose(row: dict[str, Any], table: str) -> np.ndarray:
-    where = f"{table} {row.get('token', '?')!r}"
-    T = np.eye(4)
-    T[:3, :3] = _rotation(_get(row, "rotation", table), where)
-    T[:3, 3] = _floats(_get(row, "translation", table), (3,), f"{where} translation")
-    return T
+    Record paths are `dataset_root(root) / filename`: a root that is a symlink (or lies under one,
+    as on clusters) stays as the user named it, so paths compare equal to `root / filename`. Only
+    a root with a `..` component is resolved, since `..` after a symlink means the link target's
+    parent, which no lexical rule gets right.
+    """
+    path = Path(root).absolute()
+    if ".." in path.parts:
+        return path.resolve()
+    return Path(os.path.normpath(path))
 
 
 def confined_path(root: Path, relative: Any, where: str) -> Path:
-    """`root / relative`, refused unless it stays inside `root` (DESIGN: paths from tables are data).
+    """`dataset_root(root) / relative`, refused unless it stays inside the root (DESIGN: paths from
+    tables are data).
 
-    The check is lexical (`..` and absolute paths are refused); symlinks that the user placed in
-    the tree are followed as usual. Raises `OccDataError` naming `where` (the row).
+    The check is lexical (`..` and absolute paths are refused); symlinks are neither resolved nor
+    refused: a symlinked root and symlinks that the user placed in the tree are followed as usual.
+    Raises `OccDataError` naming `where` (the row).
     """
     if not isinstance(relative, str) or not relative or "\0" in relative:
-        raise OccDataError(f"{where}: path {_short(relative)} is not a non-empty string")
-    root = Path(os.path.abspath(root))
+        raise OccDataError(f"{where}: path {short(relative)} is not a non-empty string")
+    root = dataset_root(root)
     path = Path(os.path.normpath(root / relative))
     if os.path.isabs(relative) or path == root or not path.is_relative_to(root):
         raise OccDataError(f"{where}: path {relative!r} points outside {root}")
     return path
+
+
+@dataclass(frozen=True, eq=False)
+class TableIndex:
+    """The rows that `load_nuscenes` needs, keyed by token, and the maps derived from them.
+
+    `sample_data` holds the keyframe rows of the 6 cameras and LIDAR_TOP, plus (with `sweeps`) the
+    non-keyframe LIDAR_TOP rows; `ego_poses` only the poses those rows use. Derived:
+    `channel_of_calib` (calibrated_sensor token -> sensor channel), `lidar_rows` (the LIDAR_TOP
+    rows of `sample_data`), `keyframes` (sample token -> channel -> keyframe sample_data row).
+    """
+
+    root: Path
+    version: str
+    sweeps: bool
+    sensors: dict[str, dict[str, Any]]
+    calibs: dict[str, dict[str, Any]]
+    logs: dict[str, dict[str, Any]]
+    scenes: dict[str, dict[str, Any]]
+    samples: dict[str, dict[str, Any]]
+    sample_data: dict[str, dict[str, Any]]
+    ego_poses: dict[str, dict[str, Any]]
+    channel_of_calib: dict[str, str]
+    lidar_rows: dict[str, dict[str, Any]]
+    keyframes: dict[str, dict[str, dict[str, Any]]]
+    notes: tuple[str, ...]  # one line each: identical duplicate rows ignored
+
+
+def read_tables(root: Path, version: str, sweeps: bool) -> TableIndex:
+    """Load the tables of `<root>/<version>` that the reader needs into a `TableIndex`.
+
+    Raises `OccDataError` for a missing table, a dangling calibrated_sensor / sensor / sample token,
+    or two keyframe rows of one channel in one sample.
+    """
+    vdir = root / version
+    for name in _NEEDED_TABLES:
+        if not (vdir / f"{name}.json").is_file():
+            raise OccDataError(f"missing table: {vdir / f'{name}.json'}")
+    notes: list[str] = []
+    sensors = load_table(vdir / "sensor.json", warn=notes.append)
+    calibs = load_table(vdir / "calibrated_sensor.json", warn=notes.append)
+    logs = load_table(vdir / "log.json", warn=notes.append)
+    scenes = load_table(vdir / "scene.json", warn=notes.append)
+    samples = load_table(vdir / "sample.json", warn=notes.append)
+    channel_of_calib = _channels_of_calibs(calibs, sensors)
+    keep = _sample_data_filter(calibs, channel_of_calib, sweeps)
+    sample_data = load_table(vdir / "sample_data.json", keep=keep, warn=notes.append)
+    pose_tokens = {field(sd, "ego_pose_token", "sample_data") for sd in sample_data.values()}
+    ego_poses = load_table(vdir / "ego_pose.json", keep=lambda r: r.get("token") in pose_tokens, warn=notes.append)
+    lidar_rows = {
+        t: sd for t, sd in sample_data.items() if channel_of_calib[sd["calibrated_sensor_token"]] == LIDAR_CHANNEL
+    }
+    return TableIndex(
+        root=root, version=version, sweeps=sweeps, sensors=sensors, calibs=calibs, logs=logs, scenes=scenes,
+        samples=samples, sample_data=sample_data, ego_poses=ego_poses, channel_of_calib=channel_of_calib,
+        lidar_rows=lidar_rows, keyframes=_keyframes_by_sample(sample_data, samples, channel_of_calib),
+        notes=tuple(notes),
+    )
+
+
+def _channels_of_calibs(calibs: dict[str, dict[str, Any]], sensors: dict[str, dict[str, Any]]) -> dict[str, str]:
+    """calibrated_sensor token -> its sensor's channel."""
+    out: dict[str, str] = {}
+    for tok, cs in calibs.items():
+        sensor = ref(sensors, field(cs, "sensor_token", "calibrated_sensor"), "sensor", f"calibrated_sensor {tok!r}")
+        out[tok] = field(sensor, "channel", "sensor")
+    return out
+
+
+def _sample_data_filter(
+    calibs: dict[str, dict[str, Any]], channel_of_calib: dict[str, str], sweeps: bool
+) -> Callable[[dict[str, Any]], bool]:
+    """The sample_data rows to keep: keyframes of the 6 cameras and LIDAR_TOP; with `sweeps` also the
+    non-keyframe LIDAR_TOP rows. A row naming an unknown calibrated_sensor is an `OccDataError`."""
+
+    def keep(row: dict[str, Any]) -> bool:
+        key = row.get("is_key_frame", False)
+        if not key and not sweeps:
+            return False
+        cs_tok = field(row, "calibrated_sensor_token", "sample_data")
+        if cs_tok not in channel_of_calib:
+            ref(calibs, cs_tok, "calibrated_sensor", f"sample_data {row.get('token')!r}")
+        return channel_of_calib[cs_tok] in _CHANNELS if key else channel_of_calib[cs_tok] == LIDAR_CHANNEL
+
+    return keep
+
+
+def _keyframes_by_sample(
+    sample_data: dict[str, dict[str, Any]], samples: dict[str, dict[str, Any]], channel_of_calib: dict[str, str]
+) -> dict[str, dict[str, dict[str, Any]]]:
+    """sample token -> channel -> its keyframe sample_data row (one per channel)."""
+    out: dict[str, dict[str, dict[str, Any]]] = defaultdict(dict)
+    for tok, sd in sample_data.items():
+        if not sd.get("is_key_frame", False):
+            continue
+        s_tok = field(sd, "sample_token", "sample_data")
+        ref(samples, s_tok, "sample", f"sample_data {tok!r}")
+        channel = channel_of_calib[sd["calibrated_sensor_token"]]
+        if channel in out[s_tok]:
+            raise OccDataError(f"sample {s_tok!r} has two keyframe {channel} records in sample_data.json")
+        out[s_tok][channel] = sd
+    return dict(out)
 
 
 def load_nuscenes(
@@ -145,6 +204,8 @@ def load_nuscenes(
     `first_sample_token`). Each scene gets a split: the official one for nuScenes scene names
     (mini_train/mini_val for v1.0-mini), else a `split=NAME` tag in its description, else
     "unassigned". With `check_files`, every keyframe sensor file must be a readable regular file.
+    `NuScenesDataset.root` is `dataset_root(root)` and every record path is that root joined with the
+    row's filename: symlinks (a symlinked root included) are kept, not resolved.
 
     With `sweeps`, the non-keyframe LIDAR_TOP rows are read too: each keyframe gets the sweeps that
     its LIDAR_TOP `prev` links pass through before reaching the previous keyframe's LIDAR_TOP (the
@@ -159,244 +220,221 @@ def load_nuscenes(
     path outside `root`, a missing file with `check_files`) does not raise: that sample's record
     carries it in `problem` and `validate_sample` rejects it.
     """
-    root = Path(root).resolve()
+    root = dataset_root(root)
     version = find_version(root, version)
-    vdir = root / version
-    for name in _NEEDED_TABLES:
-        if not (vdir / f"{name}.json").is_file():
-            raise OccDataError(f"missing table: {vdir / f'{name}.json'}")
-
-    notes: list[str] = []
-    sensors = load_table(vdir / "sensor.json", warn=notes.append)
-    calibs = load_table(vdir / "calibrated_sensor.json", warn=notes.append)
-    logs = load_table(vdir / "log.json", warn=notes.append)
-    scenes_raw = load_table(vdir / "scene.json", warn=notes.append)
-    samples_raw = load_table(vdir / "sample.json", warn=notes.append)
-
-    channel_of_calib: dict[str, str] = {}
-    for tok, cs in calibs.items():
-        sensor = _ref(sensors, _get(cs, "sensor_token", "calibrated_sensor"), "sensor", f"calibrated_sensor {tok!r}")
-        channel_of_calib[tok] = _get(sensor, "channel", "sensor")
-
-    def keep_sd(row: dict[str, Any]) -> bool:
-        key = row.get("is_key_frame", False)
-        if not key and not sweeps:
-            return False
-        cs_tok = _get(row, "calibrated_sensor_token", "sample_data")
-        if cs_tok not in channel_of_calib:
-            _ref(calibs, cs_tok, "calibrated_sensor", f"sample_data {row.get('token')!r}")
-        return channel_of_calib[cs_tok] in _CHANNELS if key else channel_of_calib[cs_tok] == LIDAR_CHANNEL
-
-    sample_data = load_table(vdir / "sample_data.json", keep=keep_sd, warn=notes.append)
-    pose_tokens = {_get(sd, "ego_pose_token", "sample_data") for sd in sample_data.values()}
-    ego_poses = load_table(vdir / "ego_pose.json", keep=lambda r: r.get("token") in pose_tokens, warn=notes.append)
-    lidar_rows = {
-        t: sd for t, sd in sample_data.items() if channel_of_calib[sd["calibrated_sensor_token"]] == LIDAR_CHANNEL
-    }
-
-    by_sample: dict[str, dict[str, dict[str, Any]]] = defaultdict(dict)
-    for tok, sd in sample_data.items():
-        if not sd.get("is_key_frame", False):
-            continue
-        s_tok = _get(sd, "sample_token", "sample_data")
-        _ref(samples_raw, s_tok, "sample", f"sample_data {tok!r}")
-        channel = channel_of_calib[sd["calibrated_sensor_token"]]
-        if channel in by_sample[s_tok]:
-            raise OccDataError(f"sample {s_tok!r} has two keyframe {channel} records in sample_data.json")
-        by_sample[s_tok][channel] = sd
-
-    def abs_path(sd: dict[str, Any]) -> Path:
-        where = f"sample_data {sd['token']!r} filename"
-        try:
-            path = confined_path(root, _get(sd, "filename", "sample_data"), where)
-        except OccDataError as exc:
-            raise _RowProblem(str(exc)) from None
-        if check_files and not path.is_file():
-            if os.path.lexists(path):  # a folder, a dangling link or a symlink loop
-                raise _RowProblem(f"sensor file {path} is not a readable regular file (sample_data {sd['token']!r})")
-            raise _RowProblem(f"missing sensor file: {path} (sample_data {sd['token']!r})")
-        return path
-
-    def pose_of(sd: dict[str, Any]) -> np.ndarray:
-        src = f"sample_data {sd['token']!r}"
-        return _pose(_ref(ego_poses, sd["ego_pose_token"], "ego_pose", src), "ego_pose")
-
-    def make_sample(s_tok: str, scene_name: str, index: int, prev_key: str) -> SampleRecord:
-        row = samples_raw[s_tok]
-        sds = by_sample.get(s_tok, {})
-        missing = [c for c in (*CAMERA_ORDER, LIDAR_CHANNEL) if c not in sds]
-        if missing:
-            raise OccDataError(f"sample {s_tok!r} has no keyframe sample_data for {', '.join(missing)}")
-        chain = sweep_chain(sds[LIDAR_CHANNEL], prev_key, row["scene_token"], scene_name) if sweeps else []
-        for sd in (*sds.values(), *chain):  # foreign keys first: a dangling pose is a broken tree, not a row value
-            _ref(ego_poses, sd["ego_pose_token"], "ego_pose", f"sample_data {sd['token']!r}")
-        try:
-            return build_sample(s_tok, row, sds, scene_name, index, chain)
-        except _RowProblem as exc:
-            return placeholder_sample(s_tok, row, sds, scene_name, index, str(exc))
-
-    def sweep_chain(key_sd: dict[str, Any], prev_key: str, scene_tok: str, scene_name: str) -> list[dict[str, Any]]:
-        """The non-keyframe LIDAR_TOP rows from `key_sd` back (through `prev`) to the previous
-        keyframe's LIDAR_TOP row `prev_key` ("" for the scene's first keyframe: to the chain's start)."""
-        out: list[dict[str, Any]] = []
-        cur, tok = key_sd, key_sd.get("prev", "")
-        while tok and tok != prev_key:
-            nxt = lidar_rows.get(tok)
-            where = f"LIDAR_TOP chain of scene {scene_name!r}: sample_data {cur['token']!r}.prev"
-            if nxt is None:
-                raise OccDataError(f"{where} is {tok!r}, not a LIDAR_TOP row of sample_data.json")
-            if nxt.get("is_key_frame", False):
-                raise OccDataError(f"{where} reaches keyframe {tok!r}, not the previous keyframe's LIDAR_TOP "
-                                   f"{prev_key or '(none: first keyframe)'!r}")
-            if nxt.get("next", "") != cur["token"]:
-                raise OccDataError(f"{where} is {tok!r}, but that row's next is {nxt.get('next', '')!r}")
-            s_row = _ref(samples_raw, _get(nxt, "sample_token", "sample_data"), "sample", f"sample_data {tok!r}")
-            if s_row.get("scene_token") != scene_tok:
-                raise OccDataError(f"{where} is {tok!r}, a row of another scene (sample {nxt['sample_token']!r})")
-            if len(out) >= len(lidar_rows):
-                raise OccDataError(f"{where}: the prev-links form a cycle")
-            out.append(nxt)
-            cur, tok = nxt, nxt.get("prev", "")
-        if prev_key and tok != prev_key:
-            raise OccDataError(f"LIDAR_TOP chain of scene {scene_name!r}: the prev-links from keyframe sample_data "
-                               f"{key_sd['token']!r} end at {cur['token']!r} before the previous keyframe's "
-                               f"LIDAR_TOP {prev_key!r}")
-        return out
-
-    def sweep_record(sd: dict[str, Any]) -> LidarRecord:
-        where = f"sample_data {sd['token']!r}"
-        try:
-            path = confined_path(root, _get(sd, "filename", "sample_data"), f"{where} filename")
-        except OccDataError as exc:
-            raise _RowProblem(str(exc)) from None
-        return LidarRecord(
-            channel=LIDAR_CHANNEL, token=sd["token"], path=path,
-            T_ego_from_lidar=_pose(calibs[sd["calibrated_sensor_token"]], "calibrated_sensor"),
-            T_global_from_ego=pose_of(sd),
-            timestamp=_integer(_get(sd, "timestamp", "sample_data"), f"{where} timestamp"),
-        )
-
-    def build_sample(
-        s_tok: str, row: dict[str, Any], sds: dict[str, dict[str, Any]], scene_name: str, index: int,
-        chain: list[dict[str, Any]],
-    ) -> SampleRecord:
-        cams = []
-        for channel in CAMERA_ORDER:
-            sd = sds[channel]
-            cs = calibs[sd["calibrated_sensor_token"]]
-            where = f"calibrated_sensor {cs['token']!r} ({channel})"
-            K = _floats(_get(cs, "camera_intrinsic", "calibrated_sensor"), (3, 3), f"{where} camera_intrinsic")
-            sd_where = f"sample_data {sd['token']!r}"
-            cams.append(
-                CameraRecord(
-                    channel=channel,
-                    token=sd["token"],
-                    path=abs_path(sd),
-                    K=K,
-                    T_ego_from_cam=_pose(cs, "calibrated_sensor"),
-                    T_global_from_ego=pose_of(sd),
-                    timestamp=_integer(_get(sd, "timestamp", "sample_data"), f"{sd_where} timestamp"),
-                    width=_integer(_get(sd, "width", "sample_data"), f"{sd_where} width"),
-                    height=_integer(_get(sd, "height", "sample_data"), f"{sd_where} height"),
-                )
-            )
-        sd = sds[LIDAR_CHANNEL]
-        lidar = LidarRecord(
-            channel=LIDAR_CHANNEL,
-            token=sd["token"],
-            path=abs_path(sd),
-            T_ego_from_lidar=_pose(calibs[sd["calibrated_sensor_token"]], "calibrated_sensor"),
-            T_global_from_ego=pose_of(sd),
-            timestamp=_integer(_get(sd, "timestamp", "sample_data"), f"sample_data {sd['token']!r} timestamp"),
-        )
-        return SampleRecord(
-            token=s_tok,
-            scene_token=_get(row, "scene_token", "sample"),
-            scene_name=scene_name,
-            index_in_scene=index,
-            timestamp=_integer(_get(row, "timestamp", "sample"), f"sample {s_tok!r} timestamp"),
-            prev=row.get("prev", ""),
-            next=row.get("next", ""),
-            cameras=tuple(cams),
-            lidar=lidar,
-            sweeps=tuple(sweep_record(sd) for sd in chain),
-        )
-
-    def placeholder_sample(
-        s_tok: str, row: dict[str, Any], sds: dict[str, dict[str, Any]], scene_name: str, index: int, problem: str
-    ) -> SampleRecord:
-        nan4 = np.full((4, 4), np.nan)
-        cams = tuple(
-            CameraRecord(channel=c, token=sds[c]["token"], path=root, K=np.full((3, 3), np.nan),
-                         T_ego_from_cam=nan4, T_global_from_ego=nan4, timestamp=0, width=0, height=0)
-            for c in CAMERA_ORDER
-        )
-        lidar = LidarRecord(channel=LIDAR_CHANNEL, token=sds[LIDAR_CHANNEL]["token"], path=root,
-                            T_ego_from_lidar=nan4, T_global_from_ego=nan4, timestamp=0)
-        ts = row.get("timestamp")
-        return SampleRecord(
-            token=s_tok, scene_token=row["scene_token"], scene_name=scene_name, index_in_scene=index,
-            timestamp=ts if isinstance(ts, int) and not isinstance(ts, bool) else 0,
-            prev=row.get("prev", ""), next=row.get("next", ""), cameras=cams, lidar=lidar, problem=problem,
-        )
-
-    samples_per_scene = Counter(r.get("scene_token") for r in samples_raw.values())
+    idx = read_tables(root, version, sweeps)
+    notes = list(idx.notes)
+    samples_per_scene = Counter(r.get("scene_token") for r in idx.samples.values())
     scenes: list[SceneRecord] = []
     samples: list[SampleRecord] = []
-    for sc_tok, sc in scenes_raw.items():
-        name = _get(sc, "name", "scene")
-        if not isinstance(name, str) or not usable_as_file_name(name):
-            # Scene names become folder names (gts/<scene>/..., prediction output): one component each.
-            raise OccDataError(
-                f"scene.json: scene {sc_tok!r} has a name that is not usable as a folder name ({_short(name)})"
-            )
-        log = _ref(logs, _get(sc, "log_token", "scene"), "log", f"scene {name!r}")
-        tok = _get(sc, "first_sample_token", "scene")
-        chain: list[str] = []
-        while tok:
-            row = _ref(samples_raw, tok, "sample", f"scene {name!r}" if not chain else f"sample {chain[-1]!r}.next")
-            if row.get("scene_token") != sc_tok:
-                raise OccDataError(f"sample {tok!r} is linked from scene {name!r} but belongs to another scene")
-            if len(chain) > len(samples_raw):
-                raise OccDataError(f"scene {name!r}: the sample next-links form a cycle")
-            chain.append(tok)
-            tok = row.get("next", "")
-        last = _get(sc, "last_sample_token", "scene")
-        if chain and chain[-1] != last:
-            raise OccDataError(f"scene {name!r}: the next-links end at {chain[-1]!r}, not last_sample_token {last!r}")
-        nbr = sc.get("nbr_samples")
-        in_table = samples_per_scene[sc_tok]
-        if len(chain) < in_table:
-            # A blank first_sample_token or a cut next link would drop samples without a word.
-            raise OccDataError(
-                f"scene {name!r}: only {len(chain)} of its {in_table} samples in sample.json are reachable "
-                f"from first_sample_token through the next-links (nbr_samples {_short(nbr)}); "
-                "fix first_sample_token / next"
-            )
-        if nbr is not None and nbr != len(chain):
-            notes.append(f"scene {name!r}: nbr_samples is {_short(nbr)} but the tables hold {len(chain)} samples")
-        description = str(sc.get("description", ""))
-        split = official_split(name, version)
-        if split is None:
-            tag = SPLIT_TAG.search(description)
-            split = tag.group(1) if tag else "unassigned"
-        scenes.append(
-            SceneRecord(
-                token=sc_tok,
-                name=name,
-                description=description,
-                log_token=sc["log_token"],
-                location=str(log.get("location", "")),
-                split=split,
-                sample_tokens=tuple(chain),
-            )
-        )
-        for i, t in enumerate(chain):
-            prev_key = by_sample.get(chain[i - 1], {}).get(LIDAR_CHANNEL, {}).get("token", "") if i else ""
-            samples.append(make_sample(t, name, i, prev_key))
+    for sc_tok, sc in idx.scenes.items():
+        scene = _scene_record(idx, sc_tok, sc, samples_per_scene[sc_tok], notes)
+        scenes.append(scene)
+        for i, s_tok in enumerate(scene.sample_tokens):
+            prev_key = _lidar_token(idx, scene.sample_tokens[i - 1]) if i else ""
+            samples.append(_sample_record(idx, s_tok, scene.name, i, prev_key, check_files))
     return NuScenesDataset(
         root=root, version=version, scenes=tuple(scenes), samples=tuple(samples), warnings=tuple(notes),
         sweeps_loaded=sweeps,
+    )
+
+
+def _lidar_token(idx: TableIndex, sample_token: str) -> str:
+    """The keyframe LIDAR_TOP sample_data token of a sample ("" if it has none)."""
+    return idx.keyframes.get(sample_token, {}).get(LIDAR_CHANNEL, {}).get("token", "")
+
+
+def _scene_record(idx: TableIndex, sc_tok: str, sc: dict[str, Any], in_table: int, notes: list[str]) -> SceneRecord:
+    """One scene with its split and its samples in `next` order; a nbr_samples mismatch goes to `notes`."""
+    name = field(sc, "name", "scene")
+    if not isinstance(name, str) or not usable_as_file_name(name):
+        # Scene names become folder names (gts/<scene>/..., prediction output): one component each.
+        raise OccDataError(
+            f"scene.json: scene {sc_tok!r} has a name that is not usable as a folder name ({short(name)})"
+        )
+    log = ref(idx.logs, field(sc, "log_token", "scene"), "log", f"scene {name!r}")
+    chain = _scene_samples(idx, sc_tok, sc, name)
+    nbr = sc.get("nbr_samples")
+    if len(chain) < in_table:
+        # A blank first_sample_token or a cut next link would drop samples without a word.
+        raise OccDataError(
+            f"scene {name!r}: only {len(chain)} of its {in_table} samples in sample.json are reachable "
+            f"from first_sample_token through the next-links (nbr_samples {short(nbr)}); "
+            "fix first_sample_token / next"
+        )
+    if nbr is not None and nbr != len(chain):
+        notes.append(f"scene {name!r}: nbr_samples is {short(nbr)} but the tables hold {len(chain)} samples")
+    description = str(sc.get("description", ""))
+    split = official_split(name, idx.version)
+    if split is None:
+        tag = SPLIT_TAG.search(description)
+        split = tag.group(1) if tag else "unassigned"
+    return SceneRecord(
+        token=sc_tok, name=name, description=description, log_token=sc["log_token"],
+        location=str(log.get("location", "")), split=split, sample_tokens=tuple(chain),
+    )
+
+
+def _scene_samples(idx: TableIndex, sc_tok: str, sc: dict[str, Any], name: str) -> list[str]:
+    """The scene's sample tokens from `first_sample_token` along `next`, checked to stay in the
+    scene, to end at `last_sample_token` and not to cycle."""
+    tok = field(sc, "first_sample_token", "scene")
+    chain: list[str] = []
+    while tok:
+        row = ref(idx.samples, tok, "sample", f"scene {name!r}" if not chain else f"sample {chain[-1]!r}.next")
+        if row.get("scene_token") != sc_tok:
+            raise OccDataError(f"sample {tok!r} is linked from scene {name!r} but belongs to another scene")
+        if len(chain) > len(idx.samples):
+            raise OccDataError(f"scene {name!r}: the sample next-links form a cycle")
+        chain.append(tok)
+        tok = row.get("next", "")
+    last = field(sc, "last_sample_token", "scene")
+    if chain and chain[-1] != last:
+        raise OccDataError(f"scene {name!r}: the next-links end at {chain[-1]!r}, not last_sample_token {last!r}")
+    return chain
+
+
+def _sample_record(
+    idx: TableIndex, s_tok: str, scene_name: str, index: int, prev_key: str, check_files: bool
+) -> SampleRecord:
+    """The record of one keyframe sample; a problem with its values gives a placeholder record."""
+    row = idx.samples[s_tok]
+    sds = idx.keyframes.get(s_tok, {})
+    missing = [c for c in (*CAMERA_ORDER, LIDAR_CHANNEL) if c not in sds]
+    if missing:
+        raise OccDataError(f"sample {s_tok!r} has no keyframe sample_data for {', '.join(missing)}")
+    chain = _sweep_chain(idx, sds[LIDAR_CHANNEL], prev_key, row["scene_token"], scene_name) if idx.sweeps else []
+    for sd in (*sds.values(), *chain):  # foreign keys first: a dangling pose is a broken tree, not a row value
+        ref(idx.ego_poses, sd["ego_pose_token"], "ego_pose", f"sample_data {sd['token']!r}")
+    try:
+        return _build_sample(idx, s_tok, row, sds, scene_name, index, chain, check_files)
+    except RowProblem as exc:
+        return _placeholder_sample(idx, s_tok, row, sds, scene_name, index, str(exc))
+
+
+def _sweep_chain(
+    idx: TableIndex, key_sd: dict[str, Any], prev_key: str, scene_tok: str, scene_name: str
+) -> list[dict[str, Any]]:
+    """The non-keyframe LIDAR_TOP rows from `key_sd` back (through `prev`) to the previous
+    keyframe's LIDAR_TOP row `prev_key` ("" for the scene's first keyframe: to the chain's start)."""
+    out: list[dict[str, Any]] = []
+    cur, tok = key_sd, key_sd.get("prev", "")
+    while tok and tok != prev_key:
+        nxt = idx.lidar_rows.get(tok)
+        where = f"LIDAR_TOP chain of scene {scene_name!r}: sample_data {cur['token']!r}.prev"
+        if nxt is None:
+            raise OccDataError(f"{where} is {tok!r}, not a LIDAR_TOP row of sample_data.json")
+        if nxt.get("is_key_frame", False):
+            raise OccDataError(f"{where} reaches keyframe {tok!r}, not the previous keyframe's LIDAR_TOP "
+                               f"{prev_key or '(none: first keyframe)'!r}")
+        if nxt.get("next", "") != cur["token"]:
+            raise OccDataError(f"{where} is {tok!r}, but that row's next is {nxt.get('next', '')!r}")
+        s_row = ref(idx.samples, field(nxt, "sample_token", "sample_data"), "sample", f"sample_data {tok!r}")
+        if s_row.get("scene_token") != scene_tok:
+            raise OccDataError(f"{where} is {tok!r}, a row of another scene (sample {nxt['sample_token']!r})")
+        if len(out) >= len(idx.lidar_rows):
+            raise OccDataError(f"{where}: the prev-links form a cycle")
+        out.append(nxt)
+        cur, tok = nxt, nxt.get("prev", "")
+    if prev_key and tok != prev_key:
+        raise OccDataError(f"LIDAR_TOP chain of scene {scene_name!r}: the prev-links from keyframe sample_data "
+                           f"{key_sd['token']!r} end at {cur['token']!r} before the previous keyframe's "
+                           f"LIDAR_TOP {prev_key!r}")
+    return out
+
+
+def _sensor_path(idx: TableIndex, sd: dict[str, Any], check_files: bool) -> Path:
+    """The sample_data row's file under the root; with `check_files` it must be a regular file.
+    Problems are `RowProblem`s (they stay with the sample)."""
+    where = f"sample_data {sd['token']!r} filename"
+    try:
+        path = confined_path(idx.root, field(sd, "filename", "sample_data"), where)
+    except OccDataError as exc:
+        raise RowProblem(str(exc)) from None
+    if check_files and not path.is_file():
+        if os.path.lexists(path):  # a folder, a dangling link or a symlink loop
+            raise RowProblem(f"sensor file {path} is not a readable regular file (sample_data {sd['token']!r})")
+        raise RowProblem(f"missing sensor file: {path} (sample_data {sd['token']!r})")
+    return path
+
+
+def _ego_pose(idx: TableIndex, sd: dict[str, Any]) -> np.ndarray:
+    """`(4, 4) float64` T_global_from_ego at the sample_data row's own timestamp."""
+    return pose(ref(idx.ego_poses, sd["ego_pose_token"], "ego_pose", f"sample_data {sd['token']!r}"), "ego_pose")
+
+
+def _timestamp(sd: dict[str, Any]) -> int:
+    return integer(field(sd, "timestamp", "sample_data"), f"sample_data {sd['token']!r} timestamp")
+
+
+def _camera_record(idx: TableIndex, channel: str, sd: dict[str, Any], check_files: bool) -> CameraRecord:
+    cs = idx.calibs[sd["calibrated_sensor_token"]]
+    where = f"calibrated_sensor {cs['token']!r} ({channel})"
+    K = floats(field(cs, "camera_intrinsic", "calibrated_sensor"), (3, 3), f"{where} camera_intrinsic")
+    sd_where = f"sample_data {sd['token']!r}"
+    return CameraRecord(
+        channel=channel,
+        token=sd["token"],
+        path=_sensor_path(idx, sd, check_files),
+        K=K,
+        T_ego_from_cam=pose(cs, "calibrated_sensor"),
+        T_global_from_ego=_ego_pose(idx, sd),
+        timestamp=_timestamp(sd),
+        width=integer(field(sd, "width", "sample_data"), f"{sd_where} width"),
+        height=integer(field(sd, "height", "sample_data"), f"{sd_where} height"),
+    )
+
+
+def _lidar_record(idx: TableIndex, sd: dict[str, Any], check_files: bool) -> LidarRecord:
+    return LidarRecord(
+        channel=LIDAR_CHANNEL,
+        token=sd["token"],
+        path=_sensor_path(idx, sd, check_files),
+        T_ego_from_lidar=pose(idx.calibs[sd["calibrated_sensor_token"]], "calibrated_sensor"),
+        T_global_from_ego=_ego_pose(idx, sd),
+        timestamp=_timestamp(sd),
+        sample_token=sd["sample_token"],
+    )
+
+
+def _build_sample(
+    idx: TableIndex, s_tok: str, row: dict[str, Any], sds: dict[str, dict[str, Any]], scene_name: str,
+    index: int, chain: list[dict[str, Any]], check_files: bool,
+) -> SampleRecord:
+    cams = tuple(_camera_record(idx, channel, sds[channel], check_files) for channel in CAMERA_ORDER)
+    lidar = _lidar_record(idx, sds[LIDAR_CHANNEL], check_files)
+    return SampleRecord(
+        token=s_tok,
+        scene_token=field(row, "scene_token", "sample"),
+        scene_name=scene_name,
+        index_in_scene=index,
+        timestamp=integer(field(row, "timestamp", "sample"), f"sample {s_tok!r} timestamp"),
+        prev=row.get("prev", ""),
+        next=row.get("next", ""),
+        cameras=cams,
+        lidar=lidar,
+        sweeps=tuple(_lidar_record(idx, sd, check_files=False) for sd in chain),  # sweep files are not shipped
+    )
+
+
+def _placeholder_sample(
+    idx: TableIndex, s_tok: str, row: dict[str, Any], sds: dict[str, dict[str, Any]], scene_name: str, index: int,
+    problem: str,
+) -> SampleRecord:
+    """A record of NaN placeholders carrying `problem` (`validate_sample` rejects it)."""
+    nan4 = np.full((4, 4), np.nan)
+    cams = tuple(
+        CameraRecord(channel=c, token=sds[c]["token"], path=idx.root, K=np.full((3, 3), np.nan),
+                     T_ego_from_cam=nan4, T_global_from_ego=nan4, timestamp=0, width=0, height=0)
+        for c in CAMERA_ORDER
+    )
+    lidar = LidarRecord(channel=LIDAR_CHANNEL, token=sds[LIDAR_CHANNEL]["token"], path=idx.root,
+                        T_ego_from_lidar=nan4, T_global_from_ego=nan4, timestamp=0, sample_token=s_tok)
+    ts = row.get("timestamp")
+    return SampleRecord(
+        token=s_tok, scene_token=row["scene_token"], scene_name=scene_name, index_in_scene=index,
+        timestamp=ts if isinstance(ts, int) and not isinstance(ts, bool) else 0,
+        prev=row.get("prev", ""), next=row.get("next", ""), cameras=cams, lidar=lidar, problem=problem,
     )
 
 

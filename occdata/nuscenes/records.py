@@ -44,6 +44,9 @@ class LidarRecord:
     T_ego_from_lidar: np.ndarray
     T_global_from_ego: np.ndarray
     timestamp: int
+    # The row's sample_token: the keyframe's own sample; for a non-keyframe sweep the sample it is
+    # filed under in sample_data.json (in nuScenes the NEXT keyframe's).
+    sample_token: str = ""
 
 
 @dataclass(frozen=True, eq=False)

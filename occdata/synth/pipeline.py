@@ -13,11 +13,20 @@ from tqdm import tqdm
 
 from occdata.constants import CAMERA_ORDER, GRID, LIDAR_CHANNEL
 from occdata.errors import OccDataError
+from occdata.fileio import npz_bytes
 from occdata.geometry import invert_rigid, quaternion_wxyz_from_matrix, transform_points
 from occdata.synth import render
+from occdata.synth.annotations import (
+    LIDARSEG_FROM_OCC3D,
+    KeyframeAnnotation,
+    ObjectBoxes,
+    annotate_keyframe,
+    annotation_rows,
+    object_boxes,
+)
 from occdata.synth.labels import world_semantics
 from occdata.synth.rig import CAMERA_TIME_OFFSETS_US, RIG, camera_K
-from occdata.synth.tables import make_token, npz_bytes, static_tables, write_atomic, write_tables
+from occdata.synth.tables import make_token, static_tables, write_atomic, write_tables
 from occdata.synth.world import Primitives, SceneWorld, make_world
 from occdata.visibility import camera_mask, lidar_mask
 
@@ -27,11 +36,16 @@ __all__ = [
     "LIDAR_AZIMUTH_STEP_DEG",
     "LIDAR_ELEVATIONS_DEG",
     "LIDAR_MAX_RANGE",
+    "KeyframeLidar",
     "SensorFrame",
     "SynthConfig",
     "WorldGrid",
+    "keyframe_object_boxes",
+    "keyframe_times",
+    "lidar_returns",
     "render_camera",
     "render_lidar",
+    "scene_world",
     "synthesize",
 ]
 
@@ -40,6 +54,7 @@ SWEEP_PERIOD_US = 50_000  # LIDAR_TOP at 20 Hz: 9 sweeps between consecutive key
 MASK_SWEEP_RADIUS = 2  # mask_lidar aggregates the sweeps of keyframes k-2 .. k+2 of the scene
 CAMERA_MAX_DEPTH = 150.0  # m along the optical axis; beyond is drawn as sky (depth 0)
 LIDAR_MAX_RANGE = 80.0  # m
+TABLE_VERSION = "v1.0-mini"
 LIDAR_ELEVATIONS_DEG = np.linspace(-30.67, 10.67, 32)  # HDL-32E-like, ring 0 = lowest beam
 LIDAR_AZIMUTH_STEP_DEG = 0.33
 CELL = 4.0  # m, 2D acceleration grid cell
@@ -134,9 +149,12 @@ def lidar_directions() -> tuple[np.ndarray, np.ndarray]:
     return dirs, ring
 
 
-def render_lidar(world: SceneWorld, wg: WorldGrid, T_global_from_lidar: np.ndarray) -> np.ndarray:
+def lidar_returns(
+    world: SceneWorld, wg: WorldGrid, T_global_from_lidar: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Spin the LiDAR once at one instant; returns the returns `(N, 5) float32`: x, y, z (lidar frame),
-    intensity (0-255, class reflectivity x incidence cosine), ring index."""
+    intensity (0-255, class reflectivity x incidence cosine), ring index; and the Occ3D class
+    `(N,) int` of the surface each return hit."""
     dirs_lidar, ring = lidar_directions()
     dirs_global = dirs_lidar @ T_global_from_lidar[:3, :3].T
     origin_global = T_global_from_lidar[:3, 3].copy()
@@ -149,7 +167,12 @@ def render_lidar(world: SceneWorld, wg: WorldGrid, T_global_from_lidar: np.ndarr
     cos_inc = np.abs((normals_global * dirs_global).sum(axis=1))
     intensity = 255.0 * _REFLECTIVITY[cls] * (0.3 + 0.7 * cos_inc)
     points_lidar = t[:, None] * dirs_lidar  # unit directions: t is the range
-    return np.concatenate([points_lidar, intensity[:, None], ring[:, None]], axis=1).astype(np.float32)
+    return np.concatenate([points_lidar, intensity[:, None], ring[:, None]], axis=1).astype(np.float32), cls
+
+
+def render_lidar(world: SceneWorld, wg: WorldGrid, T_global_from_lidar: np.ndarray) -> np.ndarray:
+    """The returns `(N, 5) float32` of `lidar_returns`, without their classes."""
+    return lidar_returns(world, wg, T_global_from_lidar)[0]
 
 
 def _pose_row(token: str, T: np.ndarray, t_us: int) -> dict[str, Any]:
@@ -159,6 +182,16 @@ def _pose_row(token: str, T: np.ndarray, t_us: int) -> dict[str, Any]:
 
 def _n_val(n_scenes: int) -> int:
     return max(1, round(0.2 * n_scenes)) if n_scenes >= 2 else 0
+
+
+@dataclass(frozen=True, eq=False)
+class KeyframeLidar:
+    """The written keyframe LIDAR_TOP sweep: `points (N, 5) float32` as in the file, `lidarseg (N,)
+    uint8` nuScenes-lidarseg index per point, `T_global_from_lidar (4, 4) float64`."""
+
+    points: np.ndarray
+    lidarseg: np.ndarray
+    T_global_from_lidar: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,9 +208,10 @@ class SensorFrame:
 def _render_keyframe(
     out: Path, world: SceneWorld, scene_name: str, t_lidar: int, sd_tokens: dict[str, str], width: int, height: int,
     extra_lidar_times: tuple[int, ...] = (),
-) -> tuple[list[SensorFrame], dict[str, np.ndarray]]:
+) -> tuple[list[SensorFrame], dict[str, np.ndarray], KeyframeLidar]:
     """Render and write the 6 camera images (+ depth maps) and the LiDAR sweep of the keyframe at
-    `t_lidar`; returns the written frames and the Occ3D labels (key ego = ego at `t_lidar`).
+    `t_lidar`; returns the written frames, the Occ3D labels (key ego = ego at `t_lidar`) and the
+    LiDAR sweep with its per-point lidarseg labels.
     `mask_lidar` also counts the returns of sweeps at `extra_lidar_times` (not written)."""
     lower = np.asarray(GRID.lower, np.float64)
     T_global_from_keyego = ego_transform(world, t_lidar)
@@ -205,7 +239,8 @@ def _render_keyframe(
             cam_K.append(K)
             cam_T.append(invert_rigid(T_keyego_from_global @ T_global_from_sensor))
         else:
-            points = render_lidar(world, wg_lidar, T_global_from_sensor)
+            points, cls = lidar_returns(world, wg_lidar, T_global_from_sensor)
+            key_lidar = KeyframeLidar(points, LIDARSEG_FROM_OCC3D[cls], T_global_from_sensor)
             write_atomic(out / rel, points.tobytes())
             T_keyego_from_lidar = T_keyego_from_global @ T_global_from_sensor
             origins = [np.broadcast_to(T_keyego_from_lidar[:3, 3], (len(points), 3))]
@@ -224,7 +259,48 @@ def _render_keyframe(
     # Occ3D semantics: the camera mask lies within the LiDAR mask (DESIGN §5.3, docs/visibility.md).
     mask_camera = camera_mask(semantics, mask_lidar, np.stack(cam_K), np.stack(cam_T),
                               np.array([[width, height]] * len(cam_K)), lower, GRID.voxel_size)
-    return frames, {"semantics": semantics, "mask_lidar": mask_lidar, "mask_camera": mask_camera}
+    return frames, {"semantics": semantics, "mask_lidar": mask_lidar, "mask_camera": mask_camera}, key_lidar
+
+
+def _write_lidarseg(out: Path, sd_token: str, key_lidar: KeyframeLidar) -> dict[str, str]:
+    """Write `lidarseg/<version>/<sd_token>_lidarseg.bin` (uint8, one label per point in file order);
+    returns its lidarseg.json row."""
+    rel = f"lidarseg/{TABLE_VERSION}/{sd_token}_lidarseg.bin"
+    write_atomic(out / rel, key_lidar.lidarseg.astype(np.uint8).tobytes())
+    return {"token": sd_token, "sample_data_token": sd_token, "filename": rel}
+
+
+def _annotate(world: SceneWorld, t_lidar: int, key_lidar: KeyframeLidar) -> KeyframeAnnotation:
+    """Boxes of the keyframe at `t_lidar` with the counts of the written (float32) returns in them."""
+    T = key_lidar.T_global_from_lidar
+    points_global = transform_points(T, key_lidar.points[:, :3].astype(np.float64))
+    dirs_global = lidar_directions()[0] @ T[:3, :3].T
+    return annotate_keyframe(world, t_lidar, points_global, T[:3, 3].copy(), dirs_global, LIDAR_MAX_RANGE)
+
+
+def _scene_t0(scene_index: int) -> int:
+    return BASE_TIMESTAMP_US + scene_index * 3_600_000_000
+
+
+def scene_world(seed: int, scene_index: int, n_samples: int) -> SceneWorld:
+    """The world of scene `scene_index` written by `occdata synth --seed seed --samples n_samples`
+    (independent of the number of scenes and of the image size)."""
+    rng = np.random.default_rng([seed, scene_index])
+    return make_world(rng, (1000.0 + SCENE_SPACING * scene_index, 1000.0), _scene_t0(scene_index), n_samples)
+
+
+def keyframe_times(scene_index: int, n_samples: int) -> list[int]:
+    """LIDAR_TOP (= sample) timestamps in microseconds of the scene's keyframes."""
+    return [_scene_t0(scene_index) + 100_000 + k * KEYFRAME_PERIOD_US for k in range(n_samples)]
+
+
+def keyframe_object_boxes(seed: int, scene_index: int, n_samples: int, k: int) -> ObjectBoxes:
+    """The boxes of all box-annotated objects at keyframe k of a scene of `occdata synth --seed seed
+    --samples n_samples`, in that keyframe's key-ego frame (the Occ3D grid's frame), with their
+    speeds (`ObjectBoxes.moving`). Same boxes as the scene's sample_annotation rows."""
+    world = scene_world(seed, scene_index, n_samples)
+    t_us = keyframe_times(scene_index, n_samples)[k]
+    return object_boxes(world, t_us).to_frame(invert_rigid(ego_transform(world, t_us)))
 
 
 def _write_sweep(out: Path, world: SceneWorld, scene_name: str, t_us: int) -> SensorFrame:
@@ -234,6 +310,13 @@ def _write_sweep(out: Path, world: SceneWorld, scene_name: str, t_us: int) -> Se
     rel = f"sweeps/{LIDAR_CHANNEL}/{scene_name}__{LIDAR_CHANNEL}__{t_us}.pcd.bin"
     write_atomic(out / rel, points.tobytes())
     return SensorFrame(LIDAR_CHANNEL, int(t_us), rel, T_global_from_ego)
+
+
+def _sweep_row(token: str, sample_token: str, cs_token: str, f: SensorFrame, link: tuple[str, str]) -> dict[str, Any]:
+    """The sample_data row of a non-keyframe LIDAR_TOP sweep (`link`: prev, next in the LiDAR chain)."""
+    return {"token": token, "sample_token": sample_token, "ego_pose_token": token, "calibrated_sensor_token": cs_token,
+            "timestamp": f.timestamp, "fileformat": "pcd", "is_key_frame": False, "height": 0, "width": 0,
+            "filename": f.filename, "prev": link[0], "next": link[1]}
 
 
 def _lidar_chain(seed: int, si: int, n_samples: int, key_times: list[int]) -> list[tuple[str, int, int]]:
@@ -249,10 +332,25 @@ def _lidar_chain(seed: int, si: int, n_samples: int, key_times: list[int]) -> li
     return chain
 
 
+def _calibrated_sensor_rows(
+    seed: int, scene_index: int, sensor_tok: dict[str, str], width: int, height: int
+) -> dict[str, dict[str, Any]]:
+    """One calibrated_sensor row per channel (cameras, then LIDAR_TOP) of a scene: the rig."""
+    rows = {}
+    for ch in (*CAMERA_ORDER, LIDAR_CHANNEL):
+        cal = RIG[ch]
+        K = camera_K(ch, width, height).tolist() if cal.intrinsic is not None else []
+        rows[ch] = {"token": make_token(seed, "calibrated_sensor", scene_index, ch), "sensor_token": sensor_tok[ch],
+                    "translation": list(cal.translation), "rotation": list(cal.rotation_wxyz),
+                    "camera_intrinsic": K}
+    return rows
+
+
 def synthesize(config: SynthConfig) -> Path:
     """Generate the world and write the tree under `config.out`; returns the output directory.
 
-    Layout: `v1.0-mini/*.json` (13 tables), `samples/CAM_*/*.jpg`, `samples/LIDAR_TOP/*.pcd.bin`,
+    Layout: `v1.0-mini/*.json` (13 tables + lidarseg), `samples/CAM_*/*.jpg`, `samples/LIDAR_TOP/*.pcd.bin`,
+    `lidarseg/v1.0-mini/<sd_token>_lidarseg.bin` (keyframe LIDAR_TOP point labels),
     `sweeps/LIDAR_TOP/*.pcd.bin` (20 Hz LiDAR between keyframes; cameras are keyframe-only),
     `gts/<scene>/<sample_token>/labels.npz` (Occ3D), `depth/<sample_data_token>.npy`, `maps/`.
     """
@@ -265,7 +363,7 @@ def synthesize(config: SynthConfig) -> Path:
     W, H = config.width, config.height
     tables = static_tables(seed)
     sensor_tok = {r["channel"]: r["token"] for r in tables["sensor"]}
-    for name in ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "log"):
+    for name in ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "log", "lidarseg"):
         tables[name] = []
     channels = (*CAMERA_ORDER, LIDAR_CHANNEL)
     map_name = "synth-town"
@@ -273,20 +371,13 @@ def synthesize(config: SynthConfig) -> Path:
     bar = tqdm(total=config.scenes * config.samples, desc="synth", unit="sample", disable=not config.progress)
     for si in range(config.scenes):
         scene_name = f"synth-{si:04d}"
-        rng = np.random.default_rng([seed, si])
-        t0 = BASE_TIMESTAMP_US + si * 3_600_000_000
-        world = make_world(rng, (1000.0 + SCENE_SPACING * si, 1000.0), t0, config.samples)
+        world = scene_world(seed, si, config.samples)
         log_tok = make_token(seed, "log", si)
         tables["log"].append({"token": log_tok, "logfile": f"synth-s{seed}-{si:04d}", "vehicle": "synth",
                               "date_captured": "2020-09-13", "location": map_name})
-        cs_tok: dict[str, str] = {}
-        for ch in channels:
-            cal = RIG[ch]
-            cs_tok[ch] = make_token(seed, "calibrated_sensor", si, ch)
-            K = camera_K(ch, W, H).tolist() if cal.intrinsic is not None else []
-            tables["calibrated_sensor"].append({"token": cs_tok[ch], "sensor_token": sensor_tok[ch],
-                                                "translation": list(cal.translation),
-                                                "rotation": list(cal.rotation_wxyz), "camera_intrinsic": K})
+        cs_rows = _calibrated_sensor_rows(seed, si, sensor_tok, W, H)
+        tables["calibrated_sensor"] += cs_rows.values()
+        cs_tok = {ch: row["token"] for ch, row in cs_rows.items()}
         scene_tok = make_token(seed, "scene", si)
         sample_toks = [make_token(seed, "sample", si, k) for k in range(config.samples)]
         sd_toks = {ch: [make_token(seed, "sample_data", si, k, ch) for k in range(config.samples)] for ch in channels}
@@ -296,10 +387,11 @@ def synthesize(config: SynthConfig) -> Path:
             "description": f"Synthetic town drive, seed {seed}; split={split}",
             "first_sample_token": sample_toks[0], "last_sample_token": sample_toks[-1],
         })
-        key_times = [t0 + 100_000 + k * KEYFRAME_PERIOD_US for k in range(config.samples)]
+        key_times = keyframe_times(si, config.samples)
         lidar_chain = _lidar_chain(seed, si, config.samples, key_times)
         link = {tok: (lidar_chain[n - 1][0] if n else "", lidar_chain[n + 1][0] if n + 1 < len(lidar_chain) else "")
                 for n, (tok, _, _) in enumerate(lidar_chain)}
+        keyframe_anns: list[KeyframeAnnotation] = []
         for k in range(config.samples):
             t_lidar = key_times[k]
             s_tok = sample_toks[k]
@@ -307,19 +399,16 @@ def synthesize(config: SynthConfig) -> Path:
                                      "prev": sample_toks[k - 1] if k > 0 else "",
                                      "next": sample_toks[k + 1] if k + 1 < config.samples else ""})
             window = range(max(0, k - MASK_SWEEP_RADIUS), min(config.samples, k + MASK_SWEEP_RADIUS + 1))
-            near = [t0 + 100_000 + j * KEYFRAME_PERIOD_US for j in window if j != k]
-            frames, labels = _render_keyframe(out, world, scene_name, t_lidar, {ch: sd_toks[ch][k] for ch in channels},
-                                              W, H, tuple(near))
+            near = [key_times[j] for j in window if j != k]
+            frames, labels, key_lidar = _render_keyframe(out, world, scene_name, t_lidar,
+                                                         {ch: sd_toks[ch][k] for ch in channels}, W, H, tuple(near))
+            tables["lidarseg"].append(_write_lidarseg(out, sd_toks[LIDAR_CHANNEL][k], key_lidar))
+            keyframe_anns.append(_annotate(world, t_lidar, key_lidar))
             sweeps = [(tok, _write_sweep(out, world, scene_name, t)) for tok, t, kk in lidar_chain
                        if kk == k and t != t_lidar]
             for tok, f in sweeps:
                 tables["ego_pose"].append(_pose_row(tok, f.T_global_from_ego, f.timestamp))
-                tables["sample_data"].append({
-                    "token": tok, "sample_token": s_tok, "ego_pose_token": tok,
-                    "calibrated_sensor_token": cs_tok[LIDAR_CHANNEL], "timestamp": f.timestamp, "fileformat": "pcd",
-                    "is_key_frame": False, "height": 0, "width": 0, "filename": f.filename,
-                    "prev": link[tok][0], "next": link[tok][1],
-                })
+                tables["sample_data"].append(_sweep_row(tok, s_tok, cs_tok[LIDAR_CHANNEL], f, link[tok]))
             for f in frames:
                 tok = sd_toks[f.channel][k]
                 is_cam = f.channel != LIDAR_CHANNEL
@@ -335,13 +424,16 @@ def synthesize(config: SynthConfig) -> Path:
                 })
             write_atomic(out / "gts" / scene_name / s_tok / "labels.npz", npz_bytes(labels))
             bar.update(1)
+        instances, annotations = annotation_rows(seed, si, sample_toks, keyframe_anns)
+        tables["instance"] += instances
+        tables["sample_annotation"] += annotations
     bar.close()
     log_tokens = [r["token"] for r in tables["log"]]
     tables["map"] = [{"token": make_token(seed, "map", map_name), "log_tokens": log_tokens,
                       "category": "semantic_prior", "filename": f"maps/{map_name}.png"}]
     ok, png = cv2.imencode(".png", np.zeros((8, 8), np.uint8))
     write_atomic(out / "maps" / f"{map_name}.png", png.tobytes())
-    write_tables(out / "v1.0-mini", tables)
+    write_tables(out / TABLE_VERSION, tables)
     return out
 
 

@@ -27,7 +27,9 @@ __all__ = [
     "GroundRaster",
     "Primitives",
     "SceneWorld",
+    "StaticObject",
     "make_world",
+    "place_parts",
 ]
 
 BOX, CYL = 0, 1
@@ -111,6 +113,11 @@ class Actor:
     speed: float  # m/s along the path direction given by `direction`
     direction: float  # +1 with the path, -1 against it
     t_ref_us: int
+    kind: str  # template name: car, truck, bus, bicycle, motorcycle, pedestrian
+
+    def in_world(self, path: Path2D, t_us: int) -> bool:
+        """Whether the actor is on the road path at `t_us` (otherwise it is not in the world)."""
+        return 0.0 <= self.s_at(t_us) <= path.length
 
     def s_at(self, t_us: int) -> float:
         return self.s0 + self.direction * self.speed * (t_us - self.t_ref_us) * 1e-6
@@ -123,7 +130,20 @@ class Actor:
         return float(xy[0]), float(xy[1]), float(yaw)
 
 
-def _place(parts: np.ndarray, x: float, y: float, yaw: float) -> np.ndarray:
+@dataclass(frozen=True, eq=False)
+class StaticObject:
+    """A static object of a box-annotated kind (parked car or motorcycle, barrier, cone, parked
+    bicycle): its parts `(K, 9) float64` in its local frame (x forward, y left), placed at the
+    global (x, y) with heading yaw. Its primitives are part of `SceneWorld.static`."""
+
+    kind: str
+    parts: np.ndarray
+    x: float
+    y: float
+    yaw: float
+
+
+def place_parts(parts: np.ndarray, x: float, y: float, yaw: float) -> np.ndarray:
     """Parts `(K, 9)` in a local frame -> global, for a body at (x, y) with heading yaw."""
     c, s = np.cos(yaw), np.sin(yaw)
     out = parts.copy()
@@ -182,6 +202,7 @@ class SceneWorld:
     ground: GroundRaster
     static: Primitives
     actors: tuple[Actor, ...]
+    static_objects: tuple[StaticObject, ...] = ()
 
     def primitives_at(self, t_us: int) -> Primitives:
         """All primitives (static first, then actors placed at time `t_us`) in the global frame.
@@ -189,10 +210,10 @@ class SceneWorld:
         Actors whose arc length has left the road path at that time are not in the world."""
         items = [self.static]
         for a in self.actors:
-            if not 0.0 <= a.s_at(t_us) <= self.path.length:
+            if not a.in_world(self.path, t_us):
                 continue
             x, y, yaw = a.pose_at(self.path, t_us)
-            items.append(Primitives(_place(a.parts, x, y, yaw), a.cls, a.style))
+            items.append(Primitives(place_parts(a.parts, x, y, yaw), a.cls, a.style))
         return Primitives.concat(items)
 
     @property
@@ -279,11 +300,15 @@ def make_world(rng: np.random.Generator, origin_xy: tuple[float, float], t0_us: 
     rows: list[list[float]] = []
     cls: list[int] = []
     sty: list[int] = []
+    objects: list[StaticObject] = []
 
-    def add_static(parts: np.ndarray, cl: list[int], st: list[int], x: float, y: float, yaw: float) -> None:
-        rows.extend(_place(parts, x, y, yaw).tolist())
+    def add_static(parts: np.ndarray, cl: list[int], st: list[int], x: float, y: float, yaw: float,
+                   kind: str = "") -> None:
+        rows.extend(place_parts(parts, x, y, yaw).tolist())
         cls.extend(cl)
         sty.extend(st)
+        if kind:  # a box-annotated kind (nuScenes boxes every car, cone, barrier, ..., parked or not)
+            objects.append(StaticObject(kind, parts, x, y, yaw))
 
     L = path.length
     # Street furniture on both sidewalks: poles and trees close to the kerb.
@@ -345,26 +370,27 @@ def make_world(rng: np.random.Generator, origin_xy: tuple[float, float], t0_us: 
             off = -4.2 if kind == "car" else -4.5
             (x, y), yaw = path.pose_at(s, off)
             parts, cl, st = _template(kind, rng)
-            add_static(parts, cl, st, float(x), float(y), float(yaw))
+            add_static(parts, cl, st, float(x), float(y), float(yaw), kind)
         elif u < 0.40:
             for k in range(int(rng.integers(2, 4))):
                 (x, y), yaw = path.pose_at(s + 2.2 * k, -4.8)
                 parts, cl, st = _template("barrier", rng)
-                add_static(parts, cl, st, float(x), float(y), float(yaw))
+                add_static(parts, cl, st, float(x), float(y), float(yaw), "barrier")
         elif u < 0.50:
             for k in range(int(rng.integers(2, 5))):
                 (x, y), yaw = path.pose_at(s + 1.6 * k, -3.9)
                 parts, cl, st = _template("cone", rng)
-                add_static(parts, cl, st, float(x), float(y), 0.0)
+                add_static(parts, cl, st, float(x), float(y), 0.0, "cone")
         elif u < 0.56:
             (x, y), yaw = path.pose_at(s, -5.8)
             parts, cl, st = _template("bicycle", rng)
-            add_static(parts, cl, st, float(x), float(y), float(yaw))
+            add_static(parts, cl, st, float(x), float(y), float(yaw), "bicycle")
         if rng.random() < 0.12:
             for k in range(int(rng.integers(2, 4))):
                 (x, y), yaw = path.pose_at(s + 2.2 * k, 4.9)
-                parts, cl, st = _template("barrier" if rng.random() < 0.7 else "cone", rng)
-                add_static(parts, cl, st, float(x), float(y), float(yaw))
+                kind = "barrier" if rng.random() < 0.7 else "cone"
+                parts, cl, st = _template(kind, rng)
+                add_static(parts, cl, st, float(x), float(y), float(yaw), kind)
         s += float(rng.uniform(8.0, 12.0))
     static = Primitives(np.asarray(rows, np.float64).reshape(-1, 9), np.asarray(cls, np.int32),
                         np.asarray(sty, np.int32))
@@ -376,7 +402,7 @@ def make_world(rng: np.random.Generator, origin_xy: tuple[float, float], t0_us: 
     def add_actor(kind: str, s0: float, offset: float, speed: float, direction: float) -> None:
         parts, cl, st = _template(kind, rng)
         actors.append(Actor(parts, np.asarray(cl, np.int32), np.asarray(st, np.int32), s0, offset, speed, direction,
-                            t0_us))
+                            t0_us, kind))
 
     v_opp = float(rng.uniform(6.0, 11.0))
     s = ego_s0 + 10.0
@@ -396,4 +422,5 @@ def make_world(rng: np.random.Generator, origin_xy: tuple[float, float], t0_us: 
             direction = 1.0 if rng.random() < 0.5 else -1.0
             add_actor("pedestrian", s, side * rng.uniform(6.3, 7.5), float(rng.uniform(1.0, 1.6)) * moving, direction)
             s += float(rng.uniform(5.0, 18.0))
-    return SceneWorld(path=path, ego=ego, ground=ground, static=static, actors=tuple(actors))
+    return SceneWorld(path=path, ego=ego, ground=ground, static=static, actors=tuple(actors),
+                      static_objects=tuple(objects))

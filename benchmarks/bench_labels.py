@@ -1,0 +1,133 @@
+"""Benchmark `occdata labels` on a synthetic world whose exact labels are known (issue 27).
+
+For each variant (boxes vs the naive global-aggregation control; keyframes only vs + sweeps; with vs
+without lidarseg) it generates the labels in a child process (seconds and peak RSS per scene), then
+scores them against the world's truth: precision of the generated occupied voxels, recall of the
+truth's observable surface, semantic agreement, moving instances' share of voxels inside their box,
+and `occdata eval` mIoU (camera mask) of the generated labels as predictions.
+
+    python benchmarks/bench_labels.py [--scenes 1 --samples 40 --seed 11] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from occdata.evaluate import EvalConfig, evaluate_predictions  # noqa: E402
+from occdata.geometry import invert_rigid  # noqa: E402
+from occdata.labels.fidelity import Fidelity, score_scene  # noqa: E402
+from occdata.labels.scene import box_class  # noqa: E402
+from occdata.nuscenes import load_nuscenes  # noqa: E402
+from occdata.nuscenes.annotations import load_annotations  # noqa: E402
+from occdata.store.build import BuildConfig, build_store  # noqa: E402
+from occdata.synth import SynthConfig, synthesize  # noqa: E402
+
+VARIANTS = {  # name: (extra CLI options, drop lidarseg)
+    "boxes-keyframes": ([], False),
+    "boxes-sweeps": (["--lidar-sweeps"], False),
+    "control-sweeps": (["--lidar-sweeps", "--no-boxes"], False),
+    "boxes-sweeps-noseg": (["--lidar-sweeps"], True),
+    "control-sweeps-noseg": (["--lidar-sweeps", "--no-boxes"], True),
+}
+
+
+def _generate(root: Path, out: Path, extra: list[str]) -> dict[str, float]:
+    """Run `occdata labels` in a child on one core (NUMBA_NUM_THREADS=1); its wall and CPU seconds
+    and peak RSS (MiB), from wait4. On a shared machine the CPU time is the per-core figure."""
+    t0 = time.perf_counter()
+    env = {**os.environ, "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "cli.occdata_cli", "labels", "--root", str(root), "--out",
+                             str(out), "--no-progress", *extra], cwd=REPO, env=env)
+    _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode:
+        raise SystemExit(f"occdata labels failed ({proc.returncode})")
+    return {"seconds": time.perf_counter() - t0, "cpu_seconds": usage.ru_utime + usage.ru_stime,
+            "peak_rss_mib": usage.ru_maxrss / 1024}
+
+
+def _score(root: Path, gen: Path, truth: Path) -> dict[str, float]:
+    ds = load_nuscenes(root, None)
+    ann = load_annotations(root, ds.version)
+    total, inside, moved, worst = Fidelity(), 0, 0, 1.0
+    class_of = {k: box_class(b) for bs in ann.boxes_by_sample.values() for b in bs for k in [b.instance_token]}
+    for sc in ds.scenes:
+        gens, truths, Ts, boxes = [], [], [], []
+        for tok in sc.sample_tokens:
+            s = ds.sample(tok)
+            with np.load(gen / sc.name / tok / "labels.npz", allow_pickle=False) as g:
+                gens.append(g["semantics"])
+            with np.load(truth / sc.name / tok / "labels.npz", allow_pickle=False) as t:
+                truths.append((t["semantics"], t["mask_lidar"]))
+            Ts.append(invert_rigid(s.T_global_from_keyego))
+            boxes.append(list(ann.boxes_by_sample.get(tok, ())))
+        score = score_scene(gens, truths, Ts, boxes, class_of)
+        total.add(score.voxels)
+        inside += sum(v[0] for v in score.moving.values())
+        moved += sum(v[1] for v in score.moving.values())
+        worst = min(worst, score.worst_instance())
+    return {"precision": total.precision, "surface_recall": total.recall,
+            "semantic_agreement": total.semantic_agreement, "moving_inside": inside / max(moved, 1),
+            "moving_inside_worst_instance": worst, "moving_voxels": moved}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", type=int, default=1)
+    ap.add_argument("--samples", type=int, default=40)
+    ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--width", type=int, default=320)
+    ap.add_argument("--height", type=int, default=180)
+    ap.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated variant names")
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--keep", type=Path, default=None, help="work folder to keep (default: a temporary one)")
+    a = ap.parse_args()
+    work = a.keep or Path(tempfile.mkdtemp(prefix="bench_labels_"))
+    root = work / "world"
+    if not (root / "v1.0-mini").is_dir():
+        synthesize(SynthConfig(out=root, scenes=a.scenes, samples=a.samples, seed=a.seed, width=a.width,
+                               height=a.height, progress=False))
+    store = work / "truth.zarr"
+    if not store.exists():
+        build_store(BuildConfig(root=root, out=store, gts=root / "gts", progress=False))
+    rows = {}
+    for name in a.variants.split(","):
+        extra, no_seg = VARIANTS[name]
+        src = root
+        if no_seg:  # the same tree without lidarseg (symlinked data, tables copied without lidarseg.json)
+            src = work / "world_noseg"
+            if not src.exists():
+                src.mkdir()
+                for p in root.iterdir():
+                    if p.name not in ("v1.0-mini", "lidarseg"):
+                        (src / p.name).symlink_to(p.resolve())
+                shutil.copytree(root / "v1.0-mini", src / "v1.0-mini", ignore=shutil.ignore_patterns("lidarseg.json"))
+        out = work / f"gen_{name}"
+        shutil.rmtree(out, ignore_errors=True)
+        cost = _generate(src, out, extra)
+        row = {**cost, "cpu_seconds_per_scene": cost["cpu_seconds"] / a.scenes, **_score(root, out, root / "gts")}
+        for split in ("train", "val") if a.scenes > 1 else ("train",):
+            rep = evaluate_predictions(EvalConfig(pred=out, store=store, split=split, rayiou=False, progress=False))
+            row[f"eval_miou_camera_{split}"] = float(rep.miou.miou)
+        rows[name] = row
+        print(name, json.dumps({k: round(v, 4) for k, v in row.items()}), flush=True)
+    result = {"command": " ".join(sys.argv), "world": vars(a) | {"json": None, "keep": None}, "rows": rows}
+    if a.json:
+        a.json.write_text(json.dumps(result, indent=1, default=str))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,169 @@
+"""How close generated labels are to a known truth (the synthetic world's exact labels).
+
+Pure functions over `(X, Y, Z) uint8` grids (17 = free): precision of the generated occupied voxels,
+recall of the truth's observable surface, semantic agreement, and for moving objects the share of
+an instance's generated voxels that lie in its box at that keyframe. Used by the tests and by
+`benchmarks/bench_labels.py`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from occdata.constants import FREE_LABEL, GRID
+
+__all__ = ["Fidelity", "SceneScore", "instance_containment", "moving_containment", "moving_tracks",
+           "observable_surface", "score_scene", "voxel_fidelity"]
+
+
+@dataclass
+class Fidelity:
+    """Voxel counts summed over keyframes; the ratios are properties."""
+
+    generated: int = 0  # occupied voxels generated
+    true_positive: int = 0  # ... that are occupied in the truth
+    surface: int = 0  # truth's observable surface voxels
+    surface_found: int = 0  # ... generated occupied
+    same_class: int = 0  # generated occupied, truly occupied, same class
+
+    def add(self, other: Fidelity) -> None:
+        for k, v in vars(other).items():
+            setattr(self, k, getattr(self, k) + v)
+
+    @property
+    def precision(self) -> float:
+        return self.true_positive / max(self.generated, 1)
+
+    @property
+    def recall(self) -> float:
+        return self.surface_found / max(self.surface, 1)
+
+    @property
+    def semantic_agreement(self) -> float:
+        return self.same_class / max(self.true_positive, 1)
+
+
+def observable_surface(truth: np.ndarray, mask_lidar: np.ndarray) -> np.ndarray:
+    """`(X, Y, Z) bool`: truth-occupied voxels in `mask_lidar` with a 6-neighbour that is free and
+    also in `mask_lidar` (a LiDAR could have seen that face; the inside of a filled solid is not)."""
+    occ = truth != FREE_LABEL
+    seen = mask_lidar != 0
+    open_free = ~occ & seen
+    near = np.zeros_like(occ)
+    for axis in range(3):
+        for shift in (1, -1):
+            rolled = np.roll(open_free, shift, axis=axis)
+            edge = [slice(None)] * 3
+            edge[axis] = 0 if shift == 1 else -1
+            rolled[tuple(edge)] = False  # no wrap-around
+            near |= rolled
+    return occ & seen & near
+
+
+def voxel_fidelity(generated: np.ndarray, truth: np.ndarray, truth_mask_lidar: np.ndarray) -> Fidelity:
+    """Counts for one keyframe's generated semantics against the truth's semantics and LiDAR mask."""
+    gen_occ = generated != FREE_LABEL
+    true_occ = truth != FREE_LABEL
+    surface = observable_surface(truth, truth_mask_lidar)
+    both = gen_occ & true_occ
+    return Fidelity(
+        generated=int(gen_occ.sum()), true_positive=int(both.sum()), surface=int(surface.sum()),
+        surface_found=int((surface & gen_occ).sum()), same_class=int((both & (generated == truth)).sum()),
+    )
+
+
+def _in_box(centers: np.ndarray, T_keyego_from_box: np.ndarray, size_wlh: np.ndarray, dilate: int) -> np.ndarray:
+    T_box_from_keyego = np.linalg.inv(T_keyego_from_box)
+    p = centers @ T_box_from_keyego[:3, :3].T + T_box_from_keyego[:3, 3]
+    w, length, h = np.asarray(size_wlh, np.float64)
+    half = np.array([length / 2, w / 2, h / 2]) + dilate * GRID.voxel_size
+    return (np.abs(p) <= half).all(axis=1)
+
+
+def instance_containment(generated: np.ndarray, cls: int, track: list[tuple[np.ndarray, np.ndarray]], now: int,
+                         others: list[tuple[np.ndarray, np.ndarray]] = (), dilate: int = 1) -> tuple[int, int]:
+    """A moving instance's generated voxels at one keyframe: `(inside, total)`.
+
+    Its voxels are those of its class `cls` within the corridor it sweeps over the scene: the union of
+    all its boxes `track` (`(T_keyego_from_box (4, 4), size_wlh (3,))` per annotation, in this
+    keyframe's key ego), each grown by `dilate` voxels. `inside` counts those within its box at this
+    keyframe, `track[now]`, grown the same way. Voxels in the other instances' boxes at this
+    keyframe (`others`, grown the same way) belong to them and are left out. A smeared object fills
+    the corridor; a sharp one stays in its box."""
+    idx = np.argwhere(generated == cls)
+    if not len(idx):
+        return 0, 0
+    centers = np.asarray(GRID.lower, np.float64) + (idx + 0.5) * GRID.voxel_size
+    corridor = np.zeros(len(idx), bool)
+    for T, size in track:
+        corridor |= _in_box(centers, T, size, dilate)
+    for T, size in others:
+        corridor &= ~_in_box(centers, T, size, dilate)
+    inside = _in_box(centers, *track[now], dilate) & corridor
+    return int(inside.sum()), int(corridor.sum())
+
+
+@dataclass
+class SceneScore:
+    """A scene's fidelity counts and, per moving instance, (inside, total) voxels summed over keyframes."""
+
+    voxels: Fidelity
+    moving: dict[str, tuple[int, int]]
+
+    def moving_fraction(self) -> float:
+        """Share of all moving instances' generated voxels that lie in their box (pooled)."""
+        inside = sum(v[0] for v in self.moving.values())
+        return inside / max(sum(v[1] for v in self.moving.values()), 1)
+
+    def worst_instance(self, min_voxels: int = 20) -> float:
+        """The lowest per-instance share among instances with at least `min_voxels` voxels."""
+        shares = [i / t for i, t in self.moving.values() if t >= min_voxels]
+        return min(shares, default=1.0)
+
+
+def moving_tracks(boxes_by_keyframe: list[list], min_travel: float = 1.0) -> set[str]:
+    """Instance tokens whose box centre travels more than `min_travel` metres over the scene;
+    `boxes_by_keyframe`: per keyframe, its BoxRecords."""
+    centers: dict[str, list[np.ndarray]] = {}
+    for boxes in boxes_by_keyframe:
+        for b in boxes:
+            centers.setdefault(b.instance_token, []).append(np.asarray(b.center_global, np.float64))
+    return {k for k, c in centers.items() if np.ptp(np.stack(c), axis=0)[:2].max() > min_travel}
+
+
+def moving_containment(generated: list[np.ndarray], T_keyego_from_global: list[np.ndarray],
+                       boxes_by_keyframe: list[list], class_of: dict[str, int]) -> dict[str, tuple[int, int]]:
+    """Per moving instance, `(inside, total)` generated voxels summed over the keyframes
+    (`instance_containment`); `generated[k] (X, Y, Z) uint8`, the key-ego transform and the
+    BoxRecords of keyframe k; `class_of`: instance -> its Occ3D class."""
+    movers = moving_tracks(boxes_by_keyframe)
+    tracks: dict[str, list] = {}
+    for boxes in boxes_by_keyframe:
+        for b in boxes:
+            tracks.setdefault(b.instance_token, []).append(b)
+    out: dict[str, tuple[int, int]] = {}
+    for k, gen in enumerate(generated):
+        T = T_keyego_from_global[k]
+        for b in boxes_by_keyframe[k]:
+            if b.instance_token not in movers:
+                continue
+            track = [(T @ o.T_global_from_box(), o.size_wlh) for o in tracks[b.instance_token]]
+            now = next(i for i, o in enumerate(tracks[b.instance_token]) if o.token == b.token)
+            others = [(T @ o.T_global_from_box(), o.size_wlh) for o in boxes_by_keyframe[k] if o is not b]
+            i, t = instance_containment(gen, class_of[b.instance_token], track, now, others)
+            old = out.get(b.instance_token, (0, 0))
+            out[b.instance_token] = (old[0] + i, old[1] + t)
+    return out
+
+
+def score_scene(generated: list[np.ndarray], truth: list[tuple[np.ndarray, np.ndarray]],
+                T_keyego_from_global: list[np.ndarray], boxes_by_keyframe: list[list],
+                class_of: dict[str, int]) -> SceneScore:
+    """Score one scene's keyframes: `generated[k]`, `truth[k] = (semantics, mask_lidar)` and the
+    arguments of `moving_containment`."""
+    total = Fidelity()
+    for gen, (sem, mask) in zip(generated, truth, strict=True):
+        total.add(voxel_fidelity(gen, sem, mask))
+    return SceneScore(total, moving_containment(generated, T_keyego_from_global, boxes_by_keyframe, class_of))

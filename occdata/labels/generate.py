@@ -1,0 +1,178 @@
+"""`occdata labels`: Occ3D-layout labels for every scene of a nuScenes-format tree.
+
+Output: `<out>/<scene>/<sample_token>/labels.npz` (`semantics`, `mask_lidar`, `mask_camera`, uint8
+(200, 200, 16), 17 = free), exactly Occ3D's layout, so `occdata build --gts <out>` and every peer
+codebase read it. A scene is one task: its files are written atomically, then its record
+`<out>/.scenes/<scene>.json` (the scene is finished only once that exists), and at the end the
+manifest `<out>/labels.json` is assembled from the records (idempotent). `--resume` skips scenes
+with a record. The same input gives byte-identical files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Iterable
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from occdata.constants import CLASS_NAMES
+from occdata.errors import OccDataError
+from occdata.fileio import TMP_SUFFIX, npz_bytes, remove_stale_temps, write_atomic
+from occdata.labels.scene import LabelOptions, SceneInputs, label_scene
+from occdata.nuscenes import NuScenesDataset, find_version, load_nuscenes, validate_sample
+from occdata.nuscenes.annotations import load_annotations
+from occdata.nuscenes.lidarseg import lidarseg_index_names, load_lidarseg_index, occ3d_lut
+from occdata.store.lock import store_lock
+
+__all__ = ["ALGORITHM_VERSION", "LabelsConfig", "LabelsReport", "generate_labels", "load_inputs", "scene_record_path"]
+
+# Bumped whenever the labels a given input produces change.
+ALGORITHM_VERSION = 1
+_RECORDS = ".scenes"
+
+
+@dataclass(frozen=True)
+class LabelsConfig:
+    """`occdata labels` options. `scenes`: scene names to label (None: all of the chosen splits)."""
+
+    root: Path
+    out: Path
+    version: str | None = None
+    options: LabelOptions = LabelOptions()
+    scenes: tuple[str, ...] | None = None
+    splits: tuple[str, ...] | None = None
+    resume: bool = False
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "root", Path(self.root))
+        object.__setattr__(self, "out", Path(self.out))
+
+
+@dataclass(frozen=True)
+class LabelsReport:
+    scenes_done: int
+    scenes_skipped: int  # finished earlier (--resume)
+    keyframes: int
+    with_lidarseg: bool
+    manifest: Path
+
+
+def scene_record_path(out: Path, scene: str) -> Path:
+    return Path(out) / _RECORDS / f"{scene}.json"
+
+
+def load_inputs(cfg: LabelsConfig) -> tuple[SceneInputs, str]:
+    """The tables (with sweeps when used), boxes and lidarseg of `cfg.root`; and the version read."""
+    version = find_version(cfg.root, cfg.version)
+    ds = load_nuscenes(cfg.root, version, sweeps=cfg.options.lidar_sweeps).select(cfg.splits)
+    if cfg.scenes is not None:
+        missing = sorted(set(cfg.scenes) - {sc.name for sc in ds.scenes})
+        if missing:
+            raise OccDataError(f"scene(s) not in {cfg.root}/{version}: {', '.join(missing)}")
+        ds = _only_scenes(ds, set(cfg.scenes))
+    for s in ds.samples:
+        validate_sample(s)
+    seg = load_lidarseg_index(cfg.root, version)
+    lut = occ3d_lut(lidarseg_index_names(cfg.root, version)) if seg else None
+    return SceneInputs(ds, load_annotations(cfg.root, version), seg, lut), version
+
+
+def _only_scenes(ds: NuScenesDataset, names: set[str]) -> NuScenesDataset:
+    scenes = tuple(sc for sc in ds.scenes if sc.name in names)
+    keep = {sc.token for sc in scenes}
+    return dataclasses.replace(ds, scenes=scenes, samples=tuple(s for s in ds.samples if s.scene_token in keep))
+
+
+def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool) -> dict[str, Any]:
+    opts = dataclasses.asdict(cfg.options)
+    static = (f"{opts['static_class']} ({CLASS_NAMES[opts['static_class']]}): every point outside a box; the "
+              "tree has no lidarseg, so this class says 'occupied, not an annotated object', not what it is")
+    return {
+        "generator": "occdata labels",
+        "algorithm_version": ALGORITHM_VERSION,
+        "package_version": _package_version(),
+        "source": {"root": str(cfg.root), "version": version},
+        "options": opts,
+        "lidarseg": with_seg,
+        "classes": ("keyframe points: lidarseg mapped to Occ3D (noise, ego dropped); sweep points: nearest "
+                    "labelled keyframe point" if with_seg else
+                    f"points in a box: the box's category; static points: class {static}"),
+        "layout": "<scene>/<sample_token>/labels.npz: semantics, mask_lidar, mask_camera; uint8 (200, 200, 16); "
+                  "17 = free",
+    }
+
+
+def _package_version() -> str:
+    try:
+        return metadata.version("fastocc")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def _write_scene(out: Path, scene: str, labels: dict[str, dict[str, np.ndarray]], record: dict[str, Any]) -> None:
+    """Each keyframe's file atomically, then the scene's record (its completion mark)."""
+    for token, arrays in labels.items():
+        write_atomic(out / scene / token / "labels.npz", npz_bytes(arrays))
+    write_atomic(scene_record_path(out, scene), json.dumps(record, indent=1, sort_keys=True).encode())
+
+
+def _commit(out: Path, header: dict[str, Any], scenes: Iterable[str]) -> Path:
+    """Assemble `labels.json` from the scene records (idempotent)."""
+    records = {}
+    for name in sorted(scenes):
+        path = scene_record_path(out, name)
+        if path.is_file():
+            records[name] = json.loads(path.read_text())
+    manifest = {**header, "scenes": records,
+                "totals": {k: sum(r["counts"][k] for r in records.values()) for k in ("keyframes", "points")}}
+    write_atomic(out / "labels.json", json.dumps(manifest, indent=1, sort_keys=True).encode())
+    return out / "labels.json"
+
+
+def _check_out(cfg: LabelsConfig, header: dict[str, Any]) -> None:
+    """A fresh run needs an output without our records; a resumed one needs the same settings."""
+    records = sorted((cfg.out / _RECORDS).glob("*.json")) if (cfg.out / _RECORDS).is_dir() else []
+    if records and not cfg.resume:
+        raise OccDataError(f"{cfg.out} already holds labels of {len(records)} scene(s); pass --resume to "
+                           "continue, or choose another --out")
+    for path in records:
+        old = json.loads(path.read_text()).get("settings")
+        if old != _settings(header):
+            raise OccDataError(f"{path} was written with other settings ({old}); use another --out")
+
+
+def _settings(header: dict[str, Any]) -> dict[str, Any]:
+    return {"algorithm_version": header["algorithm_version"], "options": header["options"],
+            "lidarseg": header["lidarseg"]}
+
+
+def generate_labels(cfg: LabelsConfig) -> LabelsReport:
+    """Label every chosen scene (see the module docstring)."""
+    inputs, version = load_inputs(cfg)
+    header = _options_dict(cfg, version, bool(inputs.lidarseg))
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    with store_lock(cfg.out, "labels"):
+        _check_out(cfg, header)
+        # What a killed run left half-written (we hold the lock: no other writer is live).
+        for folder in {p.parent for p in cfg.out.glob(f"*/*/.labels.npz.*{TMP_SUFFIX}")} | {cfg.out / _RECORDS}:
+            if folder.is_dir():
+                remove_stale_temps(folder)
+        todo = [sc for sc in inputs.dataset.scenes if not scene_record_path(cfg.out, sc.name).is_file()]
+        skipped = len(inputs.dataset.scenes) - len(todo)
+        bar = tqdm(total=len(todo), desc="labels", unit="scene", disable=not cfg.progress)
+        for sc in todo:
+            labels, counts = label_scene(inputs, sc, cfg.options)
+            record = {"settings": _settings(header), "counts": dataclasses.asdict(counts),
+                      "samples": sorted(labels)}
+            _write_scene(cfg.out, sc.name, labels, record)
+            bar.update(1)
+        bar.close()
+        manifest = _commit(cfg.out, header, (sc.name for sc in inputs.dataset.scenes))
+    return LabelsReport(len(todo), skipped, len(inputs.dataset.samples), bool(inputs.lidarseg), manifest)

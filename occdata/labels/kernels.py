@@ -1,0 +1,213 @@
+"""Numba kernels of label generation, each with a plain numpy twin (tests check they agree).
+
+- `points_in_boxes`: which 3D box (if any) holds each point.
+- `vote_voxels`: transform points into a voxel grid's frame and count class votes per voxel
+  (`majority` then takes the most voted class).
+- `nearest_labels`: the class of each query point's nearest labelled reference point within a radius.
+
+Boxes are given by `T_box_from_world (B, 4, 4) float64` and half extents `half_size (B, 3) float64`
+(box frame: x along the length, y along the width, z up, origin at the centre).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+__all__ = [
+    "NO_LABEL",
+    "NearestIndex",
+    "nearest_labels",
+    "nearest_labels_reference",
+    "points_in_boxes",
+    "points_in_boxes_reference",
+    "majority",
+    "vote_voxels",
+    "vote_voxels_reference",
+]
+
+NO_LABEL = 255  # a point without a class (no reference within the radius)
+
+
+@njit(cache=True, parallel=True)
+def points_in_boxes(points: np.ndarray, T_box_from_world: np.ndarray, half_size: np.ndarray) -> np.ndarray:
+    """`(N,) int32`: index of the first box (in box order) whose closed volume holds each point of
+    `points (N, 3) float64`, or -1."""
+    n, nb = points.shape[0], T_box_from_world.shape[0]
+    out = np.full(n, -1, np.int32)
+    for i in prange(n):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        for b in range(nb):
+            T = T_box_from_world[b]
+            bx = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
+            if abs(bx) > half_size[b, 0]:
+                continue
+            by = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
+            if abs(by) > half_size[b, 1]:
+                continue
+            bz = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+            if abs(bz) > half_size[b, 2]:
+                continue
+            out[i] = b
+            break
+    return out
+
+
+def points_in_boxes_reference(points: np.ndarray, T_box_from_world: np.ndarray, half_size: np.ndarray) -> np.ndarray:
+    """Numpy twin of `points_in_boxes`."""
+    out = np.full(len(points), -1, np.int32)
+    for b in range(len(T_box_from_world) - 1, -1, -1):  # reverse, so the first box wins
+        p = points @ T_box_from_world[b, :3, :3].T + T_box_from_world[b, :3, 3]
+        out[(np.abs(p) <= half_size[b]).all(axis=1)] = b
+    return out
+
+
+@njit(cache=True)
+def vote_voxels(
+    counts: np.ndarray, points: np.ndarray, classes: np.ndarray, T_grid_from_world: np.ndarray, lower: np.ndarray,
+    voxel_size: float, shape: np.ndarray,
+) -> None:
+    """Add one vote per point to `counts (X * Y * Z, n_classes) int32` (in place).
+
+    points `(N, 3) float64` in the world frame, moved into the grid frame by `T_grid_from_world
+    (4, 4)`; classes `(N,) uint8` (values >= n_classes are skipped); points outside the grid too. A
+    voxel is [lower + i v, lower + (i + 1) v) per axis; the flat index is (ix * Y + iy) * Z + iz."""
+    X, Y, Z = shape[0], shape[1], shape[2]
+    n_classes = counts.shape[1]
+    T = T_grid_from_world
+    for i in range(points.shape[0]):
+        c = classes[i]
+        if c >= n_classes:
+            continue
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        ix = int(np.floor((T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3] - lower[0]) / voxel_size))
+        iy = int(np.floor((T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3] - lower[1]) / voxel_size))
+        iz = int(np.floor((T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3] - lower[2]) / voxel_size))
+        if 0 <= ix < X and 0 <= iy < Y and 0 <= iz < Z:
+            counts[(ix * Y + iy) * Z + iz, c] += 1
+
+
+def vote_voxels_reference(
+    counts: np.ndarray, points: np.ndarray, classes: np.ndarray, T_grid_from_world: np.ndarray, lower: np.ndarray,
+    voxel_size: float, shape: np.ndarray,
+) -> None:
+    """Numpy twin of `vote_voxels`."""
+    shape = tuple(int(s) for s in shape)
+    keep = classes < counts.shape[1]
+    p = points[keep] @ T_grid_from_world[:3, :3].T + T_grid_from_world[:3, 3]
+    idx = np.floor((p - lower) / voxel_size).astype(np.int64)
+    ok = ((idx >= 0) & (idx < np.array(shape))).all(axis=1)
+    flat = np.ravel_multi_index(tuple(idx[ok].T), shape)
+    np.add.at(counts, (flat, classes[keep][ok].astype(np.int64)), 1)
+
+
+def majority(counts: np.ndarray, shape: tuple[int, int, int], empty: int) -> np.ndarray:
+    """`(X, Y, Z) uint8`: per voxel the class with the most votes in `counts (X * Y * Z, C)`, ties to
+    the lowest class index (argmax's first maximum); `empty` where a voxel has no vote."""
+    return np.where(counts.max(axis=1) > 0, counts.argmax(axis=1), empty).astype(np.uint8).reshape(shape)
+
+
+@njit(cache=True)
+def _cell_key(cx: int, cy: int, cz: int) -> int:
+    # 21 bits per axis (cells of >= 1 cm cover +-10 km): a unique, order-preserving int64 key.
+    return ((cx + (1 << 20)) << 42) | ((cy + (1 << 20)) << 21) | (cz + (1 << 20))
+
+
+@njit(cache=True)
+def _cell_keys(points: np.ndarray, cell: float) -> np.ndarray:
+    keys = np.empty(points.shape[0], np.int64)
+    for i in range(points.shape[0]):
+        keys[i] = _cell_key(int(np.floor(points[i, 0] / cell)), int(np.floor(points[i, 1] / cell)),
+                            int(np.floor(points[i, 2] / cell)))
+    return keys
+
+
+@njit(cache=True, parallel=True)
+def _nearest_sorted(
+    query: np.ndarray, ref: np.ndarray, ref_cls: np.ndarray, keys: np.ndarray, orig: np.ndarray, radius: float
+) -> np.ndarray:
+    out = np.full(query.shape[0], NO_LABEL, np.uint8)
+    dist2 = np.full(query.shape[0], np.inf)
+    r2 = radius * radius
+    for q in prange(query.shape[0]):
+        x, y, z = query[q, 0], query[q, 1], query[q, 2]
+        fx, fy, fz = np.floor(x / radius), np.floor(y / radius), np.floor(z / radius)
+        cx, cy, cz = int(fx), int(fy), int(fz)
+        # Distances from the point to its cell's lower and upper faces, per axis.
+        lo = np.array([x - fx * radius, y - fy * radius, z - fz * radius])
+        hi = radius - lo
+        best, best_j = r2, -1
+        for n in range(27):  # own cell first (n = 13 is (0, 0, 0)), then the neighbours
+            m = (n + 13) % 27
+            dx, dy, dz = m // 9 - 1, (m // 3) % 3 - 1, m % 3 - 1
+            # Skip a neighbour cell that cannot hold anything nearer than the best so far.
+            gap = 0.0
+            for axis, d in ((0, dx), (1, dy), (2, dz)):
+                if d < 0:
+                    gap += lo[axis] ** 2
+                elif d > 0:
+                    gap += hi[axis] ** 2
+            if gap > best:
+                continue
+            k = _cell_key(cx + dx, cy + dy, cz + dz)
+            j = np.searchsorted(keys, k)
+            while j < keys.shape[0] and keys[j] == k:
+                d2 = (ref[j, 0] - x) ** 2 + (ref[j, 1] - y) ** 2 + (ref[j, 2] - z) ** 2
+                # Nearest wins; an equal distance goes to the reference first in input order.
+                if d2 <= r2 and (best_j < 0 or d2 < best or (d2 == best and orig[j] < orig[best_j])):
+                    best, best_j = d2, j
+                j += 1
+        if best_j >= 0:
+            out[q] = ref_cls[best_j]
+            dist2[q] = best
+    return out, dist2
+
+
+@dataclass(frozen=True, eq=False)
+class NearestIndex:
+    """Labelled reference points bucketed in cells of `radius` metres, sorted by cell, for repeated
+    `query` calls (built once per scene). `ref (R, 3) float64`, `cls (R,) uint8` in sorted order;
+    `keys (R,) int64` their cells; `orig (R,) int64` their input positions (for tie-breaking)."""
+
+    ref: np.ndarray
+    cls: np.ndarray
+    keys: np.ndarray
+    orig: np.ndarray
+    radius: float
+
+    @staticmethod
+    def build(ref: np.ndarray, ref_cls: np.ndarray, radius: float) -> NearestIndex:
+        if radius <= 0:
+            raise ValueError("radius must be > 0")
+        ref = np.ascontiguousarray(ref, np.float64).reshape(-1, 3)
+        keys = _cell_keys(ref, float(radius))
+        order = np.argsort(keys, kind="stable")
+        return NearestIndex(ref[order], np.ascontiguousarray(np.asarray(ref_cls, np.uint8)[order]), keys[order],
+                            order.astype(np.int64), float(radius))
+
+    def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`(Q,) uint8` class of the nearest reference within `radius` (inclusive) of each point of
+        `points (Q, 3)`, or NO_LABEL; and `(Q,) float64` its squared distance (inf: none). Ties go
+        to the reference first in input order."""
+        points = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+        if len(self.ref) == 0:
+            return np.full(len(points), NO_LABEL, np.uint8), np.full(len(points), np.inf)
+        return _nearest_sorted(points, self.ref, self.cls, self.keys, self.orig, self.radius)
+
+
+def nearest_labels(query: np.ndarray, ref: np.ndarray, ref_cls: np.ndarray, radius: float) -> np.ndarray:
+    """One-off `NearestIndex.build(ref, ref_cls, radius).query(query)`, classes only."""
+    return NearestIndex.build(ref, ref_cls, radius).query(query)[0]
+
+
+def nearest_labels_reference(query: np.ndarray, ref: np.ndarray, ref_cls: np.ndarray, radius: float) -> np.ndarray:
+    """Numpy twin of `nearest_labels`: brute force over all references (small inputs only)."""
+    out = np.full(len(query), NO_LABEL, np.uint8)
+    for q in range(len(query)):
+        d2 = ((ref - query[q]) ** 2).sum(axis=1)
+        j = int(np.argmin(d2)) if len(ref) else -1
+        if j >= 0 and d2[j] <= radius * radius:
+            out[q] = ref_cls[j]
+    return out

@@ -1,0 +1,350 @@
+"""One scene's Occ3D-style labels from its LiDAR frames and 3D boxes (DESIGN §5.5).
+
+1. Every LiDAR frame (keyframes; with `lidar_sweeps`, also the sweeps between them) is moved into
+   the global frame through its own ego pose (motion compensation per frame); points on the ego car
+   are dropped.
+2. A point inside a box of that frame's time (the devkit's interpolated boxes) belongs to the box's
+   instance and is stored in the box frame, so a moving object accumulates without smearing. The
+   other points are the static scene, stored in the global frame.
+3. Classes: keyframe points take their lidarseg class (32 -> Occ3D 16 + others; noise and ego
+   dropped); sweep points take the class of the nearest labelled keyframe point (the same instance's
+   points in the box frame, or the static points in global). Without lidarseg a box point takes its
+   box's category and a static point takes `static_class`, stated in the manifest.
+4. Per keyframe: the static points plus each instance's points placed at that keyframe's box pose,
+   cropped to the key-ego grid, majority vote per voxel; then `mask_lidar` / `mask_camera` from
+   occdata.visibility.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES
+from occdata.geometry import invert_rigid, transform_points
+from occdata.labels.kernels import NO_LABEL, NearestIndex, majority, points_in_boxes, vote_voxels
+from occdata.nuscenes import LidarRecord, NuScenesDataset, SampleRecord, SceneRecord, load_lidar_points
+from occdata.nuscenes.annotations import Annotations, BoxRecord, boxes_for_lidar
+from occdata.nuscenes.lidarseg import DROP, OCC3D_FROM_LIDARSEG, read_lidarseg
+from occdata.visibility import GROUND_CLASSES, camera_mask, lidar_mask
+
+__all__ = ["EGO_BOX", "LabelOptions", "SceneCounts", "SceneInputs", "label_scene"]
+
+# The ego car in its own frame (x forward from the rear axle, y left, z up), metres: LiDAR returns
+# inside it are the car itself (lidarseg's vehicle.ego), dropped with or without lidarseg.
+EGO_BOX = ((-1.0, -1.1, -0.5), (4.0, 1.1, 2.2))
+# Occ3D classes that are never an object's own points (ground, buildings, vegetation).
+_STUFF = np.array(sorted({*GROUND_CLASSES, 15, 16}), np.uint8)
+
+
+@dataclass(frozen=True)
+class LabelOptions:
+    """How a scene is labelled (recorded in the manifest).
+
+    lidar_sweeps: also aggregate the non-keyframe sweeps. knn_radius: metres within which a sweep
+    point finds a labelled keyframe point (none: the point is dropped, counted). box_margin: metres
+    added to each box's sides and top when deciding membership (LiDAR returns lie on the surface).
+    floor_margin: without lidarseg, points this close above a box's floor stay static (ground).
+    static_class: the Occ3D class of static points when there is no lidarseg. use_boxes=False is
+    the control that aggregates every point in the global frame (moving objects smear); without
+    lidarseg its boxes still give their points' classes. hold_static: an instance whose box moves
+    less than this many metres over the scene is parked: at keyframes where it has no box
+    (annotation stops once an object is out of sight) it is drawn at its nearest annotated pose
+    (0: never)."""
+
+    lidar_sweeps: bool = False
+    knn_radius: float = 0.5
+    box_margin: float = 0.1
+    floor_margin: float = 0.15
+    static_class: int = 0
+    hold_static: float = 1.0
+    use_boxes: bool = True  # False: naive global aggregation, the smearing control
+
+    def __post_init__(self) -> None:
+        if not 0 < self.knn_radius <= 5:
+            raise ValueError("knn_radius must be in (0, 5] m")
+        if not 0 <= self.hold_static <= 10:
+            raise ValueError("hold_static must be in [0, 10] m")
+        if not 0 <= self.box_margin <= 1 or not 0 <= self.floor_margin <= 1:
+            raise ValueError("box_margin and floor_margin must be in [0, 1] m")
+        if not 0 <= self.static_class < NUM_CLASSES - 1:
+            raise ValueError(f"static_class must be an Occ3D class 0..{NUM_CLASSES - 2}")
+
+
+@dataclass(frozen=True, eq=False)
+class SceneInputs:
+    """What labelling reads besides the LiDAR files: the tables (`dataset`, read with sweeps when
+    sweeps are used), the boxes and the lidarseg files (`lidarseg`: sample_data token -> path; empty
+    when the tree has none)."""
+
+    dataset: NuScenesDataset
+    annotations: Annotations
+    lidarseg: dict[str, object] = field(default_factory=dict)
+    lidarseg_lut: np.ndarray | None = None  # (256,) uint8: lidarseg index -> Occ3D class or DROP
+
+
+@dataclass
+class SceneCounts:
+    """Per-scene point counts (the manifest's figures)."""
+
+    keyframes: int = 0
+    frames: int = 0
+    points: int = 0
+    static_points: int = 0
+    object_points: int = 0
+    dropped_ego: int = 0
+    dropped_class: int = 0  # lidarseg noise / ego
+    dropped_unlabelled: int = 0  # sweep points with no labelled keyframe point within knn_radius
+    instances: int = 0
+
+
+@dataclass
+class _Cloud:
+    """Points gathered over a scene: static ones in global, object ones per instance in its box frame."""
+
+    static_pts: list[np.ndarray] = field(default_factory=list)
+    static_cls: list[np.ndarray] = field(default_factory=list)
+    obj_pts: dict[str, list[np.ndarray]] = field(default_factory=lambda: defaultdict(list))
+    obj_cls: dict[str, list[np.ndarray]] = field(default_factory=lambda: defaultdict(list))
+
+    def add_static(self, pts: np.ndarray, cls: np.ndarray) -> None:
+        self.static_pts.append(pts)
+        self.static_cls.append(cls)
+
+    def add_object(self, inst: str, pts: np.ndarray, cls: np.ndarray) -> None:
+        self.obj_pts[inst].append(pts)
+        self.obj_cls[inst].append(cls)
+
+    def static(self) -> tuple[np.ndarray, np.ndarray]:
+        return _cat(self.static_pts, self.static_cls)
+
+    def instance(self, inst: str) -> tuple[np.ndarray, np.ndarray]:
+        return _cat(self.obj_pts.get(inst, []), self.obj_cls.get(inst, []))
+
+
+def _cat(pts: list[np.ndarray], cls: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    if not pts:
+        return np.zeros((0, 3)), np.zeros(0, np.uint8)
+    return np.concatenate(pts), np.concatenate(cls)
+
+
+def box_class(box: BoxRecord) -> int:
+    """Occ3D class of a box's category (a category outside the 32 nuScenes ones: `others`)."""
+    c = OCC3D_FROM_LIDARSEG.get(box.category, 0)
+    return 0 if c == DROP else int(c)
+
+
+def _box_frames(boxes: tuple[BoxRecord, ...], margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """`T_box_from_global (B, 4, 4)` and membership half extents `(B, 3)`: length/2, width/2 and
+    height/2 grown by `margin`, the floor shifted down by nothing (the grown box is re-centred so
+    that its bottom stays at the box's floor)."""
+    T = np.zeros((len(boxes), 4, 4))
+    half = np.zeros((len(boxes), 3))
+    for b, box in enumerate(boxes):
+        T_global_from_box = box.T_global_from_box()
+        # Shift the box frame up by margin/2 so that growing z by margin/2 each way keeps the floor.
+        shift = np.eye(4)
+        shift[2, 3] = margin / 2
+        T[b] = invert_rigid(T_global_from_box @ shift)
+        w, length, h = box.size_wlh
+        half[b] = (length / 2 + margin, w / 2 + margin, h / 2 + margin / 2)
+    return T, half
+
+
+def _frame_points(rec: LidarRecord) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A frame's points `(N, 3) float64` in global, the lidar origin in global `(3,)`, and
+    `(N,) bool` off the ego car."""
+    raw = load_lidar_points(rec.path)[:, :3].astype(np.float64)
+    points_ego = transform_points(rec.T_ego_from_lidar, raw)
+    lo, hi = np.array(EGO_BOX[0]), np.array(EGO_BOX[1])
+    off_ego = ~((points_ego >= lo) & (points_ego <= hi)).all(axis=1)
+    T_global_from_lidar = rec.T_global_from_ego @ rec.T_ego_from_lidar
+    return transform_points(rec.T_global_from_ego, points_ego), T_global_from_lidar[:3, 3].copy(), off_ego
+
+
+def _in_boxes(points: np.ndarray, boxes: tuple[BoxRecord, ...], opts: LabelOptions) -> np.ndarray:
+    """`(N,) int32` index of the (margin-grown) box holding each global point `(N, 3)`, or -1."""
+    if not boxes:
+        return np.full(len(points), -1, np.int32)
+    T, half = _box_frames(boxes, opts.box_margin)
+    return points_in_boxes(np.ascontiguousarray(points), T, half)
+
+
+def _members(points: np.ndarray, cls: np.ndarray | None, boxes: tuple[BoxRecord, ...],
+             opts: LabelOptions) -> np.ndarray:
+    """`(N,) int32` box index of each global point `(N, 3)`, or -1 for static. With classes, ground,
+    building and vegetation points in a box stay static; without, points near a box's floor do."""
+    idx = _in_boxes(points, boxes, opts)
+    if cls is not None:
+        idx[np.isin(cls, _STUFF)] = -1
+        return idx
+    for b in np.unique(idx[idx >= 0]):
+        sel = np.flatnonzero(idx == b)
+        z_box = transform_points(invert_rigid(boxes[b].T_global_from_box()), points[sel])[:, 2]
+        idx[sel[z_box < -boxes[b].size_wlh[2] / 2 + opts.floor_margin]] = -1
+    return idx
+
+
+def _add_keyframe(cloud: _Cloud, points: np.ndarray, cls: np.ndarray | None, boxes: tuple[BoxRecord, ...],
+                  opts: LabelOptions, counts: SceneCounts) -> None:
+    """Split a keyframe's global points into static and per-instance (box frame) points with classes."""
+    idx = _members(points, cls, boxes, opts)
+    for b in np.unique(idx[idx >= 0]):
+        sel = idx == b
+        box = boxes[b]
+        c = cls[sel] if cls is not None else np.full(int(sel.sum()), box_class(box), np.uint8)
+        if opts.use_boxes:
+            p_box = transform_points(invert_rigid(box.T_global_from_box()), points[sel])
+            cloud.add_object(box.instance_token, p_box, c)
+        else:  # the control: the box gives the class only, the point stays where it was seen
+            cloud.add_static(points[sel], c)
+    static = idx < 0
+    c = cls[static] if cls is not None else np.full(int(static.sum()), opts.static_class, np.uint8)
+    cloud.add_static(points[static], c)
+    counts.object_points += int((~static).sum())
+    counts.static_points += int(static.sum())
+
+
+def _add_sweep(cloud: _Cloud, points: np.ndarray, boxes: tuple[BoxRecord, ...], static_index: NearestIndex | None,
+               object_index: dict[str, NearestIndex], opts: LabelOptions, counts: SceneCounts) -> None:
+    """A sweep's points: without lidarseg (`static_index` None) as a keyframe's; with it, each point
+    takes the class of the nearest labelled keyframe point, of its box's instance (box frame) or of
+    the static scene (global), whichever is nearer (an in-box point with neither in reach: the box's
+    class). A static point with no labelled point in reach is dropped (counted)."""
+    if static_index is None:
+        _add_keyframe(cloud, points, None, boxes, opts, counts)
+        return
+    idx = _in_boxes(points, boxes if opts.use_boxes else (), opts)
+    cls_s, d2_s = static_index.query(points)
+    for b in np.unique(idx[idx >= 0]):
+        sel = np.flatnonzero(idx == b)
+        box = boxes[b]
+        p_box = transform_points(invert_rigid(box.T_global_from_box()), points[sel])
+        index = object_index.get(box.instance_token)
+        if index is None:
+            cls_o, d2_o = np.full(len(sel), NO_LABEL, np.uint8), np.full(len(sel), np.inf)
+        else:
+            cls_o, d2_o = index.query(p_box)
+        own = d2_o <= d2_s[sel]
+        cloud.add_object(box.instance_token, p_box[own],
+                         np.where(cls_o[own] == NO_LABEL, box_class(box), cls_o[own]).astype(np.uint8))
+        counts.object_points += int(own.sum())
+        idx[sel[own]] = -2  # placed with its instance
+        idx[sel[~own]] = -1
+    static = idx == -1
+    labelled = static & (cls_s != NO_LABEL)
+    counts.dropped_unlabelled += int((static & ~labelled).sum())
+    cloud.add_static(points[labelled], cls_s[labelled])
+    counts.static_points += int(labelled.sum())
+
+
+def _keyframe_classes(inputs: SceneInputs, rec: LidarRecord, n_points: int) -> np.ndarray | None:
+    """`(N,) uint8` Occ3D classes (DROP for noise / ego) of a keyframe's points from lidarseg, or None."""
+    path = inputs.lidarseg.get(rec.token)
+    if path is None or inputs.lidarseg_lut is None:
+        return None
+    return inputs.lidarseg_lut[read_lidarseg(path, n_points)]
+
+
+def _semantics(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tuple[BoxRecord, ...],
+               T_keyego_from_global: np.ndarray) -> np.ndarray:
+    """`(X, Y, Z) uint8` majority class per voxel of the static points and each box's instance
+    points placed at that box's pose; FREE_LABEL where no point falls."""
+    shape = np.array(GRID.shape, np.int64)
+    lower = np.array(GRID.lower, np.float64)
+    counts = np.zeros((int(shape.prod()), NUM_CLASSES - 1), np.int32)
+    vote_voxels(counts, static[0], static[1], T_keyego_from_global, lower, GRID.voxel_size, shape)
+    for box in boxes:  # (none placed in the control: it has no instance points)
+        pts, cls = cloud.instance(box.instance_token)
+        if len(pts):
+            T = T_keyego_from_global @ box.T_global_from_box()
+            vote_voxels(counts, np.ascontiguousarray(pts), cls, T, lower, GRID.voxel_size, shape)
+    return majority(counts, GRID.shape, FREE_LABEL)
+
+
+def _masks(semantics: np.ndarray, sample: SampleRecord, rays: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, ...]:
+    """`mask_lidar`, `mask_camera` `(X, Y, Z) uint8` of a keyframe: the keyframe sweep's rays
+    (origin `(3,)`, points `(N, 3)`, both global) traversed, plus every occupied voxel (their points
+    were observed, by some frame); the camera mask within it (occdata.visibility)."""
+    lower = np.array(GRID.lower, np.float64)
+    T_keyego_from_global = invert_rigid(sample.T_global_from_keyego)
+    ends = transform_points(T_keyego_from_global, rays[1])
+    origins = np.broadcast_to(transform_points(T_keyego_from_global, rays[0][None])[0], ends.shape)
+    m_lidar = lidar_mask(semantics, origins, ends, lower, GRID.voxel_size) | (semantics != FREE_LABEL)
+    m_lidar = m_lidar.astype(np.uint8)
+    K = np.stack([c.K for c in sample.cameras])
+    T_cam_from_grid = np.stack([invert_rigid(sample.T_keyego_from_cam(i)) for i in range(len(sample.cameras))])
+    size = np.array([[c.width, c.height] for c in sample.cameras])
+    return m_lidar, camera_mask(semantics, m_lidar, K, T_cam_from_grid, size, lower, GRID.voxel_size)
+
+
+def _held_static(keyframe_boxes: list[tuple[BoxRecord, ...]], travel: float) -> list[tuple[BoxRecord, ...]]:
+    """Per keyframe, the boxes of parked instances (centre moving < `travel` m over their track)
+    that have no box there: each instance's box at its nearest annotated keyframe."""
+    track: dict[str, list[tuple[int, BoxRecord]]] = defaultdict(list)
+    for k, boxes in enumerate(keyframe_boxes):
+        for b in boxes:
+            track[b.instance_token].append((k, b))
+    out: list[list[BoxRecord]] = [[] for _ in keyframe_boxes]
+    for items in track.values():
+        centers = np.stack([b.center_global for _, b in items])
+        if travel <= 0 or np.ptp(centers, axis=0).max() >= travel:
+            continue
+        seen = np.array([k for k, _ in items])
+        for k in range(len(keyframe_boxes)):
+            if k not in seen:
+                out[k].append(items[int(np.argmin(np.abs(seen - k)))][1])
+    return [tuple(b) for b in out]
+
+
+def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions
+                ) -> tuple[dict[str, dict[str, np.ndarray]], SceneCounts]:
+    """Labels of every keyframe of `scene`: sample token -> {"semantics", "mask_lidar",
+    "mask_camera"} `(200, 200, 16) uint8` (17 = free), and the scene's point counts."""
+    ds = inputs.dataset
+    indices = [ds.index_of(t) for t in scene.sample_tokens]
+    counts = SceneCounts(keyframes=len(indices))
+    cloud = _Cloud()
+    rays: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    with_seg = False
+    for i in indices:  # pass 1: keyframes, the labelled references
+        s = ds.samples[i]
+        points, origin, off_ego = _frame_points(s.lidar)
+        cls = _keyframe_classes(inputs, s.lidar, len(points))
+        keep = off_ego if cls is None else off_ego & (cls != DROP)
+        with_seg |= cls is not None
+        counts.frames += 1
+        counts.points += len(points)
+        counts.dropped_ego += int((~off_ego).sum())
+        counts.dropped_class += int((off_ego & ~keep).sum())
+        rays[s.token] = (origin, points[off_ego])
+        _add_keyframe(cloud, points[keep], None if cls is None else cls[keep],
+                      boxes_for_lidar(inputs.annotations, ds, i, s.lidar), opts, counts)
+    if opts.lidar_sweeps:  # pass 2: sweeps, labelled from the keyframes
+        static_index = object_index = None
+        if with_seg:
+            static_index = NearestIndex.build(*cloud.static(), opts.knn_radius)
+            object_index = {k: NearestIndex.build(*cloud.instance(k), opts.knn_radius) for k in cloud.obj_pts}
+        for i in indices:
+            for rec in ds.samples[i].sweeps:
+                points, _, off_ego = _frame_points(rec)
+                counts.frames += 1
+                counts.points += len(points)
+                counts.dropped_ego += int((~off_ego).sum())
+                _add_sweep(cloud, points[off_ego], boxes_for_lidar(inputs.annotations, ds, i, rec), static_index,
+                           object_index or {}, opts, counts)
+    counts.instances = len(cloud.obj_pts)
+    static = cloud.static()
+    static = (np.ascontiguousarray(static[0]), np.ascontiguousarray(static[1]))
+    out = {}
+    keyframe_boxes = [boxes_for_lidar(inputs.annotations, ds, i, ds.samples[i].lidar) for i in indices]
+    held = _held_static(keyframe_boxes, opts.hold_static)
+    for n, i in enumerate(indices):
+        s = ds.samples[i]
+        boxes = keyframe_boxes[n] + held[n]
+        semantics = _semantics(static, cloud, boxes, invert_rigid(s.T_global_from_keyego))
+        m_lidar, m_camera = _masks(semantics, s, rays[s.token])
+        out[s.token] = {"semantics": semantics, "mask_lidar": m_lidar, "mask_camera": m_camera}
+    return out, counts

@@ -1,0 +1,354 @@
+"""3D box annotations (`instance`, `sample_annotation`) and boxes at any LIDAR_TOP time (DESIGN §5.5).
+
+Frames: a box's pose is box -> global. Box frame (the devkit's `Box`): origin at the box centre,
+x along the length (forward), y along the width (left), z up; `size_wlh` is (width, length, height).
+
+`boxes_at` / `boxes_for_lidar` reproduce the official devkit's `NuScenes.get_boxes(sample_data)`:
+a keyframe (or a sample without `prev`) gets its sample's boxes as stored; a non-keyframe sweep,
+filed under the NEXT keyframe's sample, gets that sample's boxes, each interpolated towards the same
+instance's box in the previous sample (translation linearly, rotation by slerp with pyquaternion's
+shortest-path rule) at the sweep's time fraction, clamped to [0, 1]. A box whose instance is not in
+the previous sample is kept as it is; instances only in the previous sample are dropped.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from occdata.errors import OccDataError
+from occdata.nuscenes.records import LidarRecord, NuScenesDataset
+from occdata.nuscenes.rows import RowProblem, field, floats, integer, ref, short
+from occdata.nuscenes.tables import iter_table_rows, load_table
+
+__all__ = ["Annotations", "BoxRecord", "boxes_for_lidar", "load_annotations", "slerp_wxyz"]
+
+
+@dataclass(frozen=True, eq=False, slots=True)
+class BoxRecord:
+    """One annotated 3D box (a `sample_annotation` row), or that box moved to another time.
+
+    `center_global (3,) float64` box centre in global; `size_wlh (3,) float64` width, length,
+    height (m); `rotation_wxyz (4,) float64` box -> global rotation as stored (or interpolated);
+    `timestamp` (us): the sample's, or the sweep time the box was interpolated to.
+    """
+
+    token: str  # sample_annotation token
+    instance_token: str
+    sample_token: str
+    category: str  # category name, e.g. "vehicle.car"
+    center_global: np.ndarray
+    size_wlh: np.ndarray
+    rotation_wxyz: np.ndarray
+    timestamp: int
+    num_lidar_pts: int
+
+    def T_global_from_box(self) -> np.ndarray:
+        """`(4, 4) float64`: box frame (x forward along the length, y left, z up, origin at the
+        centre) -> global. The quaternion is normalised first, as pyquaternion does."""
+        w, x, y, z = self.rotation_wxyz / np.linalg.norm(self.rotation_wxyz)
+        T = np.eye(4)
+        T[:3, :3] = [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+        T[:3, 3] = self.center_global
+        return T
+
+
+@dataclass(frozen=True, eq=False)
+class Annotations:
+    """The boxes of a version folder, by sample, and each instance's category name."""
+
+    boxes_by_sample: dict[str, tuple[BoxRecord, ...]]  # sample token -> its boxes (table order)
+    instance_category: dict[str, str]  # instance token -> category name
+
+    def boxes_at(
+        self, sample_token: str, prev_sample_token: str, t0_us: int, t1_us: int, t_us: int
+    ) -> tuple[BoxRecord, ...]:
+        """The boxes at time `t_us` of a sweep filed under `sample_token` (the devkit's `get_boxes`).
+
+        `prev_sample_token` is that sample's `prev`; pass "" for a keyframe (or a sample without
+        `prev`): the sample's boxes come back as stored. Otherwise `t0_us`, `t1_us` are the previous
+        and the current sample's timestamps (t0 < t1) and each box whose instance also has a box in
+        the previous sample is interpolated at `clamp(t_us, t0, t1)`; every returned box then
+        carries `timestamp = t_us`. A sample without boxes gives ().
+        """
+        current = self.boxes_by_sample.get(sample_token, ())
+        if not prev_sample_token:
+            return current
+        if not t1_us > t0_us:
+            raise OccDataError(
+                f"sample {sample_token!r}: timestamp {t1_us} is not after its prev {prev_sample_token!r} ({t0_us})"
+            )
+        prev_of = {b.instance_token: b for b in self.boxes_by_sample.get(prev_sample_token, ())}  # last wins
+        t = max(t0_us, min(t1_us, t_us))
+        return tuple(_interpolated(prev_of.get(b.instance_token), b, t0_us, t1_us, t, t_us) for b in current)
+
+
+def _interpolated(prev: BoxRecord | None, cur: BoxRecord, t0: int, t1: int, t: int, t_us: int) -> BoxRecord:
+    """`cur` moved to time `t` (t0 <= t <= t1) along the track from `prev`; as is without `prev`."""
+    if prev is None:
+        return replace(cur, timestamp=t_us)
+    if t == t1:
+        center = cur.center_global.copy()  # numpy's interp returns the end point exactly
+    else:
+        center = (cur.center_global - prev.center_global) / (t1 - t0) * (t - t0) + prev.center_global
+    rotation = slerp_wxyz(prev.rotation_wxyz, cur.rotation_wxyz, (t - t0) / (t1 - t0))
+    center.flags.writeable = rotation.flags.writeable = False  # like the loaded records' arrays
+    return replace(cur, center_global=center, rotation_wxyz=rotation, timestamp=t_us)
+
+
+def _unit(q: np.ndarray) -> np.ndarray:
+    """pyquaternion's `_fast_normalise`: a Pade step near unit length, else the exact norm."""
+    mag2 = float(np.dot(q, q))
+    if abs(1.0 - mag2) < 1e-14 or mag2 == 0.0:
+        return q
+    mag = (1.0 + mag2) / 2.0 if abs(1.0 - mag2) < 2.107342e-08 else np.sqrt(mag2)
+    return q / mag
+
+
+def slerp_wxyz(q0_wxyz: np.ndarray, q1_wxyz: np.ndarray, amount: float) -> np.ndarray:
+    """Spherical linear interpolation of two `(4,)` wxyz quaternions, `(4,) float64` unit result.
+
+    Same rule as pyquaternion's `Quaternion.slerp`: inputs normalised, `amount` clipped to [0, 1],
+    `q0` negated when the dot product is negative (the shorter arc), a normalised linear blend when
+    the dot product exceeds 0.9995.
+    """
+    q0 = _unit(np.asarray(q0_wxyz, dtype=np.float64))
+    q1 = _unit(np.asarray(q1_wxyz, dtype=np.float64))
+    amount = float(np.clip(amount, 0.0, 1.0))
+    dot = float(np.dot(q0, q1))
+    if dot < 0.0:
+        q0, dot = -q0, -dot
+    if dot > 0.9995:
+        return _unit(q0 + amount * (q1 - q0))
+    theta_0 = np.arccos(dot)
+    sin_theta_0 = np.sin(theta_0)
+    theta = theta_0 * amount
+    s0 = np.cos(theta) - dot * np.sin(theta) / sin_theta_0
+    s1 = np.sin(theta) / sin_theta_0
+    return _unit(s0 * q0 + s1 * q1)
+
+
+def boxes_for_lidar(
+    ann: Annotations, dataset: NuScenesDataset, sample_index: int, lidar: LidarRecord
+) -> tuple[BoxRecord, ...]:
+    """The boxes at a LIDAR_TOP sweep's time, as the devkit's `get_boxes(lidar.token)` gives them.
+
+    `lidar` is `dataset.samples[sample_index].lidar` (the keyframe: its sample's boxes as stored) or
+    one of that sample's `sweeps` (read with `sweeps=True`): interpolated between the sample that
+    the sweep is filed under (`lidar.sample_token`) and that sample's `prev`. Anything else is an
+    `OccDataError`.
+    """
+    sample = dataset.samples[sample_index]
+    if lidar.token == sample.lidar.token:
+        return ann.boxes_at(sample.token, "", 0, 0, lidar.timestamp)
+    if not any(sw.token == lidar.token for sw in sample.sweeps):
+        raise OccDataError(
+            f"sample_data {lidar.token!r} is neither the LIDAR_TOP keyframe nor a sweep of sample {sample.token!r}"
+            + ("" if dataset.sweeps_loaded else " (the tables were read without sweeps=True)")
+        )
+    try:
+        owner = dataset.sample(lidar.sample_token or sample.token)
+        prev = dataset.sample(owner.prev) if owner.prev else None
+    except KeyError as exc:
+        raise OccDataError(f"sample_data {lidar.token!r}: sample {exc.args[0]!r} is not in the dataset") from None
+    if prev is None:
+        return ann.boxes_at(owner.token, "", 0, 0, lidar.timestamp)
+    return ann.boxes_at(owner.token, prev.token, prev.timestamp, owner.timestamp, lidar.timestamp)
+
+
+def load_annotations(root: Path, version: str, sample_tokens: Collection[str] | None = None) -> Annotations:
+    """Read `<root>/<version>/{sample_annotation,instance,category,sample}.json` into `Annotations`.
+
+    With `sample_tokens`, only those samples' boxes are kept (interpolating a sweep needs its sample
+    and that sample's `prev`). No instance.json and no sample_annotation.json (a test split): empty
+    `Annotations`. The box arrays are read-only views into one array per field.
+
+    Raises `OccDataError`, one line naming the table and token, on a broken tree: one of the two
+    tables without the other, a sample_token / instance_token / category_token that is not in its
+    table, prev/next naming a token not in sample_annotation.json or a box of another instance,
+    prev/next links that disagree, a token twice with different content, a missing field, a
+    non-numeric, non-finite or wrongly sized translation, size or rotation, a size that is not
+    positive, a rotation that is not a unit quaternion, a non-integer num_lidar_pts.
+    """
+    vdir = Path(root) / version
+    ann_path, inst_path = vdir / "sample_annotation.json", vdir / "instance.json"
+    if not ann_path.is_file() and not inst_path.is_file():
+        return Annotations(boxes_by_sample={}, instance_category={})
+    for path in (ann_path, inst_path, vdir / "category.json", vdir / "sample.json"):
+        if not path.is_file():
+            raise OccDataError(f"missing table: {path} (needed with {ann_path.name} / {inst_path.name})")
+    categories = load_table(vdir / "category.json")
+    instances = load_table(inst_path)
+    instance_category = {tok: _category_name(categories, tok, row) for tok, row in instances.items()}
+    sample_rows = load_table(vdir / "sample.json")
+    rows, every_token = _read_rows(ann_path, None if sample_tokens is None else set(sample_tokens))
+    timestamps = _references(rows, sample_rows, instance_category)
+    columns = {key: _numbers(rows, key) for key in ("translation", "size", "rotation")}
+    n_pts = _counts(rows)
+    _check_tracks(rows, every_token)
+    boxes: dict[str, list[BoxRecord]] = {}
+    for i, row in enumerate(rows):
+        boxes.setdefault(row.sample, []).append(BoxRecord(
+            token=row.token, instance_token=row.instance, sample_token=row.sample,
+            category=instance_category[row.instance], center_global=columns["translation"][i],
+            size_wlh=columns["size"][i], rotation_wxyz=columns["rotation"][i], timestamp=timestamps[i],
+            num_lidar_pts=int(n_pts[i]),
+        ))
+    return Annotations(
+        boxes_by_sample={tok: tuple(b) for tok, b in boxes.items()}, instance_category=instance_category
+    )
+
+
+class _Row(NamedTuple):
+    """The fields of one sample_annotation row that boxes use (values as in the JSON)."""
+
+    token: str
+    sample: Any
+    instance: Any
+    prev: Any
+    next: Any
+    translation: Any
+    size: Any
+    rotation: Any
+    num_lidar_pts: Any
+
+
+def _read_rows(path: Path, wanted: set[str] | None) -> tuple[list[_Row], set[str]]:
+    """The rows of the wanted samples (all with `wanted` None), in table order, and every token of
+    the table. Identical duplicates are kept once; a token twice with different content is an error."""
+    rows: dict[str, _Row] = {}
+    every_token: set[str] = set()
+    for raw in iter_table_rows(path):
+        token = raw.get("token")
+        if not isinstance(token, str) or not token:
+            raise OccDataError(f"malformed table {path}: a row has no string 'token' field")
+        every_token.add(token)
+        sample = raw.get("sample_token")
+        if wanted is not None and not (isinstance(sample, str) and sample in wanted):
+            continue
+        row = _Row(
+            token, field(raw, "sample_token", "sample_annotation"), field(raw, "instance_token", "sample_annotation"),
+            raw.get("prev", ""), raw.get("next", ""),
+            *(field(raw, key, "sample_annotation") for key in ("translation", "size", "rotation", "num_lidar_pts")),
+        )
+        seen = rows.setdefault(token, row)
+        if seen is not row and seen != row:
+            raise OccDataError(f"duplicate token in {path.name}: {token!r} appears twice with different content")
+    return list(rows.values()), every_token
+
+
+def _references(
+    rows: list[_Row], sample_rows: dict[str, dict[str, Any]], instance_category: dict[str, str]
+) -> list[int]:
+    """Check each row's sample and instance exist; the timestamp (us) of each row's sample."""
+    sample_ts: dict[str, int] = {}
+    out = []
+    for row in rows:
+        src = f"sample_annotation {row.token!r}"
+        if not isinstance(row.instance, str) or row.instance not in instance_category:
+            raise OccDataError(f"dangling token: {src} refers to instance {row.instance!r}, not in instance.json")
+        ts = sample_ts.get(row.sample) if isinstance(row.sample, str) else None
+        if ts is None:
+            sample = ref(sample_rows, row.sample, "sample", src)
+            try:
+                ts = integer(field(sample, "timestamp", "sample"), f"sample {row.sample!r} timestamp")
+            except RowProblem as exc:
+                raise OccDataError(f"sample.json: {exc}") from None
+            sample_ts[row.sample] = ts
+        out.append(ts)
+    return out
+
+
+_WIDTH = {"translation": 3, "size": 3, "rotation": 4}
+
+
+def _numbers(rows: list[_Row], key: str) -> np.ndarray:
+    """`(N, 3|4) float64` read-only column of a numeric field, checked: finite; sizes positive;
+    rotations unit quaternions (within 1e-3). `OccDataError` naming the first bad row."""
+    n = _WIDTH[key]
+    values = [getattr(row, key) for row in rows]
+    try:
+        arr = np.array(values) if values else np.zeros((0, n))
+    except ValueError:  # ragged
+        arr = np.zeros(0)
+    if arr.dtype.kind not in "fiu" or arr.shape != (len(rows), n):
+        for row in rows:  # find the row and say what is wrong with it
+            _finite_floats(row, key, n)
+        raise OccDataError(f"sample_annotation.json: a {key} value is not {n} numbers")  # (bools only)
+    arr = arr.astype(np.float64)
+    bad = ~np.isfinite(arr).all(axis=1)
+    what = "is not finite"
+    if key == "size" and not bad.any():
+        bad, what = ~(arr > 0).all(axis=1), "is not positive"
+    if key == "rotation" and not bad.any():
+        bad, what = np.abs(np.linalg.norm(arr, axis=1) - 1.0) > 1e-3, "is not a unit quaternion"
+    if bad.any():
+        i = int(np.argmax(bad))
+        src = f"sample_annotation {rows[i].token!r}"
+        raise OccDataError(f"sample_annotation.json: {src} {key} {arr[i].tolist()} {what}")
+    arr.flags.writeable = False
+    return arr
+
+
+def _counts(rows: list[_Row]) -> np.ndarray:
+    """`(N,) int64` num_lidar_pts, each a JSON integer."""
+    values = [row.num_lidar_pts for row in rows]
+    arr = np.array(values) if values else np.zeros(0, np.int64)
+    if arr.dtype.kind not in "iu" or arr.shape != (len(rows),):
+        for row in rows:
+            try:
+                integer(row.num_lidar_pts, f"sample_annotation {row.token!r} num_lidar_pts")
+            except RowProblem as exc:
+                raise OccDataError(f"sample_annotation.json: {exc}") from None
+        arr = np.array([int(v) for v in values], dtype=np.int64)  # integral floats
+    return arr
+
+
+def _finite_floats(row: _Row, key: str, n: int) -> None:
+    """Raise `OccDataError` naming the row if its `key` is not `n` finite numbers."""
+    src = f"sample_annotation {row.token!r}"
+    raw = getattr(row, key)
+    try:
+        if isinstance(raw, list) and any(isinstance(v, (str, bool)) for v in raw):
+            raise RowProblem(f"{src} {key} is not numeric ({short(raw)})")
+        values = floats(raw, (n,), f"{src} {key}")
+    except RowProblem as exc:
+        raise OccDataError(f"sample_annotation.json: {exc}") from None
+    if not np.isfinite(values).all():
+        raise OccDataError(f"sample_annotation.json: {src} {key} {values.tolist()} is not finite")
+
+
+def _category_name(categories: dict[str, dict[str, Any]], inst_tok: str, inst: dict[str, Any]) -> str:
+    category = ref(categories, field(inst, "category_token", "instance"), "category", f"instance {inst_tok!r}")
+    name = field(category, "name", "category")
+    if not isinstance(name, str) or not name:
+        raise OccDataError(f"category.json: row {category['token']!r} has no category name")
+    return name
+
+
+def _check_tracks(rows: list[_Row], every_token: set[str]) -> None:
+    """Every prev/next names a box of the table, of the same instance, that links back."""
+    by_token = {row.token: row for row in rows}
+    for row in rows:
+        for link, back in (("prev", "next"), ("next", "prev")):
+            other_tok = getattr(row, link)
+            if not other_tok:
+                continue
+            where = f"sample_annotation.json: row {row.token!r} {link}"
+            if not isinstance(other_tok, str) or other_tok not in every_token:
+                raise OccDataError(f"{where} {other_tok!r} is not in sample_annotation.json")
+            other = by_token.get(other_tok)
+            if other is None:  # outside the selected samples
+                continue
+            if other.instance != row.instance:
+                raise OccDataError(f"{where} {other_tok!r} is a box of another instance")
+            if getattr(other, back) != row.token:
+                raise OccDataError(f"{where} is {other_tok!r}, but that row's {back} is {getattr(other, back)!r}")

@@ -1,0 +1,93 @@
+"""Typed values out of nuScenes table rows: fields, foreign keys, numbers, poses (one place for all tables).
+
+`field` and `ref` raise `OccDataError` (a broken tree); the value readers raise `RowProblem`, which a
+caller either confines to one record (the reader's `SampleRecord.problem`) or turns into an
+`OccDataError` naming the table and token.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from occdata.errors import OccDataError
+
+__all__ = ["RowProblem", "field", "floats", "integer", "pose", "ref", "rotation_matrix", "short"]
+
+
+class RowProblem(Exception):
+    """A value in a row that cannot be used (not numeric, wrong shape, ...); the message names the row."""
+
+
+def field(row: dict[str, Any], key: str, table: str) -> Any:
+    """`row[key]`; a missing field is an `OccDataError` naming the table and the row's token."""
+    try:
+        return row[key]
+    except KeyError:
+        raise OccDataError(f"{table}.json: row {row.get('token', '?')!r} has no field {key!r}") from None
+
+
+def ref(rows: dict[str, dict[str, Any]], token: Any, table: str, src: str) -> dict[str, Any]:
+    """The row of `table` that `src` (e.g. "sample_data 'abc'") refers to; `OccDataError` if dangling."""
+    try:
+        return rows[token]
+    except (KeyError, TypeError):
+        raise OccDataError(f"dangling token: {src} refers to {table} {token!r}, not in {table}.json") from None
+
+
+def short(value: Any) -> str:
+    """`repr(value)` cut to 40 characters, for error messages."""
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def floats(value: Any, shape: tuple[int, ...], where: str) -> np.ndarray:
+    """`value` as a float64 array of `shape`; NaN stays (callers validate). `RowProblem` otherwise."""
+    if isinstance(value, (str, bytes)) or value is None:
+        raise RowProblem(f"{where} is not numeric ({short(value)})")
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise RowProblem(f"{where} is not numeric ({short(value)})") from None
+    if arr.shape != shape:
+        size = "x".join(map(str, shape)) if len(shape) > 1 else f"{shape[0]} values"
+        raise RowProblem(f"{where} has shape {arr.shape}, expected {size}")
+    return arr
+
+
+def integer(value: Any, where: str) -> int:
+    """A JSON integer (an integral float is accepted); anything else is a `RowProblem`."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise RowProblem(f"{where} is not an integer ({short(value)})")
+    if isinstance(value, float) and not value.is_integer():
+        raise RowProblem(f"{where} is not an integer ({short(value)})")
+    return int(value)
+
+
+def rotation_matrix(q_wxyz: Any, where: str) -> np.ndarray:
+    """`(3, 3) float64` rotation of a (w, x, y, z) quaternion. Rounding in the files is normalised
+    away; a quaternion far from unit length is kept as is, so a later rigidity check reports it.
+    A value that is not 4 numbers raises `RowProblem`."""
+    q = floats(q_wxyz, (4,), f"{where} rotation (quaternion w, x, y, z)")
+    n = np.linalg.norm(q)
+    if np.isfinite(n) and abs(n - 1.0) < 1e-3:
+        q = q / n
+    w, x, y, z = q
+    return np.array(
+        [
+            [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
+        ]
+    )
+
+
+def pose(row: dict[str, Any], table: str) -> np.ndarray:
+    """`(4, 4) float64` rigid transform of a row's `rotation` (wxyz) and `translation` (ego_pose:
+    ego -> global; calibrated_sensor: sensor -> ego)."""
+    where = f"{table} {row.get('token', '?')!r}"
+    T = np.eye(4)
+    T[:3, :3] = rotation_matrix(field(row, "rotation", table), where)
+    T[:3, 3] = floats(field(row, "translation", table), (3,), f"{where} translation")
+    return T

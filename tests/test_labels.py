@@ -1,0 +1,256 @@
+"""`occdata labels` on a synthetic world with moving actors, scored against the world's exact labels.
+
+The truth is independent of the generator: the synthetic world voxelises its primitives exactly
+(occdata/synth/labels.py), while the generator only sees the LiDAR files, the box tables and lidarseg.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from occdata.errors import OccDataError
+from occdata.geometry import invert_rigid
+from occdata.labels import LabelOptions, LabelsConfig, generate_labels
+from occdata.labels.fidelity import Fidelity, score_scene
+from occdata.labels.scene import box_class
+from occdata.nuscenes import load_nuscenes
+from occdata.nuscenes.annotations import load_annotations
+
+REPO = Path(__file__).resolve().parents[1]
+# One scene of 6 keyframes (5 x 9 sweeps between them) with moving cars, pedestrians and others.
+WORLD = {"scenes": 1, "samples": 6, "seed": 11, "width": 320, "height": 180}
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from occdata.synth import SynthConfig, synthesize
+
+    return synthesize(SynthConfig(out=tmp_path_factory.mktemp("labels") / "world", progress=False, **WORLD))
+
+
+@pytest.fixture(scope="module")
+def generated(world: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """The world labelled three ways: boxes + sweeps, the same without boxes (control), keyframes only."""
+    base = tmp_path_factory.mktemp("gen")
+    out = {}
+    for name, opts in {"ours": LabelOptions(lidar_sweeps=True),
+                       "control": LabelOptions(lidar_sweeps=True, use_boxes=False),
+                       "keyframes": LabelOptions()}.items():
+        out[name] = base / name
+        generate_labels(LabelsConfig(root=world, out=out[name], options=opts, progress=False))
+    return out
+
+
+def _score(world: Path, gen: Path) -> tuple[Fidelity, float, int]:
+    ds = load_nuscenes(world, None)
+    ann = load_annotations(world, ds.version)
+    class_of = {b.instance_token: box_class(b) for bs in ann.boxes_by_sample.values() for b in bs}
+    total, inside, moved = Fidelity(), 0, 0
+    for sc in ds.scenes:
+        gens, truths, Ts, boxes = [], [], [], []
+        for tok in sc.sample_tokens:
+            with np.load(gen / sc.name / tok / "labels.npz", allow_pickle=False) as g:
+                gens.append(g["semantics"].copy())
+            with np.load(world / "gts" / sc.name / tok / "labels.npz", allow_pickle=False) as t:
+                truths.append((t["semantics"].copy(), t["mask_lidar"].copy()))
+            Ts.append(invert_rigid(ds.sample(tok).T_global_from_keyego))
+            boxes.append(list(ann.boxes_by_sample.get(tok, ())))
+        s = score_scene(gens, truths, Ts, boxes, class_of)
+        total.add(s.voxels)
+        inside += sum(v[0] for v in s.moving.values())
+        moved += sum(v[1] for v in s.moving.values())
+    return total, inside / max(moved, 1), moved
+
+
+def test_fidelity_targets(world: Path, generated: dict[str, Path]) -> None:
+    ours, inside, moved = _score(world, generated["ours"])
+    control, inside_control, moved_control = _score(world, generated["control"])
+    print(f"\nours: precision {ours.precision:.3f} recall {ours.recall:.3f} semantic {ours.semantic_agreement:.3f} "
+          f"moving inside {inside:.3f} ({moved} voxels)\ncontrol: precision {control.precision:.3f} recall "
+          f"{control.recall:.3f} moving inside {inside_control:.3f} ({moved_control} voxels)")
+    assert ours.precision >= 0.95
+    assert ours.recall >= 0.80
+    assert ours.semantic_agreement >= 0.95
+    assert moved > 100, "the world must have moving objects for this test to mean anything"
+    assert inside >= 0.95
+    assert inside_control < inside - 0.15, "the control must smear clearly more"
+
+
+def test_sweeps_add_recall(world: Path, generated: dict[str, Path]) -> None:
+    keyframes, _, _ = _score(world, generated["keyframes"])
+    ours, _, _ = _score(world, generated["ours"])
+    assert ours.recall > keyframes.recall + 0.02
+
+
+def test_layout_manifest_and_build_reads_it(world: Path, generated: dict[str, Path], tmp_path: Path) -> None:
+    from occdata.store.build import BuildConfig, build_store
+
+    ds = load_nuscenes(world, None)
+    gen = generated["ours"]
+    for s in ds.samples:
+        with np.load(gen / s.scene_name / s.token / "labels.npz", allow_pickle=False) as z:
+            assert sorted(z.files) == ["mask_camera", "mask_lidar", "semantics"]
+            for k in z.files:
+                assert z[k].dtype == np.uint8 and z[k].shape == (200, 200, 16)
+            assert (z["mask_camera"] <= z["mask_lidar"]).all()
+    manifest = json.loads((gen / "labels.json").read_text())
+    assert manifest["lidarseg"] is True and manifest["options"]["lidar_sweeps"] is True
+    assert manifest["totals"]["keyframes"] == len(ds.samples)
+    report = build_store(BuildConfig(root=world, out=tmp_path / "gen.zarr", gts=gen, labels_required=True,
+                                     progress=False))
+    assert report.n_labelled == len(ds.samples)
+
+
+def test_same_input_same_bytes_and_resume(world: Path, generated: dict[str, Path], tmp_path: Path) -> None:
+    out = tmp_path / "again"
+    generate_labels(LabelsConfig(root=world, out=out, options=LabelOptions(), progress=False))
+    ref = generated["keyframes"]
+    files = sorted(p.relative_to(ref) for p in ref.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file())
+    for rel in files:
+        assert (ref / rel).read_bytes() == (out / rel).read_bytes(), rel
+    with pytest.raises(OccDataError, match="--resume"):
+        generate_labels(LabelsConfig(root=world, out=out, options=LabelOptions(), progress=False))
+    report = generate_labels(LabelsConfig(root=world, out=out, options=LabelOptions(), resume=True, progress=False))
+    assert report.scenes_done == 0 and report.scenes_skipped == 1
+    with pytest.raises(OccDataError, match="other settings"):
+        generate_labels(LabelsConfig(root=world, out=out, options=LabelOptions(lidar_sweeps=True), resume=True,
+                                     progress=False))
+
+
+def _copy_tables(world: Path, dst: Path) -> Path:
+    """The world's tree with its tables copied (editable) and everything else linked."""
+    dst.mkdir()
+    for p in world.iterdir():
+        if p.name != "v1.0-mini":
+            (dst / p.name).symlink_to(p)
+    shutil.copytree(world / "v1.0-mini", dst / "v1.0-mini")
+    return dst
+
+
+def test_without_lidarseg_static_class_is_stated(world: Path, tmp_path: Path) -> None:
+    root = _copy_tables(world, tmp_path / "noseg")
+    (root / "v1.0-mini" / "lidarseg.json").unlink()
+    out = tmp_path / "gen"
+    generate_labels(LabelsConfig(root=root, out=out, options=LabelOptions(static_class=15), progress=False))
+    manifest = json.loads((out / "labels.json").read_text())
+    assert manifest["lidarseg"] is False
+    assert "15 (manmade)" in manifest["classes"] and "not what it is" in manifest["classes"]
+    ds = load_nuscenes(root, None)
+    ann = load_annotations(root, ds.version)
+    tok = ds.samples[0].token
+    with np.load(out / ds.samples[0].scene_name / tok / "labels.npz", allow_pickle=False) as z:
+        sem = z["semantics"]
+    present = set(np.unique(sem).tolist())
+    box_classes = {box_class(b) for b in ann.boxes_by_sample[tok]}
+    assert present <= box_classes | {15, 17}
+    assert 15 in present and present & box_classes
+
+
+def test_bad_inputs_are_one_line(world: Path, tmp_path: Path) -> None:
+    root = _copy_tables(world, tmp_path / "bad")
+    seg = json.loads((root / "v1.0-mini" / "lidarseg.json").read_text())
+    short = tmp_path / "short.bin"
+    short.write_bytes(b"\x01" * 10)
+    seg[0]["filename"] = os.path.relpath(short, root)
+    (root / "v1.0-mini" / "lidarseg.json").write_text(json.dumps(seg))
+    r = subprocess.run([sys.executable, "-m", "cli.occdata_cli", "labels", "--root", str(root), "--out",
+                        str(tmp_path / "o"), "--no-progress"], capture_output=True, text=True, cwd=REPO)
+    assert r.returncode != 0
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "short.bin" in r.stderr
+
+
+def test_broken_box_track_is_one_line(world: Path, tmp_path: Path) -> None:
+    root = _copy_tables(world, tmp_path / "track")
+    path = root / "v1.0-mini" / "sample_annotation.json"
+    rows = json.loads(path.read_text())
+    row = next(r for r in rows if r["next"])
+    row["next"] = "f" * 32
+    path.write_text(json.dumps(rows))
+    r = subprocess.run([sys.executable, "-m", "cli.occdata_cli", "labels", "--root", str(root), "--out",
+                        str(tmp_path / "o"), "--no-progress"], capture_output=True, text=True, cwd=REPO)
+    assert r.returncode != 0
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "f" * 32 in r.stderr or row["token"] in r.stderr
+
+
+def test_missing_sweep_is_one_line(world: Path, tmp_path: Path) -> None:
+    root = tmp_path / "nosweep"
+    root.mkdir()
+    for p in world.iterdir():
+        if p.name != "sweeps":
+            (root / p.name).symlink_to(p)
+    r = subprocess.run([sys.executable, "-m", "cli.occdata_cli", "labels", "--root", str(root), "--out",
+                        str(tmp_path / "o"), "--lidar-sweeps", "--no-progress"], capture_output=True, text=True,
+                       cwd=REPO)
+    assert r.returncode != 0
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "sweeps/LIDAR_TOP" in r.stderr
+
+
+@pytest.mark.slow
+def test_kill_leaves_no_half_file_and_resume_completes(tmp_path: Path) -> None:
+    from occdata.synth import SynthConfig, synthesize
+
+    world = synthesize(SynthConfig(out=tmp_path / "w", scenes=3, samples=3, seed=4, width=160, height=90,
+                                   progress=False))
+    cmd = [sys.executable, "-m", "cli.occdata_cli", "labels", "--root", str(world), "--no-progress"]
+    subprocess.run([*cmd, "--out", str(tmp_path / "ref")], check=True, cwd=REPO)
+    proc = subprocess.Popen([*cmd, "--out", str(tmp_path / "o")], cwd=REPO)
+    deadline = time.time() + 300
+    while not list((tmp_path / "o" / ".scenes").glob("*.json")) and time.time() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    r = subprocess.run([*cmd, "--out", str(tmp_path / "o"), "--resume"], cwd=REPO, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    ref = tmp_path / "ref"
+    got = sorted(p.relative_to(tmp_path / "o") for p in (tmp_path / "o").rglob("*") if p.is_file())
+    assert got == sorted(p.relative_to(ref) for p in ref.rglob("*") if p.is_file())
+    for rel in got:
+        assert (ref / rel).read_bytes() == (tmp_path / "o" / rel).read_bytes(), rel
+
+
+def test_build_then_train_on_generated_labels(world: Path, generated: dict[str, Path], tmp_path: Path) -> None:
+    """`occdata build --gts <generated>` then `fastocc train` end to end (a tiny run on the CPU)."""
+    store = tmp_path / "gen.zarr"
+    cli = [sys.executable, "-m"]
+    subprocess.run([*cli, "cli.occdata_cli", "build", "--root", str(world), "--gts", str(generated["ours"]),
+                    "--out", str(store), "--no-progress"], check=True, cwd=REPO, capture_output=True)
+    cfg = tmp_path / "tiny.toml"
+    cfg.write_text('input_hw = [64, 176]\nepochs = 1\nworkers = 0\nthreads = 1\nval_every = 0\n'
+                   'limit_train_samples = 2\nlr_scaling = "none"\n')
+    r = subprocess.run([*cli, "cli.fastocc_cli", "train", "--config", str(cfg), "--store", str(store), "--out",
+                        str(tmp_path / "run"), "--batch-size", "1", "--no-progress"], cwd=REPO, capture_output=True,
+                       text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (tmp_path / "run" / "last.pt").is_file()
+    assert "done:" in r.stdout
+
+
+def test_parked_instances_are_held_where_annotation_stops() -> None:
+    """Hand-made tracks: a parked car annotated at keyframes 0-1 of 4 is drawn at keyframes 2-3 with
+    its keyframe-1 box; a car that drives 5 m is not held; hold_static 0 holds nothing."""
+    from occdata.labels.scene import _held_static
+    from occdata.nuscenes.annotations import BoxRecord
+
+    def box(tok: str, inst: str, x: float) -> BoxRecord:
+        return BoxRecord(tok, inst, "s", "vehicle.car", np.array([x, 0.0, 1.0]), np.array([2.0, 4.0, 1.5]),
+                         np.array([1.0, 0, 0, 0]), 0, 10)
+
+    frames = [(box("a0", "park", 0.0), box("m0", "move", 10.0)), (box("a1", "park", 0.05), box("m1", "move", 15.0)),
+              (), ()]
+    held = _held_static(frames, 1.0)
+    assert [[b.token for b in h] for h in held] == [[], [], ["a1"], ["a1"]]
+    assert _held_static(frames, 0.0) == [(), (), (), ()]
