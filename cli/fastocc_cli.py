@@ -146,6 +146,12 @@ def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height
 @click.option("--interp-features/--no-interp-features", "interp_features", default=None,
               help="Ablation: --no-interp-features drops the interpolated image features from the FastOcc head "
               "(the BEV branch alone feeds the classifier). Default: on.")
+@click.option("--bev-height", "bev_height", type=click.Choice(["repeat", "unfold"]), default=None,
+              help="With --no-interp-features: repeat the BEV feature along z (default) or unfold its channels "
+              "into the 16 height bins (channel-to-height).")
+@click.option("--temporal-fusion", "temporal_fusion", type=click.Choice(["concat", "cached"]), default=None,
+              help="Models with history: concat (full maps in the queue, default) or cached (each frame reduced "
+              "once, when current; warp + small fusion per frame).")
 @click.option("--epochs", type=click.IntRange(min=1), default=None, help="Epochs over the training split.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=None,
               help="GLOBAL batch size (all processes); each process gets batch-size / world size.")

@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 
-from fastocc.model.config import BackboneConfig, DepthBins, HeadKind, ModelConfig
+from fastocc.model.config import BackboneConfig, BevHeight, DepthBins, HeadKind, ModelConfig, TemporalFusionKind
 from occdata.constants import OccGrid
 from occdata.errors import OccDataError
 from occdata.fileio import atomic_open
@@ -54,7 +54,8 @@ class CheckpointError(OccDataError):
 def model_config_to_dict(cfg: ModelConfig) -> dict[str, Any]:
     """A JSON-able dict of primitives; `model_config_from_dict` inverts it exactly."""
     d = dataclasses.asdict(cfg)
-    d["head"] = str(cfg.head)
+    for k in ("head", "bev_height", "temporal_fusion"):
+        d[k] = str(getattr(cfg, k))
     return json.loads(json.dumps(d))  # tuples -> lists, checks it is JSON-able
 
 
@@ -73,6 +74,8 @@ def model_config_from_dict(d: dict[str, Any]) -> ModelConfig:
         "backbone": lambda v: BackboneConfig(**v),
         "input_hw": lambda v: (int(v[0]), int(v[1])),
         "head": HeadKind,
+        "bev_height": BevHeight,
+        "temporal_fusion": TemporalFusionKind,
         "fine_grid": grid,
         "coarse_grid": grid,
         "depth_bins": lambda v: DepthBins(**v),

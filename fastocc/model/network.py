@@ -38,7 +38,8 @@ class FastOcc(nn.Module):
         self.depth_net = DepthNet(cfg.neck_channels, cfg.context_channels, cfg.depth_bins.count)
         self.pooling = LSSPooling(cfg.coarse_grid, cfg.depth_bins.centres(), cfg.input_hw, cfg.stride)
         self.temporal = (
-            TemporalFusion(cfg.context_channels * z, cfg.num_history, cfg.coarse_grid) if cfg.num_history > 0 else None
+            TemporalFusion(cfg.context_channels * z, cfg.num_history, cfg.coarse_grid, cfg.temporal_fusion,
+                           cfg.temporal_channels) if cfg.has_temporal else None
         )
         self.head = build_head(cfg)
         use_bev_head = cfg.bev_head and cfg.head is HeadKind.FASTOCC
