@@ -9,8 +9,10 @@ the same E for every row; seeds 0 and 1 per row):
 Tables and the runs behind their rows (a run shared by two tables is trained once):
 
     head        deconv | 3dfcn | fastocc                      (paper Table II)
-    components  neither | bev-only | interp-only | fastocc    (paper Table IV; BEV supervision off = w_bev 0)
-    history     hist0 | hist4 | hist16                        (all trained scene-sequentially)
+    components  neither | bev-only | bev-unfold | interp-only | fastocc
+                                                              (paper Table IV; BEV supervision off = w_bev 0)
+    history     hist0 | hist0fuse | hist4 | hist16 | hist16cached   (all trained scene-sequentially)
+    resolution  fastocc (96x256) | nano128 (128x352)          (paper Table III, input size only)
     tta         the best row of the tables above, flip TTA off | on (evaluation only)
 
 Steps:
@@ -101,6 +103,10 @@ ROWS: dict[str, Row] = {r.name: r for r in (
     Row("hist0", (("num_history", 0), ("scene_sequential", True))),
     Row("hist4", (("num_history", 4), ("scene_sequential", True))),
     Row("hist16", (("num_history", 16), ("scene_sequential", True))),
+    Row("bev-unfold", (("interp_features", False), ("bev_height", "unfold"))),
+    Row("hist0fuse", (("num_history", 0), ("scene_sequential", True), ("zero_history_fusion", True))),
+    Row("hist16cached", (("num_history", 16), ("scene_sequential", True), ("temporal_fusion", "cached"))),
+    Row("nano128", (("input_hw", (128, 352)),)),
 )}
 
 TABLES: tuple[Table, ...] = (
@@ -112,15 +118,31 @@ TABLES: tuple[Table, ...] = (
     Table("components", "Components (paper Table IV: tiny, ResNet-50, 320x800)", (
         TableRow("neither", "neither"),
         TableRow("BEV supervision only", "bev-only", 31.67),
+        TableRow("BEV supervision only, channel-to-height", "bev-unfold", 31.67),
         TableRow("interpolated fusion only", "interp-only", 33.08),
         TableRow("both (= FastOcc row of the head table)", "fastocc", 34.21),
     ), "BEV supervision off = `w_bev = 0` (the BEV head still runs in training but gets no loss); interpolated "
-       "fusion off = `interp_features = false` (the voxel feature is the z-repeated BEV map alone)."),
+       "fusion off = `interp_features = false`: the voxel feature is the BEV map alone, z-repeated (constant "
+       "along z; `bev_height = \"repeat\"`) or, in `bev-unfold`, with its channels unfolded into the 16 height "
+       "bins (`bev_height = \"unfold\"`, the paper's \"repeated and regressed to occupancy\" read as "
+       "channel-to-height)."),
     Table("history", "History (scene-sequential training for every row)", (
         TableRow("0 previous frames", "hist0"),
+        TableRow("0 previous frames + the fusion layer (control)", "hist0fuse"),
         TableRow("4 previous frames", "hist4"),
         TableRow("16 previous frames", "hist16"),
-    ), "The paper's best result (40.75, base) uses 16 frames; it gives no 0/4/16 table, so no paper column."),
+        TableRow("16 previous frames, cached fusion", "hist16cached"),
+    ), "The paper's best result (40.75, base) uses 16 frames; it gives no 0/4/16 table, so no paper column. "
+       "`hist0fuse` has the history rows' fusion layer (1x1 conv + BN + ReLU) over the current map alone, so it "
+       "differs from `hist16` only by the history. `hist16cached` (`temporal_fusion = \"cached\"`) reduces each "
+       "frame once, when current, to 16 channels and queues those; per frame only their warp and a small "
+       "residual fusion run (docs/model.md)."),
+    Table("resolution", "Input resolution (paper Table III: backbone and input size)", (
+        TableRow("nano, 96x256 (= FastOcc row of the head table)", "fastocc"),
+        TableRow("nano, 128x352", "nano128"),
+    ), "The paper's Table III varies the backbone (ResNet-50 / 101) and the input (320x800, 640x1600) at full "
+       "size; its rows are not comparable with nano's, so no paper column. Its latency split 2D / 2D-to-3D / 3D "
+       "is `fastocc bench --preset tiny|small|base` (docs/benchmarks.md)."),
 )
 
 
@@ -347,7 +369,7 @@ def score_tta(run: Path, store: str, workers: int) -> dict[str, Any]:
 
 
 def best_row(results: dict[str, Any]) -> str | None:
-    """The row of tables 1-3 with the highest mean mIoU, once every one of their rows has both seeds."""
+    """The row of the tables with the highest mean mIoU, once every one of their rows has both seeds."""
     rows = {tr.row for t in TABLES for tr in t.rows}
     means = {r: _seed_values(results, r, "miou") for r in rows}
     if any(len(v) < len(SEEDS) for v in means.values()):
@@ -723,7 +745,7 @@ def _parser() -> argparse.ArgumentParser:
     lat.add_argument("--rounds", type=int, default=3, help="whole measurements; medians over them")
     lat.add_argument("--threads", type=int, default=None)
     st = sub.add_parser("steptime", parents=[common], help="training s/step of rows, one run at a time (idle machine)")
-    st.add_argument("--rows", default="fastocc,3dfcn,deconv,hist0,hist16",
+    st.add_argument("--rows", default="fastocc,3dfcn,deconv,hist0,hist16,hist16cached,hist0fuse",
                     help="comma-separated rows; ratios are to the first (default: %(default)s)")
     st.add_argument("--samples", type=int, default=40, help="training samples per timing epoch")
     st.add_argument("--rounds", type=int, default=2, help="interleaved rounds; medians over them")
