@@ -120,9 +120,29 @@ def save_checkpoint(
         "meta": dict(meta or {}),
         **extra,
     }
-    with atomic_open(path) as f:
-        torch.save(payload, f)
+    try:
+        with atomic_open(path) as f:
+            torch.save(payload, f)
+    except RuntimeError as exc:
+        # torch's zip writer turns a failed write of the file (a full disk: OSError ENOSPC) into a RuntimeError
+        # ("enforce fail at inline_container.cc", "file write failed"); give callers the OSError back.
+        cause = _os_error_in(exc)
+        if cause is None:
+            raise
+        raise cause from None
     return path
+
+
+def _os_error_in(exc: BaseException) -> OSError | None:
+    """The OSError among an exception's causes and contexts (what a failed write raised), or None."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, OSError):
+            return e
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return None
 
 
 def newest_epoch_checkpoint(folder: str | Path, exclude: Path | None = None) -> Path | None:
