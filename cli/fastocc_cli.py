@@ -146,6 +146,9 @@ def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height
 @click.option("--interp-features/--no-interp-features", "interp_features", default=None,
               help="Ablation: --no-interp-features drops the interpolated image features from the FastOcc head "
               "(the BEV branch alone feeds the classifier). Default: on.")
+@click.option("--view-transform", "view_transform", type=click.Choice(["lss", "attention"]), default=None,
+              help="2D-to-3D view transform: lss (depth net + voxel pooling, default) or attention (spatial "
+              "cross-attention from voxel queries, the paper's SurroundOcc* row with --head deconv).")
 @click.option("--bev-height", "bev_height", type=click.Choice(["repeat", "unfold"]), default=None,
               help="With --no-interp-features: repeat the BEV feature along z (default) or unfold its channels "
               "into the 16 height bins (channel-to-height).")

@@ -143,11 +143,15 @@ def _bench_infer(cfg: BenchConfig, device: torch.device) -> dict[str, Any]:
         if net.temporal is not None:
             net.temporal.reset()
         t_view = _median_seconds(lambda: net.view_stage(feat, inputs), cfg, device)
-        pool_macs = N * B * base_cfg.depth_bins.count * base_cfg.context_channels * h * w
+        if net.attention is None:
+            pool_macs = N * B * base_cfg.depth_bins.count * base_cfg.context_channels * h * w
+        else:  # bilinear sampling: 4 corners x samples (heads x points) x C2 per voxel and camera
+            pool_macs = 4 * N * B * base_cfg.attention_points * base_cfg.context_channels * math.prod(
+                base_cfg.coarse_grid.shape)
         result["stages"]["view"] = {
             "ms": 1e3 * t_view,
             "gmacs": (macs[0] + pool_macs) / 1e9,
-            "params": _params(net.depth_net, net.temporal),
+            "params": _params(net.depth_net, net.attention, net.temporal),
             "peak_mib": _peak_mib(device),
         }
         for head in cfg.heads:
@@ -192,7 +196,8 @@ def _train_one(cfg: BenchConfig, head: HeadKind, device: torch.device) -> dict[s
         net.clear_caches()
         out = net(inputs)
         extra = out.bev_logits.mean() if out.bev_logits is not None else 0.0
-        (out.voxel_logits.mean() + out.depth_probs.mean() + extra).backward()
+        depth = out.depth_probs.mean() if out.depth_probs is not None else 0.0
+        (out.voxel_logits.mean() + depth + extra).backward()
         net.zero_grad(set_to_none=True)
 
     def step() -> None:

@@ -24,7 +24,15 @@ from typing import Any
 
 import torch
 
-from fastocc.model.config import BackboneConfig, BevHeight, DepthBins, HeadKind, ModelConfig, TemporalFusionKind
+from fastocc.model.config import (
+    BackboneConfig,
+    BevHeight,
+    DepthBins,
+    HeadKind,
+    ModelConfig,
+    TemporalFusionKind,
+    ViewTransformKind,
+)
 from occdata.constants import OccGrid
 from occdata.errors import OccDataError
 from occdata.fileio import atomic_open
@@ -54,7 +62,7 @@ class CheckpointError(OccDataError):
 def model_config_to_dict(cfg: ModelConfig) -> dict[str, Any]:
     """A JSON-able dict of primitives; `model_config_from_dict` inverts it exactly."""
     d = dataclasses.asdict(cfg)
-    for k in ("head", "bev_height", "temporal_fusion"):
+    for k in ("head", "bev_height", "temporal_fusion", "view_transform"):
         d[k] = str(getattr(cfg, k))
     return json.loads(json.dumps(d))  # tuples -> lists, checks it is JSON-able
 
@@ -76,6 +84,7 @@ def model_config_from_dict(d: dict[str, Any]) -> ModelConfig:
         "head": HeadKind,
         "bev_height": BevHeight,
         "temporal_fusion": TemporalFusionKind,
+        "view_transform": ViewTransformKind,
         "fine_grid": grid,
         "coarse_grid": grid,
         "depth_bins": lambda v: DepthBins(**v),

@@ -5,6 +5,8 @@ changes form so that the graph needs standard operators only:
 
 - LSS pooling: the flat voxel index of every frustum point (the network's cached `PoolingIndex`) is a
   constant; pooling is one Gather + one ScatterND(add) (ONNX opset >= 16).
+- Spatial cross-attention (view_transform "attention"): the voxel centres' reference points, visibility
+  and camera counts are constants; the deformable sampling is GridSample (opset >= 16).
 - Interpolation sampling: bilinear sampling with constant corner rows and weights, as Gathers from a
   channels-last feature table with one zero row appended. Per camera slot (slot j = the j-th camera
   that sees the voxel): 4 Gathers, each times its weight (bilinear weight / cameras seeing the voxel;
@@ -22,6 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from fastocc.model import FastOcc, HeadKind
+from fastocc.model.attention import attention_geometry
 from fastocc.model.geometry import project_points_to_feature, voxel_centres
 from fastocc.model.network import collapse_z
 from fastocc.model.temporal import warp_bev_inverse
@@ -48,10 +51,16 @@ class StaticFastOcc(nn.Module):
         H, W = cfg.input_hw
         h, w = cfg.feat_hw
         geo = rig.scene_inputs(torch.zeros(1, cfg.num_cams, 3, H, W))
-        index = model.pooling.index(geo, (h, w))
-        model.pooling.clear_cache()
-        self.register_buffer("point_idx", index.point_idx.clone())
-        self.register_buffer("voxel_idx", index.voxel_idx.clone())
+        if model.attention is not None:
+            att = attention_geometry(geo, cfg, (h, w))
+            self.register_buffer("att_ref", att.ref.clone())
+            self.register_buffer("att_visible", att.visible.clone())
+            self.register_buffer("att_count", att.count.clone())
+        else:
+            index = model.pooling.index(geo, (h, w))
+            model.pooling.clear_cache()
+            self.register_buffer("point_idx", index.point_idx.clone())
+            self.register_buffer("voxel_idx", index.voxel_idx.clone())
         self.num_slots = 0
         if cfg.head is HeadKind.FASTOCC and cfg.interp_features:
             slots = _slot_sampling(geo, cfg.fine_grid, cfg.input_hw, cfg.stride, (h, w))
@@ -92,8 +101,11 @@ class StaticFastOcc(nn.Module):
                 seq_start: Tensor | None = None) -> tuple[Tensor, ...]:
         net, cfg = self.net, self.cfg
         feat = net.image_stage(images)  # (N, C1, h, w)
-        depth, context = net.depth_net(feat)
-        pooled = lss_pool(depth, context, PoolingIndex(self.point_idx, self.voxel_idx), 1, cfg.coarse_grid.shape)
+        if net.attention is not None:
+            pooled = net.attention.attend(feat, self.att_ref, self.att_visible, self.att_count)
+        else:
+            depth, context = net.depth_net(feat)
+            pooled = lss_pool(depth, context, PoolingIndex(self.point_idx, self.voxel_idx), 1, cfg.coarse_grid.shape)
         bev = collapse_z(pooled)  # (1, C2*8, 100, 100)
         new_history = None
         if net.temporal is not None:

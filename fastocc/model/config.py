@@ -18,6 +18,7 @@ __all__ = [
     "ModelConfig",
     "PRESETS",
     "TemporalFusionKind",
+    "ViewTransformKind",
     "preset",
 ]
 
@@ -59,6 +60,13 @@ class TemporalFusionKind(StrEnum):
     CACHED = "cached"  # each frame reduced once to C_r channels when current; warp + small fusion per frame
 
 
+class ViewTransformKind(StrEnum):
+    """How image features become the coarse voxel volume V_B (paper Table II)."""
+
+    LSS = "lss"  # depth distribution x context, voxel pooling (BEVDepth; FastOcc and the baselines)
+    ATTENTION = "attention"  # spatial cross-attention from voxel queries, deformable sampling (SurroundOcc*)
+
+
 class BevHeight(StrEnum):
     """How the FastOcc head gives height to its BEV part when `interp_features` is off (paper Table IV)."""
 
@@ -87,6 +95,9 @@ class ModelConfig:
     bev_channels: int = 128  # C3: decoded BEV map B at 100 x 100
     fuse_channels: int = 64  # C_f: fused voxel feature V at 200 x 200 x 16
     head: HeadKind = HeadKind.FASTOCC
+    view_transform: ViewTransformKind = ViewTransformKind.LSS
+    attention_heads: int = 4  # spatial cross-attention (view_transform "attention"): heads, C2 divisible by it
+    attention_points: int = 4  # deformable samples per head and camera
     num_history: int = 0  # previous frames in the temporal queue (0 = single frame; paper's base: 16)
     bev_head: bool = True  # auxiliary multi-hot BEV head (training only; FastOcc head only)
     # Ablation (paper Table IV): False drops the interpolated image features P from the FastOcc head, so the
@@ -107,7 +118,9 @@ class ModelConfig:
 
     def __post_init__(self) -> None:
         bad = []
-        for name, kind in (("head", HeadKind), ("bev_height", BevHeight), ("temporal_fusion", TemporalFusionKind)):
+        kinds = (("head", HeadKind), ("bev_height", BevHeight), ("temporal_fusion", TemporalFusionKind),
+                 ("view_transform", ViewTransformKind))
+        for name, kind in kinds:
             try:
                 object.__setattr__(self, name, kind(getattr(self, name)))  # plain strings -> the enum
             except ValueError:
@@ -118,6 +131,9 @@ class ModelConfig:
             bad.append(f"temporal_channels = {self.temporal_channels} (must be >= 1)")
         if self.bev_height == BevHeight.UNFOLD and (self.interp_features or self.head != HeadKind.FASTOCC):
             bad.append(f"bev_height = {self.bev_height!s} needs the fastocc head with interp_features off")
+        if self.attention_heads < 1 or self.attention_points < 1 or self.context_channels % self.attention_heads:
+            bad.append(f"attention_heads = {self.attention_heads}, attention_points = {self.attention_points} (>= 1; "
+                       f"context_channels {self.context_channels} divisible by the heads)")
         if bad:
             raise ValueError("bad model config: " + "; ".join(bad))
 

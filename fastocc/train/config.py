@@ -15,7 +15,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fastocc.model.config import PRESETS, BevHeight, HeadKind, ModelConfig, TemporalFusionKind, preset
+from fastocc.model.config import (
+    PRESETS,
+    BevHeight,
+    HeadKind,
+    ModelConfig,
+    TemporalFusionKind,
+    ViewTransformKind,
+    preset,
+)
 from occdata.errors import OccDataError
 
 __all__ = [
@@ -80,6 +88,7 @@ class TrainConfig:
     # model
     preset: str = "nano"
     head: str = "fastocc"
+    view_transform: str = "lss"  # lss | attention (spatial cross-attention, the SurroundOcc* row)
     input_hw: tuple[int, int] | None = None  # None = the preset's input size
     num_history: int | None = None  # None = the preset's (temporal models train scene-sequentially)
     interp_features: bool = True  # ablation: False = FastOcc head without interpolated image features
@@ -164,6 +173,8 @@ class TrainConfig:
             bad.append(f"temporal_fusion {self.temporal_fusion!r} (choose from {kinds})")
         if self.temporal_channels < 1:
             bad.append(f"temporal_channels = {self.temporal_channels} (must be >= 1)")
+        if self.view_transform not in {k.value for k in ViewTransformKind}:
+            bad.append(f"view_transform {self.view_transform!r} (choose from {[k.value for k in ViewTransformKind]})")
         if self.input_hw is not None and any(v <= 0 or v % 16 for v in self.input_hw):
             bad.append(f"input_hw = {self.input_hw} (positive multiples of 16)")
         if bad:
@@ -175,7 +186,8 @@ class TrainConfig:
                                    "bev_height": BevHeight(self.bev_height),
                                    "temporal_fusion": TemporalFusionKind(self.temporal_fusion),
                                    "temporal_channels": self.temporal_channels,
-                                   "zero_history_fusion": self.zero_history_fusion}
+                                   "zero_history_fusion": self.zero_history_fusion,
+                                   "view_transform": ViewTransformKind(self.view_transform)}
         if self.input_hw is not None:
             changes["input_hw"] = tuple(self.input_hw)
         if self.num_history is not None:

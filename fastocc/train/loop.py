@@ -96,7 +96,8 @@ def _micro_loss(run: Run, batch: Batch) -> tuple[torch.Tensor, dict[str, torch.T
         out = run.model(batch.inputs())
     # occupancy_loss selects the camera-masked voxels once for all voxel terms (fastocc/losses.py)
     return occupancy_loss(out.voxel_logits.float(), _targets(batch, run.model_cfg), run.loss_cfg,
-                          out.depth_probs.float(), None if out.bev_logits is None else out.bev_logits.float())
+                          None if out.depth_probs is None else out.depth_probs.float(),
+                          None if out.bev_logits is None else out.bev_logits.float())
 
 
 @dataclass
