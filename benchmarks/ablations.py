@@ -8,7 +8,7 @@ the same E for every row; seeds 0 and 1 per row):
 
 Tables and the runs behind their rows (a run shared by two tables is trained once):
 
-    head        deconv | 3dfcn | fastocc                      (paper Table II)
+    head        surroundocc | deconv | 3dfcn | fastocc        (paper Table II)
     components  neither | bev-only | bev-unfold | interp-only | fastocc
                                                               (paper Table IV; BEV supervision off = w_bev 0)
     history     hist0 | hist0fuse | hist4 | hist16 | hist16cached   (all trained scene-sequentially)
@@ -107,14 +107,19 @@ ROWS: dict[str, Row] = {r.name: r for r in (
     Row("hist0fuse", (("num_history", 0), ("scene_sequential", True), ("zero_history_fusion", True))),
     Row("hist16cached", (("num_history", 16), ("scene_sequential", True), ("temporal_fusion", "cached"))),
     Row("nano128", (("input_hw", (128, 352)),)),
+    Row("surroundocc", (("head", "deconv"), ("view_transform", "attention"))),
 )}
 
 TABLES: tuple[Table, ...] = (
     Table("head", "Head (paper Table II: ResNet-101, 640x1600, V100)", (
+        TableRow("SurroundOcc*: attention view transform + 3D deconv head", "surroundocc", 37.18, 355.0),
         TableRow("Baseline: 3D deconv head", "deconv", 38.44, 306.0),
         TableRow("Baseline+: 3D FCN head", "3dfcn", 41.02, 342.0),
         TableRow("FastOcc: 2D BEV FCN + interpolation", "fastocc", 40.75, 221.0),
-    ), "Paper latency is the whole network's; ours is the 3D side only (`latency`), as a ratio to the FastOcc head."),
+    ), "Paper latency is the whole network's; ours is the 3D side only (`latency`), as a ratio to the FastOcc head, "
+       "except SurroundOcc*, whose view transform differs too: whole network / FastOcc's whole network. "
+       "`surroundocc` = `view_transform = \"attention\"` (voxel queries, deformable spatial cross-attention, one "
+       "layer; docs/model.md) with the deconv head; no depth net, so no depth loss."),
     Table("components", "Components (paper Table IV: tiny, ResNet-50, 320x800)", (
         TableRow("neither", "neither"),
         TableRow("BEV supervision only", "bev-only", 31.67),
@@ -437,13 +442,19 @@ def latency(preset: str, repeats: int, rounds: int, threads: int | None, results
 
     heads = (HeadKind.FASTOCC, HeadKind.FCN3D, HeadKind.DECONV)
     load = os.getloadavg()[0]
-    per_round = []
+    per_round, whole = [], []
     for _ in range(rounds):
         res = run_benchmark(BenchConfig(preset=preset, heads=heads, repeats=repeats, threads=threads))
         per_round.append({h: v["ms"] for h, v in res["heads"].items()})
+        sur = run_benchmark(BenchConfig(preset=preset, heads=(HeadKind.DECONV,), repeats=repeats, threads=threads,
+                                        view_transform="attention"))
+        whole.append({"fastocc": res["heads"]["fastocc"]["total_ms"],
+                      "surroundocc": sur["heads"]["deconv"]["total_ms"]})
     ms = {h.value: statistics.median(r[h.value] for r in per_round) for h in heads}
     ratio = {h.value: statistics.median(r[h.value] / r["fastocc"] for r in per_round) for h in heads}
+    ratio["surroundocc"] = statistics.median(r["surroundocc"] / r["fastocc"] for r in whole)  # whole network
     out = {"head_ms": ms, "ratio_to_fastocc": ratio, "rounds_ms": per_round, "config": res["config"],
+           "whole_ms": {k: statistics.median(r[k] for r in whole) for k in whole[0]}, "whole_rounds_ms": whole,
            "loadavg_1min": load,
            "command": f"python benchmarks/ablations.py latency --preset {preset} --repeats {repeats} --rounds {rounds}"
                       + (f" --threads {threads}" if threads else "")}
@@ -558,7 +569,8 @@ def _table_lines(t: Table, results: dict[str, Any]) -> list[str]:
                   _num(100 * statistics.fmean(geo) if len(geo) == len(SEEDS) else None, ".2f"),
                   _num(statistics.fmean(sps) if len(sps) == len(SEEDS) else None, ".3f")]
         if head:
-            cells.append(_num(lat.get(tr.row), ".2f"))
+            whole = " (whole network)" if tr.row == "surroundocc" and lat.get(tr.row) is not None else ""
+            cells.append(_num(lat.get(tr.row), ".2f") + whole)
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
@@ -584,10 +596,13 @@ def _latency_note(lat: dict[str, Any] | None) -> str:
     if not lat:
         return "3D-side latency: pending (`python benchmarks/ablations.py latency`)."
     c, ms, rounds = lat["config"], lat["head_ms"], len(lat.get("rounds_ms", [1]))
+    whole = lat.get("whole_ms")
+    whole_text = "" if not whole else (f"; whole network: FastOcc {whole['fastocc']:.0f} ms, SurroundOcc* "
+                                       f"{whole['surroundocc']:.0f} ms")
     return (f"3D-side latency ({c['preset']} {c['input_hw'][0]}x{c['input_hw'][1]}, {c['device_name']}, "
             f"{c['threads']} threads, median of {c['repeats']} x {rounds} rounds, "
             f"1-min load {lat['loadavg_1min']:.1f}): "
-            + ", ".join(f"{h} {v:.0f} ms" for h, v in ms.items()) + f"; `{lat['command']}`.")
+            + ", ".join(f"{h} {v:.0f} ms" for h, v in ms.items()) + whole_text + f"; `{lat['command']}`.")
 
 
 def _tta_lines(results: dict[str, Any]) -> list[str]:

@@ -51,6 +51,13 @@ class BenchConfig:
     mode: Literal["infer", "train"] = "infer"
     threads: int | None = None
     seed: int = 0
+    view_transform: str = "lss"  # lss | attention (the SurroundOcc* view transform)
+    input_hw: tuple[int, int] | None = None  # None = the preset's
+
+
+def _model_config(cfg: BenchConfig, head: HeadKind) -> ModelConfig:
+    extra: dict[str, Any] = {"input_hw": tuple(cfg.input_hw)} if cfg.input_hw else {}
+    return preset(cfg.preset, head=head, view_transform=cfg.view_transform, **extra)
 
 
 def _sync(device: torch.device) -> None:
@@ -119,7 +126,7 @@ def _build(model_cfg: ModelConfig, device: torch.device, seed: int) -> FastOcc:
 
 
 def _bench_infer(cfg: BenchConfig, device: torch.device) -> dict[str, Any]:
-    base_cfg = preset(cfg.preset, head=cfg.heads[0])
+    base_cfg = _model_config(cfg, cfg.heads[0])
     inputs = synthetic_inputs(cfg.batch, base_cfg.input_hw, base_cfg.num_cams, cfg.seed, str(device))
     net = _build(base_cfg, device, cfg.seed).eval()
     h, w = base_cfg.feat_hw
@@ -187,7 +194,7 @@ def _random_targets(model_cfg: ModelConfig, batch: int, device: torch.device) ->
 
 
 def _train_one(cfg: BenchConfig, head: HeadKind, device: torch.device) -> dict[str, Any]:
-    model_cfg = preset(cfg.preset, head=head)
+    model_cfg = _model_config(cfg, head)
     inputs = synthetic_inputs(cfg.batch, model_cfg.input_hw, model_cfg.num_cams, cfg.seed, str(device))
     targets = _random_targets(model_cfg, cfg.batch, device)
     net = _build(model_cfg, device, cfg.seed).train()
@@ -231,10 +238,11 @@ def run_benchmark(cfg: BenchConfig) -> dict[str, Any]:
         torch.set_num_threads(cfg.threads)
     run = _bench_infer if cfg.mode == "infer" else _bench_train
     result = run(cfg, device)
-    model_cfg = preset(cfg.preset)
+    model_cfg = _model_config(cfg, cfg.heads[0])
     result["config"] = {
         "preset": cfg.preset,
         "input_hw": list(model_cfg.input_hw),
+        "view_transform": cfg.view_transform,
         "mode": cfg.mode,
         "device": cfg.device,
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
