@@ -34,9 +34,17 @@ def test_reference_point_of_a_voxel_in_the_front_camera_by_hand() -> None:
     fx, fy = (u - 7.5) / 16, (v - 7.5) / 16
     want = torch.tensor([(fx + 0.5) / 16 * 2 - 1, (fy + 0.5) / 6 * 2 - 1])
     front, back = 1, 4  # synthetic ring yaws (60, 0, -60, 120, 180, -120)
-    torch.testing.assert_close(geo.ref[front, q], want, atol=1e-4, rtol=0)
-    assert geo.visible[0, front, q] == 1 and geo.visible[0, back, q] == 0
+    slot = torch.nonzero((geo.query[front] == q) & (geo.valid[front] == 1)).flatten()
+    assert slot.numel() == 1 and int(geo.target[front, slot]) == q
+    torch.testing.assert_close(geo.ref[front, slot[0]], want, atol=1e-4, rtol=0)
+    assert not bool(((geo.query[back] == q) & (geo.valid[back] == 1)).any())  # behind the back camera
     assert geo.count[0, q] >= 1
+    # slots list each camera's seen voxels once, in grid order; padding points at the discarded row
+    for n in range(6):
+        real = geo.query[n][geo.valid[n] == 1]
+        assert torch.equal(real, torch.sort(real).values) and real.unique().numel() == real.numel()
+        assert bool((geo.target[n][geo.valid[n] == 0] == 100 * 100 * 8).all())
+    assert torch.equal(geo.count[0], torch.bincount(geo.target[geo.valid == 1], minlength=80000).clamp_min(1).float())
 
 
 def test_image_reaches_only_the_voxels_a_camera_sees() -> None:
@@ -48,7 +56,9 @@ def test_image_reaches_only_the_voxels_a_camera_sees() -> None:
         va = net.attention(net.image_stage(a.images), a)
         vb = net.attention(net.image_stage(b.images), b)
     geo = attention_geometry(a, cfg, cfg.feat_hw)
-    seen = geo.visible[0].amax(0).bool().view(100, 100, 8)
+    seen = torch.zeros(100 * 100 * 8, dtype=torch.bool)
+    seen[geo.target[geo.valid == 1]] = True
+    seen = seen.view(100, 100, 8)
     assert va.shape == (1, cfg.context_channels, 100, 100, 8)
     assert 0 < int((~seen).sum()) and int(seen.sum()) > 0.5 * seen.numel()
     diff = (va - vb).abs().amax(dim=1)[0]  # (100, 100, 8)
@@ -122,3 +132,38 @@ def test_export_parity_attention_deconv(tmp_path: Path) -> None:
     assert rep.parity.passed and rep.parity.max_abs_diff <= 1e-3 and rep.parity.min_agreement >= 0.999
     assert custom_domain_ops(rep.out) == []
     assert "GridSample" in {n.op_type for n in onnx.load(str(rep.out)).graph.node}
+
+
+@torch.no_grad()
+def test_sampling_only_seen_pairs_equals_the_dense_computation() -> None:
+    """Reference: every voxel sampled in every camera (grid_sample over all Q), masked by visibility and
+    averaged over the cameras that see it; the module samples only the seen (voxel, camera) slots."""
+    import torch.nn.functional as F
+
+    from fastocc.model.geometry import project_points_to_feature, voxel_centres
+
+    torch.manual_seed(0)
+    cfg = _cfg()
+    att = FastOcc(cfg).eval().attention
+    with torch.no_grad():  # non-trivial offsets and weights
+        att.offsets.weight.normal_(0, 0.5)
+        att.weights.weight.normal_(0, 0.5)
+    inputs = synthetic_inputs(1, cfg.input_hw, seed=3)
+    h, w = cfg.feat_hw
+    feat = torch.randn(6, cfg.neck_channels, h, w)
+    out = att(feat, inputs)
+    xy, vis = project_points_to_feature(voxel_centres(cfg.coarse_grid).reshape(-1, 3), inputs.K,
+                                        inputs.T_keyego_from_cam, inputs.img_aug, inputs.bev_aug, cfg.input_hw, 16)
+    ref = ((xy[0] + 0.5) / torch.tensor([w, h]) * 2 - 1).clamp(-2, 2)  # (N, Q, 2)
+    q = att.queries()
+    Q, C = q.shape
+    H, P = att.heads, att.points
+    loc = ref[:, :, None, None] + att.offsets(q).view(Q, H, P, 2) * torch.tensor([2 / w, 2 / h])
+    value = att.value(feat).reshape(6 * H, C // H, h, w)
+    sampled = F.grid_sample(value, loc.permute(0, 2, 1, 3, 4).reshape(6 * H, Q, P, 2), align_corners=False)
+    weights = att.weights(q).view(Q, H, P).softmax(-1).permute(1, 0, 2)  # (H, Q, P)
+    per_cam = (sampled.view(6, H, C // H, Q, P) * weights[None, :, None]).sum(-1).reshape(6, C, Q)
+    mean = (per_cam * vis[0][:, None].float()).sum(0) / vis[0].sum(0).clamp_min(1)  # (C, Q)
+    x = att.norm1(q + att.out(mean.T))
+    x = att.norm2(x + att.ffn(x))
+    torch.testing.assert_close(out[0], x.T.reshape(C, 100, 100, 8), atol=1e-4, rtol=1e-4)

@@ -5,8 +5,9 @@ changes form so that the graph needs standard operators only:
 
 - LSS pooling: the flat voxel index of every frustum point (the network's cached `PoolingIndex`) is a
   constant; pooling is one Gather + one ScatterND(add) (ONNX opset >= 16).
-- Spatial cross-attention (view_transform "attention"): the voxel centres' reference points, visibility
-  and camera counts are constants; the deformable sampling is GridSample (opset >= 16).
+- Spatial cross-attention (view_transform "attention"): the (voxel, camera) slots, their reference points
+  and the camera counts are constants; the deformable sampling is GridSample (opset >= 16), the mean over
+  cameras one ScatterND(add).
 - Interpolation sampling: bilinear sampling with constant corner rows and weights, as Gathers from a
   channels-last feature table with one zero row appended. Per camera slot (slot j = the j-th camera
   that sees the voxel): 4 Gathers, each times its weight (bilinear weight / cameras seeing the voxel;
@@ -24,7 +25,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from fastocc.model import FastOcc, HeadKind
-from fastocc.model.attention import attention_geometry
+from fastocc.model.attention import AttentionGeometry, attention_geometry
 from fastocc.model.geometry import project_points_to_feature, voxel_centres
 from fastocc.model.network import collapse_z
 from fastocc.model.temporal import warp_bev_inverse
@@ -53,9 +54,8 @@ class StaticFastOcc(nn.Module):
         geo = rig.scene_inputs(torch.zeros(1, cfg.num_cams, 3, H, W))
         if model.attention is not None:
             att = attention_geometry(geo, cfg, (h, w))
-            self.register_buffer("att_ref", att.ref.clone())
-            self.register_buffer("att_visible", att.visible.clone())
-            self.register_buffer("att_count", att.count.clone())
+            for name in ("ref", "query", "target", "valid", "count"):
+                self.register_buffer(f"att_{name}", getattr(att, name).clone())
         else:
             index = model.pooling.index(geo, (h, w))
             model.pooling.clear_cache()
@@ -102,7 +102,8 @@ class StaticFastOcc(nn.Module):
         net, cfg = self.net, self.cfg
         feat = net.image_stage(images)  # (N, C1, h, w)
         if net.attention is not None:
-            pooled = net.attention.attend(feat, self.att_ref, self.att_visible, self.att_count)
+            pooled = net.attention.attend(feat, AttentionGeometry(self.att_ref, self.att_query, self.att_target,
+                                                                  self.att_valid, self.att_count))
         else:
             depth, context = net.depth_net(feat)
             pooled = lss_pool(depth, context, PoolingIndex(self.point_idx, self.voxel_idx), 1, cfg.coarse_grid.shape)
