@@ -147,7 +147,7 @@ TABLES: tuple[Table, ...] = (
         TableRow("nano, 128x352", "nano128"),
     ), "The paper's Table III varies the backbone (ResNet-50 / 101) and the input (320x800, 640x1600) at full "
        "size; its rows are not comparable with nano's, so no paper column. Its latency split 2D / 2D-to-3D / 3D "
-       "is `fastocc bench --preset tiny|small|base` (docs/benchmarks.md)."),
+       "is `fastocc bench --split --preset tiny --preset small --preset base` (docs/benchmarks.md)."),
 )
 
 
@@ -583,7 +583,7 @@ def _comparison_lines(t: Table, results: dict[str, Any]) -> list[str]:
             m = verdict(_seed_values(results, a.row, "miou"), _seed_values(results, b.row, "miou"))
             r = verdict(_seed_values(results, a.row, "rayiou"), _seed_values(results, b.row, "rayiou"))
             line = f"- `{a.row}` vs `{b.row}`: mIoU {m}; RayIoU {r}"
-            if a.paper_miou is not None and b.paper_miou is not None:
+            if a.paper_miou is not None and b.paper_miou is not None and a.paper_miou != b.paper_miou:
                 paper = ">" if a.paper_miou > b.paper_miou else "<"
                 agree = ("pending" if m == "pending" else "not resolved" if m.startswith("not") else
                          "agrees" if m.startswith(paper) else "disagrees")

@@ -244,3 +244,10 @@ def test_a_killed_call_still_counts_in_the_wall_time(tmp_path: Path) -> None:
     log = json.loads((run / "ablate_run.json").read_text())
     assert [(c["wall_s"], c["rc"]) for c in log["calls"]] == [(300.0, "killed"), (500.0, 0)]
     assert log["calls"][0]["estimated"] is True and log["wall_s"] == 800.0
+
+
+def test_two_readings_of_one_paper_row_get_no_paper_order() -> None:
+    """bev-only and bev-unfold both stand for the paper's 31.67 row: no "paper < by 0.00" between them."""
+    md = ab.render_markdown(_fake_results(), epochs=6)
+    line = next(ln for ln in md.splitlines() if ln.startswith("- `bev-only` vs `bev-unfold`"))
+    assert "paper" not in line

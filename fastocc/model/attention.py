@@ -5,7 +5,7 @@ The paper's "SurroundOcc*" row (Table II) replaces LSS by a transformer view tra
 voxel centre projected into every camera; per camera, `heads` x `points` deformable samples around the
 reference point (offsets and attention weights predicted from the query, sampling by `F.grid_sample`, no
 custom operator), summed with the softmax weights, averaged over the cameras that see the voxel (only the
-(voxel, camera) pairs where the centre is seen are sampled: about 1.3 of 6 cameras per voxel); an output
+(voxel, camera) pairs where the centre is seen are sampled: ~1.04 of 6 cameras per seen voxel); an output
 projection, a residual, LayerNorm and a feed-forward layer. Its output takes V_B's place, `(B, C2, 100, 100,
 8)`, so every head can decode it. Simplifications against SurroundOcc: one attention layer, one feature
 scale, no 3D self-attention; queries are a sum of per-axis embeddings (x, y, z).
