@@ -8,9 +8,11 @@ the same E for every row; seeds 0 and 1 per row):
 
 Tables and the runs behind their rows (a run shared by two tables is trained once):
 
-    head        deconv | 3dfcn | fastocc                      (paper Table II)
-    components  neither | bev-only | interp-only | fastocc    (paper Table IV; BEV supervision off = w_bev 0)
-    history     hist0 | hist4 | hist16                        (all trained scene-sequentially)
+    head        surroundocc | deconv | 3dfcn | fastocc        (paper Table II)
+    components  neither | bev-only | bev-unfold | interp-only | fastocc
+                                                              (paper Table IV; BEV supervision off = w_bev 0)
+    history     hist0 | hist0fuse | hist4 | hist16 | hist16cached   (all trained scene-sequentially)
+    resolution  fastocc (96x256) | nano128 (128x352)          (paper Table III, input size only)
     tta         the best row of the tables above, flip TTA off | on (evaluation only)
 
 Steps:
@@ -101,26 +103,51 @@ ROWS: dict[str, Row] = {r.name: r for r in (
     Row("hist0", (("num_history", 0), ("scene_sequential", True))),
     Row("hist4", (("num_history", 4), ("scene_sequential", True))),
     Row("hist16", (("num_history", 16), ("scene_sequential", True))),
+    Row("bev-unfold", (("interp_features", False), ("bev_height", "unfold"))),
+    Row("hist0fuse", (("num_history", 0), ("scene_sequential", True), ("zero_history_fusion", True))),
+    Row("hist16cached", (("num_history", 16), ("scene_sequential", True), ("temporal_fusion", "cached"))),
+    Row("nano128", (("input_hw", (128, 352)),)),
+    Row("surroundocc", (("head", "deconv"), ("view_transform", "attention"))),
 )}
 
 TABLES: tuple[Table, ...] = (
     Table("head", "Head (paper Table II: ResNet-101, 640x1600, V100)", (
+        TableRow("SurroundOcc*: attention view transform + 3D deconv head", "surroundocc", 37.18, 355.0),
         TableRow("Baseline: 3D deconv head", "deconv", 38.44, 306.0),
         TableRow("Baseline+: 3D FCN head", "3dfcn", 41.02, 342.0),
         TableRow("FastOcc: 2D BEV FCN + interpolation", "fastocc", 40.75, 221.0),
-    ), "Paper latency is the whole network's; ours is the 3D side only (`latency`), as a ratio to the FastOcc head."),
+    ), "Paper latency is the whole network's; ours is the 3D side only (`latency`), as a ratio to the FastOcc head, "
+       "except SurroundOcc*, whose view transform differs too: whole network / FastOcc's whole network. "
+       "`surroundocc` = `view_transform = \"attention\"` (voxel queries, deformable spatial cross-attention, one "
+       "layer; docs/model.md) with the deconv head; no depth net, so no depth loss."),
     Table("components", "Components (paper Table IV: tiny, ResNet-50, 320x800)", (
         TableRow("neither", "neither"),
         TableRow("BEV supervision only", "bev-only", 31.67),
+        TableRow("BEV supervision only, channel-to-height", "bev-unfold", 31.67),
         TableRow("interpolated fusion only", "interp-only", 33.08),
         TableRow("both (= FastOcc row of the head table)", "fastocc", 34.21),
     ), "BEV supervision off = `w_bev = 0` (the BEV head still runs in training but gets no loss); interpolated "
-       "fusion off = `interp_features = false` (the voxel feature is the z-repeated BEV map alone)."),
+       "fusion off = `interp_features = false`: the voxel feature is the BEV map alone, z-repeated (constant "
+       "along z; `bev_height = \"repeat\"`) or, in `bev-unfold`, with its channels unfolded into the 16 height "
+       "bins (`bev_height = \"unfold\"`, the paper's \"repeated and regressed to occupancy\" read as "
+       "channel-to-height)."),
     Table("history", "History (scene-sequential training for every row)", (
         TableRow("0 previous frames", "hist0"),
+        TableRow("0 previous frames + the fusion layer (control)", "hist0fuse"),
         TableRow("4 previous frames", "hist4"),
         TableRow("16 previous frames", "hist16"),
-    ), "The paper's best result (40.75, base) uses 16 frames; it gives no 0/4/16 table, so no paper column."),
+        TableRow("16 previous frames, cached fusion", "hist16cached"),
+    ), "The paper's best result (40.75, base) uses 16 frames; it gives no 0/4/16 table, so no paper column. "
+       "`hist0fuse` has the history rows' fusion layer (1x1 conv + BN + ReLU) over the current map alone, so it "
+       "differs from `hist16` only by the history. `hist16cached` (`temporal_fusion = \"cached\"`) reduces each "
+       "frame once, when current, to 16 channels and queues those; per frame only their warp and a small "
+       "residual fusion run (docs/model.md)."),
+    Table("resolution", "Input resolution (paper Table III: backbone and input size)", (
+        TableRow("nano, 96x256 (= FastOcc row of the head table)", "fastocc"),
+        TableRow("nano, 128x352", "nano128"),
+    ), "The paper's Table III varies the backbone (ResNet-50 / 101) and the input (320x800, 640x1600) at full "
+       "size; its rows are not comparable with nano's, so no paper column. Its latency split 2D / 2D-to-3D / 3D "
+       "is `fastocc bench --split --preset tiny --preset small --preset base` (docs/benchmarks.md)."),
 )
 
 
@@ -347,7 +374,7 @@ def score_tta(run: Path, store: str, workers: int) -> dict[str, Any]:
 
 
 def best_row(results: dict[str, Any]) -> str | None:
-    """The row of tables 1-3 with the highest mean mIoU, once every one of their rows has both seeds."""
+    """The row of the tables with the highest mean mIoU, once every one of their rows has both seeds."""
     rows = {tr.row for t in TABLES for tr in t.rows}
     means = {r: _seed_values(results, r, "miou") for r in rows}
     if any(len(v) < len(SEEDS) for v in means.values()):
@@ -415,13 +442,19 @@ def latency(preset: str, repeats: int, rounds: int, threads: int | None, results
 
     heads = (HeadKind.FASTOCC, HeadKind.FCN3D, HeadKind.DECONV)
     load = os.getloadavg()[0]
-    per_round = []
+    per_round, whole = [], []
     for _ in range(rounds):
         res = run_benchmark(BenchConfig(preset=preset, heads=heads, repeats=repeats, threads=threads))
         per_round.append({h: v["ms"] for h, v in res["heads"].items()})
+        sur = run_benchmark(BenchConfig(preset=preset, heads=(HeadKind.DECONV,), repeats=repeats, threads=threads,
+                                        view_transform="attention"))
+        whole.append({"fastocc": res["heads"]["fastocc"]["total_ms"],
+                      "surroundocc": sur["heads"]["deconv"]["total_ms"]})
     ms = {h.value: statistics.median(r[h.value] for r in per_round) for h in heads}
     ratio = {h.value: statistics.median(r[h.value] / r["fastocc"] for r in per_round) for h in heads}
+    ratio["surroundocc"] = statistics.median(r["surroundocc"] / r["fastocc"] for r in whole)  # whole network
     out = {"head_ms": ms, "ratio_to_fastocc": ratio, "rounds_ms": per_round, "config": res["config"],
+           "whole_ms": {k: statistics.median(r[k] for r in whole) for k in whole[0]}, "whole_rounds_ms": whole,
            "loadavg_1min": load,
            "command": f"python benchmarks/ablations.py latency --preset {preset} --repeats {repeats} --rounds {rounds}"
                       + (f" --threads {threads}" if threads else "")}
@@ -536,7 +569,8 @@ def _table_lines(t: Table, results: dict[str, Any]) -> list[str]:
                   _num(100 * statistics.fmean(geo) if len(geo) == len(SEEDS) else None, ".2f"),
                   _num(statistics.fmean(sps) if len(sps) == len(SEEDS) else None, ".3f")]
         if head:
-            cells.append(_num(lat.get(tr.row), ".2f"))
+            whole = " (whole network)" if tr.row == "surroundocc" and lat.get(tr.row) is not None else ""
+            cells.append(_num(lat.get(tr.row), ".2f") + whole)
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
@@ -549,7 +583,7 @@ def _comparison_lines(t: Table, results: dict[str, Any]) -> list[str]:
             m = verdict(_seed_values(results, a.row, "miou"), _seed_values(results, b.row, "miou"))
             r = verdict(_seed_values(results, a.row, "rayiou"), _seed_values(results, b.row, "rayiou"))
             line = f"- `{a.row}` vs `{b.row}`: mIoU {m}; RayIoU {r}"
-            if a.paper_miou is not None and b.paper_miou is not None:
+            if a.paper_miou is not None and b.paper_miou is not None and a.paper_miou != b.paper_miou:
                 paper = ">" if a.paper_miou > b.paper_miou else "<"
                 agree = ("pending" if m == "pending" else "not resolved" if m.startswith("not") else
                          "agrees" if m.startswith(paper) else "disagrees")
@@ -562,10 +596,13 @@ def _latency_note(lat: dict[str, Any] | None) -> str:
     if not lat:
         return "3D-side latency: pending (`python benchmarks/ablations.py latency`)."
     c, ms, rounds = lat["config"], lat["head_ms"], len(lat.get("rounds_ms", [1]))
+    whole = lat.get("whole_ms")
+    whole_text = "" if not whole else (f"; whole network: FastOcc {whole['fastocc']:.0f} ms, SurroundOcc* "
+                                       f"{whole['surroundocc']:.0f} ms")
     return (f"3D-side latency ({c['preset']} {c['input_hw'][0]}x{c['input_hw'][1]}, {c['device_name']}, "
             f"{c['threads']} threads, median of {c['repeats']} x {rounds} rounds, "
             f"1-min load {lat['loadavg_1min']:.1f}): "
-            + ", ".join(f"{h} {v:.0f} ms" for h, v in ms.items()) + f"; `{lat['command']}`.")
+            + ", ".join(f"{h} {v:.0f} ms" for h, v in ms.items()) + whole_text + f"; `{lat['command']}`.")
 
 
 def _tta_lines(results: dict[str, Any]) -> list[str]:
@@ -723,7 +760,7 @@ def _parser() -> argparse.ArgumentParser:
     lat.add_argument("--rounds", type=int, default=3, help="whole measurements; medians over them")
     lat.add_argument("--threads", type=int, default=None)
     st = sub.add_parser("steptime", parents=[common], help="training s/step of rows, one run at a time (idle machine)")
-    st.add_argument("--rows", default="fastocc,3dfcn,deconv,hist0,hist16",
+    st.add_argument("--rows", default="fastocc,3dfcn,deconv,hist0,hist16,hist16cached,hist0fuse",
                     help="comma-separated rows; ratios are to the first (default: %(default)s)")
     st.add_argument("--samples", type=int, default=40, help="training samples per timing epoch")
     st.add_argument("--rounds", type=int, default=2, help="interleaved rounds; medians over them")

@@ -25,7 +25,8 @@ def main() -> None:
 
 
 @main.command()
-@click.option("--preset", "preset_name", type=click.Choice(["nano", "tiny", "small", "base"]), default="nano")
+@click.option("--preset", "preset_names", type=click.Choice(["nano", "tiny", "small", "base"]), multiple=True,
+              help="Model preset (default nano); with --split repeat it (default tiny, small and base).")
 @click.option("--head", type=click.Choice(HEAD_CHOICES), default="fastocc", help="'all' compares the heads in one run.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu")
 @click.option("--batch", type=click.IntRange(min=1), default=1)
@@ -36,9 +37,13 @@ def main() -> None:
 @click.option("--runtime", "runtimes", multiple=True, type=click.Choice(["torch", "compile", "onnx", "all"]),
               help="End-to-end latency per frame (raw images -> preprocessing -> semantics) through the Predictor "
               "for eager PyTorch, torch.compile and/or ONNX Runtime in one run; repeat or use 'all'.")
+@click.option("--split", is_flag=True, help="The paper's Table III split: 2D / 2D-to-3D / 3D / total per preset, "
+              "eager PyTorch and ONNX Runtime (--runtime torch|onnx to keep one), ratios between presets.")
+@click.option("--input-hw", "input_hw", type=(int, int), default=None,
+              help="With --split: network input H W for every preset (default: each preset's).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
 def bench(
-    preset_name: str,
+    preset_names: tuple[str, ...],
     head: str,
     device: str,
     batch: int,
@@ -47,6 +52,8 @@ def bench(
     mode: str,
     threads: int | None,
     runtimes: tuple[str, ...],
+    split: bool,
+    input_hw: tuple[int, int] | None,
     as_json: bool,
 ) -> None:
     """Per-stage latency, analytic FLOPs (MACs), parameters and peak memory on synthetic inputs.
@@ -56,6 +63,20 @@ def bench(
     from fastocc.bench import BenchConfig, format_report, run_benchmark  # torch import only when used
     from fastocc.model import HeadKind
 
+    if split:
+        from fastocc.bench import SPLIT_RUNTIMES, SplitBenchConfig, format_split_report, run_split_benchmark
+
+        if head != "fastocc" or mode != "infer" or device != "cpu" or "compile" in runtimes:
+            raise click.UsageError("--split measures the fastocc head in infer mode on the CPU, torch and/or onnx")
+        chosen = SPLIT_RUNTIMES if not runtimes or "all" in runtimes else tuple(dict.fromkeys(runtimes))
+        scfg = SplitBenchConfig(presets=tuple(dict.fromkeys(preset_names)) or ("tiny", "small", "base"),
+                                runtimes=chosen, repeats=repeats, warmup=warmup, threads=threads, input_hw=input_hw)
+        sresult = run_split_benchmark(scfg)
+        click.echo(json.dumps(sresult, indent=2) if as_json else format_split_report(sresult))
+        return
+    if len(preset_names) > 1:
+        raise click.UsageError("several --preset values need --split")
+    preset_name = preset_names[0] if preset_names else "nano"
     if runtimes:
         from fastocc.bench import RUNTIMES, RuntimeBenchConfig, format_runtime_report, run_runtime_benchmark
 
@@ -146,6 +167,15 @@ def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height
 @click.option("--interp-features/--no-interp-features", "interp_features", default=None,
               help="Ablation: --no-interp-features drops the interpolated image features from the FastOcc head "
               "(the BEV branch alone feeds the classifier). Default: on.")
+@click.option("--view-transform", "view_transform", type=click.Choice(["lss", "attention"]), default=None,
+              help="2D-to-3D view transform: lss (depth net + voxel pooling, default) or attention (spatial "
+              "cross-attention from voxel queries, the paper's SurroundOcc* row with --head deconv).")
+@click.option("--bev-height", "bev_height", type=click.Choice(["repeat", "unfold"]), default=None,
+              help="With --no-interp-features: repeat the BEV feature along z (default) or unfold its channels "
+              "into the 16 height bins (channel-to-height).")
+@click.option("--temporal-fusion", "temporal_fusion", type=click.Choice(["concat", "cached"]), default=None,
+              help="Models with history: concat (full maps in the queue, default) or cached (each frame reduced "
+              "once, when current; warp + small fusion per frame).")
 @click.option("--epochs", type=click.IntRange(min=1), default=None, help="Epochs over the training split.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=None,
               help="GLOBAL batch size (all processes); each process gets batch-size / world size.")

@@ -26,13 +26,17 @@ from .losses import LossConfig, LossTargets, occupancy_loss
 from .model import FastOcc, HeadKind, ModelConfig, preset, synthetic_inputs
 
 __all__ = [
+    "PAPER_SPLIT_MS",
     "RUNTIMES",
     "BenchConfig",
     "RuntimeBenchConfig",
+    "SplitBenchConfig",
     "format_report",
     "format_runtime_report",
+    "format_split_report",
     "run_benchmark",
     "run_runtime_benchmark",
+    "run_split_benchmark",
 ]
 
 
@@ -51,6 +55,16 @@ class BenchConfig:
     mode: Literal["infer", "train"] = "infer"
     threads: int | None = None
     seed: int = 0
+    view_transform: str = "lss"  # lss | attention (the SurroundOcc* view transform)
+    input_hw: tuple[int, int] | None = None  # None = the preset's
+    num_history: int | None = None  # None = the preset's
+
+
+def _model_config(cfg: BenchConfig, head: HeadKind) -> ModelConfig:
+    extra: dict[str, Any] = {"input_hw": tuple(cfg.input_hw)} if cfg.input_hw else {}
+    if cfg.num_history is not None:
+        extra["num_history"] = cfg.num_history
+    return preset(cfg.preset, head=head, view_transform=cfg.view_transform, **extra)
 
 
 def _sync(device: torch.device) -> None:
@@ -119,7 +133,7 @@ def _build(model_cfg: ModelConfig, device: torch.device, seed: int) -> FastOcc:
 
 
 def _bench_infer(cfg: BenchConfig, device: torch.device) -> dict[str, Any]:
-    base_cfg = preset(cfg.preset, head=cfg.heads[0])
+    base_cfg = _model_config(cfg, cfg.heads[0])
     inputs = synthetic_inputs(cfg.batch, base_cfg.input_hw, base_cfg.num_cams, cfg.seed, str(device))
     net = _build(base_cfg, device, cfg.seed).eval()
     h, w = base_cfg.feat_hw
@@ -143,11 +157,15 @@ def _bench_infer(cfg: BenchConfig, device: torch.device) -> dict[str, Any]:
         if net.temporal is not None:
             net.temporal.reset()
         t_view = _median_seconds(lambda: net.view_stage(feat, inputs), cfg, device)
-        pool_macs = N * B * base_cfg.depth_bins.count * base_cfg.context_channels * h * w
+        if net.attention is None:
+            pool_macs = N * B * base_cfg.depth_bins.count * base_cfg.context_channels * h * w
+        else:  # bilinear sampling: 4 corners x samples (heads x points) x C2 per voxel and camera
+            pool_macs = 4 * N * B * base_cfg.attention_points * base_cfg.context_channels * math.prod(
+                base_cfg.coarse_grid.shape)
         result["stages"]["view"] = {
             "ms": 1e3 * t_view,
             "gmacs": (macs[0] + pool_macs) / 1e9,
-            "params": _params(net.depth_net, net.temporal),
+            "params": _params(net.depth_net, net.attention, net.temporal),
             "peak_mib": _peak_mib(device),
         }
         for head in cfg.heads:
@@ -183,7 +201,7 @@ def _random_targets(model_cfg: ModelConfig, batch: int, device: torch.device) ->
 
 
 def _train_one(cfg: BenchConfig, head: HeadKind, device: torch.device) -> dict[str, Any]:
-    model_cfg = preset(cfg.preset, head=head)
+    model_cfg = _model_config(cfg, head)
     inputs = synthetic_inputs(cfg.batch, model_cfg.input_hw, model_cfg.num_cams, cfg.seed, str(device))
     targets = _random_targets(model_cfg, cfg.batch, device)
     net = _build(model_cfg, device, cfg.seed).train()
@@ -192,7 +210,8 @@ def _train_one(cfg: BenchConfig, head: HeadKind, device: torch.device) -> dict[s
         net.clear_caches()
         out = net(inputs)
         extra = out.bev_logits.mean() if out.bev_logits is not None else 0.0
-        (out.voxel_logits.mean() + out.depth_probs.mean() + extra).backward()
+        depth = out.depth_probs.mean() if out.depth_probs is not None else 0.0
+        (out.voxel_logits.mean() + depth + extra).backward()
         net.zero_grad(set_to_none=True)
 
     def step() -> None:
@@ -226,10 +245,11 @@ def run_benchmark(cfg: BenchConfig) -> dict[str, Any]:
         torch.set_num_threads(cfg.threads)
     run = _bench_infer if cfg.mode == "infer" else _bench_train
     result = run(cfg, device)
-    model_cfg = preset(cfg.preset)
+    model_cfg = _model_config(cfg, cfg.heads[0])
     result["config"] = {
         "preset": cfg.preset,
         "input_hw": list(model_cfg.input_hw),
+        "view_transform": cfg.view_transform,
         "mode": cfg.mode,
         "device": cfg.device,
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
@@ -385,4 +405,178 @@ def format_runtime_report(result: dict[str, Any]) -> str:
         lines.append(f"  {rt:<8} {r['ms']:9.1f} ms  (preprocess {r['preprocess_ms']:7.1f}, network "
                      f"{r['network_ms']:8.1f}){ratio}  setup {r['setup_s']:.1f} s, first call "
                      f"{r['first_call_s']:.1f} s, argmax agreement {100 * r['argmax_agreement_with_first']:.3f}%")
+    return "\n".join(lines)
+
+
+# -- the paper's Table III split: 2D / 2D-to-3D / 3D / total per preset, eager and ONNX Runtime ---------------
+PAPER_SPLIT_MS: dict[str, dict[str, float]] = {  # V100, PyTorch (DESIGN §7); only tiny's split is published
+    "tiny": {"2d": 26.32, "2d_to_3d": 3.59, "3d": 32.89, "total": 62.80},
+    "small": {"total": 90.34},
+    "base": {"total": 221.28},
+}
+SPLIT_RUNTIMES: tuple[str, ...] = ("torch", "onnx")
+
+
+@dataclass(frozen=True)
+class SplitBenchConfig:
+    """Per-stage inference latency of the FastOcc network for several presets in one process: 2D (image
+    backbone + FPN), 2D-to-3D (depth net + LSS pooling), 3D (BEV decoder + interpolation + fusion +
+    classifier), each timed alone (median of `repeats` after `warmup`). Eager PyTorch: the network's own
+    stages (`run_benchmark`'s image / view / head). ONNX Runtime: each stage exported as its own fixed-rig
+    graph from the export wrapper's layers (its 3D stage includes the argmax to uint8 semantics). Single
+    frame (no history: the queue's cost is benchmarks/bench_temporal.py's); `input_hw` None = each
+    preset's size (the paper's resolutions)."""
+
+    presets: tuple[str, ...] = ("tiny", "small", "base")
+    runtimes: tuple[str, ...] = SPLIT_RUNTIMES
+    repeats: int = 5
+    warmup: int = 1
+    threads: int | None = None
+    input_hw: tuple[int, int] | None = None
+    seed: int = 0
+
+
+class _Stage2D(nn.Module):
+    def __init__(self, static: nn.Module) -> None:
+        super().__init__()
+        self.static = static
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return self.static.net.image_stage(images)
+
+
+class _Stage2Dto3D(nn.Module):
+    def __init__(self, static: nn.Module) -> None:
+        super().__init__()
+        self.static = static
+
+    def forward(self, feat: torch.Tensor) -> torch.Tensor:
+        from .model.network import collapse_z
+        from .model.view_transform import PoolingIndex, lss_pool
+
+        s = self.static
+        depth, context = s.net.depth_net(feat)
+        index = PoolingIndex(s.point_idx, s.voxel_idx)
+        return collapse_z(lss_pool(depth, context, index, 1, s.cfg.coarse_grid.shape))
+
+
+class _Stage3D(nn.Module):
+    def __init__(self, static: nn.Module) -> None:
+        super().__init__()
+        self.static = static
+
+    def forward(self, feat: torch.Tensor, bev: torch.Tensor) -> torch.Tensor:
+        logits, class_dim = self.static._head(feat, bev)
+        return logits.argmax(dim=class_dim).to(torch.uint8)
+
+
+def _split_stages(model: FastOcc) -> tuple[list[tuple[str, nn.Module]], tuple[torch.Tensor, ...]]:
+    """The three stage modules (fixed synthetic rig) and example images."""
+    from .deploy import synthetic_rig
+    from .deploy.static import StaticFastOcc
+
+    static = StaticFastOcc(model, synthetic_rig(model.cfg.num_cams)).eval()
+    stages = [("2d", _Stage2D(static)), ("2d_to_3d", _Stage2Dto3D(static)), ("3d", _Stage3D(static))]
+    return stages, static.example_inputs()
+
+
+def _stage_inputs(stages: list[tuple[str, nn.Module]], images: torch.Tensor) -> dict[str, tuple[torch.Tensor, ...]]:
+    with torch.no_grad():
+        feat = stages[0][1](images)
+        bev = stages[1][1](feat)
+    return {"2d": (images,), "2d_to_3d": (feat,), "3d": (feat, bev)}
+
+
+def _time_onnx(stage: nn.Module, args: tuple[torch.Tensor, ...], cfg: SplitBenchConfig, path: str,
+               threads: int) -> float:
+    import logging
+    import warnings
+
+    import onnxruntime as ort
+
+    names = [f"in{k}" for k in range(len(args))]
+    log = logging.getLogger("torch.onnx")
+    level = log.level
+    try:
+        log.setLevel(logging.ERROR)
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(stage, args, path, dynamo=True, external_data=False, opset_version=18,
+                              input_names=names, verbose=False)
+    finally:
+        log.setLevel(level)
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    session = ort.InferenceSession(path, opts, providers=["CPUExecutionProvider"])
+    feeds = {n: a.numpy() for n, a in zip(names, args, strict=True)}
+    return _median_seconds(lambda: session.run(None, feeds), BenchConfig(repeats=cfg.repeats, warmup=cfg.warmup),
+                           torch.device("cpu"))
+
+
+def run_split_benchmark(cfg: SplitBenchConfig) -> dict[str, Any]:
+    """Median ms of each stage and their sum per preset and runtime, ratios between presets (to the first),
+    and the paper's figures beside them; a JSON-ready dict."""
+    import tempfile
+    from pathlib import Path
+
+    unknown = sorted(set(cfg.runtimes) - set(SPLIT_RUNTIMES))
+    if unknown:
+        raise ValueError(f"unknown runtime(s) {unknown}; choose from {list(SPLIT_RUNTIMES)}")
+    if cfg.threads is not None:
+        torch.set_num_threads(cfg.threads)
+    threads = torch.get_num_threads()
+    result: dict[str, Any] = {"presets": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in cfg.presets:
+            extra: dict[str, Any] = {"input_hw": tuple(cfg.input_hw)} if cfg.input_hw else {}
+            model_cfg = preset(name, num_history=0, **extra)
+            entry: dict[str, Any] = {"input_hw": list(model_cfg.input_hw), "backbone_depth": model_cfg.backbone.depth}
+            if "torch" in cfg.runtimes:  # the network's own stages (eager: numba sampling kernels on the CPU)
+                res = run_benchmark(BenchConfig(preset=name, repeats=cfg.repeats, warmup=cfg.warmup,
+                                                input_hw=cfg.input_hw, num_history=0, seed=cfg.seed))
+                ms = {"2d": res["stages"]["image"]["ms"], "2d_to_3d": res["stages"]["view"]["ms"],
+                      "3d": res["heads"]["fastocc"]["ms"]}
+                entry["torch"] = {**ms, "total": sum(ms.values())}
+            if "onnx" in cfg.runtimes:
+                stages, (images,) = _split_stages(_build(model_cfg, torch.device("cpu"), cfg.seed).eval())
+                args = _stage_inputs(stages, images)
+                ms = {key: 1e3 * _time_onnx(stage, args[key], cfg, str(Path(tmp) / f"{name}-{key}.onnx"), threads)
+                      for key, stage in stages}
+                entry["onnx"] = {**ms, "total": sum(ms.values())}
+            result["presets"][name] = entry
+    first = cfg.presets[0]
+    for name, entry in result["presets"].items():
+        for rt in cfg.runtimes:
+            entry[f"{rt}_ratio_to_{first}"] = {k: v / result["presets"][first][rt][k] for k, v in entry[rt].items()}
+        paper = PAPER_SPLIT_MS.get(name)
+        if paper is not None:
+            entry["paper_ms"] = paper
+            if first in PAPER_SPLIT_MS:
+                entry[f"paper_ratio_to_{first}"] = {k: v / PAPER_SPLIT_MS[first][k] for k, v in paper.items()
+                                                    if k in PAPER_SPLIT_MS[first]}
+    result["config"] = {"presets": list(cfg.presets), "runtimes": list(cfg.runtimes), "repeats": cfg.repeats,
+                        "warmup": cfg.warmup, "threads": threads, "input_hw": list(cfg.input_hw) if cfg.input_hw
+                        else None, "history": 0, "torch": torch.__version__, "device_name": "cpu",
+                        "paper": "V100, PyTorch; only tiny's split is published"}
+    return result
+
+
+def format_split_report(result: dict[str, Any]) -> str:
+    c = result["config"]
+    first = c["presets"][0]
+    lines = [f"latency split (ms) 2D / 2D-to-3D / 3D / total, cpu ({c['threads']} threads), median of "
+             f"{c['repeats']}, single frame; ratios to {first}"]
+    for name, e in result["presets"].items():
+        for rt in c["runtimes"]:
+            ms, ratio = e[rt], e[f"{rt}_ratio_to_{first}"]
+            lines.append(f"  {name:<6} {e['input_hw'][0]}x{e['input_hw'][1]:<5} {rt:<5} " + " / ".join(
+                f"{ms[k]:8.1f}" for k in ("2d", "2d_to_3d", "3d", "total")) + "   ratio " + " / ".join(
+                f"{ratio[k]:.2f}" for k in ("2d", "2d_to_3d", "3d", "total")))
+        if "paper_ms" in e:
+            p = e["paper_ms"]
+            pr = e.get(f"paper_ratio_to_{first}", {})
+            lines.append(f"  {name:<6} paper (V100)    " + " / ".join(
+                f"{p[k]:8.2f}" if k in p else "       -" for k in ("2d", "2d_to_3d", "3d", "total"))
+                + ("   ratio " + " / ".join(f"{pr[k]:.2f}" if k in pr else "-" for k in ("2d", "2d_to_3d", "3d",
+                                                                                         "total")) if pr else ""))
     return "\n".join(lines)

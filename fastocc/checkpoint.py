@@ -24,7 +24,15 @@ from typing import Any
 
 import torch
 
-from fastocc.model.config import BackboneConfig, DepthBins, HeadKind, ModelConfig
+from fastocc.model.config import (
+    BackboneConfig,
+    BevHeight,
+    DepthBins,
+    HeadKind,
+    ModelConfig,
+    TemporalFusionKind,
+    ViewTransformKind,
+)
 from occdata.constants import OccGrid
 from occdata.errors import OccDataError
 from occdata.fileio import atomic_open
@@ -54,7 +62,8 @@ class CheckpointError(OccDataError):
 def model_config_to_dict(cfg: ModelConfig) -> dict[str, Any]:
     """A JSON-able dict of primitives; `model_config_from_dict` inverts it exactly."""
     d = dataclasses.asdict(cfg)
-    d["head"] = str(cfg.head)
+    for k in ("head", "bev_height", "temporal_fusion", "view_transform"):
+        d[k] = str(getattr(cfg, k))
     return json.loads(json.dumps(d))  # tuples -> lists, checks it is JSON-able
 
 
@@ -73,6 +82,9 @@ def model_config_from_dict(d: dict[str, Any]) -> ModelConfig:
         "backbone": lambda v: BackboneConfig(**v),
         "input_hw": lambda v: (int(v[0]), int(v[1])),
         "head": HeadKind,
+        "bev_height": BevHeight,
+        "temporal_fusion": TemporalFusionKind,
+        "view_transform": ViewTransformKind,
         "fine_grid": grid,
         "coarse_grid": grid,
         "depth_bins": lambda v: DepthBins(**v),
@@ -117,9 +129,29 @@ def save_checkpoint(
         "meta": dict(meta or {}),
         **extra,
     }
-    with atomic_open(path) as f:
-        torch.save(payload, f)
+    try:
+        with atomic_open(path) as f:
+            torch.save(payload, f)
+    except RuntimeError as exc:
+        # torch's zip writer turns a failed write of the file (a full disk: OSError ENOSPC) into a RuntimeError
+        # ("enforce fail at inline_container.cc", "file write failed"); give callers the OSError back.
+        cause = _os_error_in(exc)
+        if cause is None:
+            raise
+        raise cause from None
     return path
+
+
+def _os_error_in(exc: BaseException) -> OSError | None:
+    """The OSError among an exception's causes and contexts (what a failed write raised), or None."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, OSError):
+            return e
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return None
 
 
 def newest_epoch_checkpoint(folder: str | Path, exclude: Path | None = None) -> Path | None:

@@ -46,9 +46,10 @@ def test_rows_are_valid_configs_differing_only_where_intended(row: str) -> None:
     assert changed.pop("epochs") == 5 and changed.pop("seed") == 1 and changed.pop("keep_epochs") == 5
     assert changed.pop("out") == f"runs/ablate/{row}-s1"
     base = flat_config(RECIPE.to_dict())
-    intended = {_key(k): v for k, v in ab.ROWS[row].overrides if v != base[_key(k)]}
+    intended = {_key(k): list(v) if isinstance(v, tuple) else v for k, v in ab.ROWS[row].overrides
+                if v != base[_key(k)]}
     assert changed == intended
-    assert model.name == "nano" and model.input_hw == (96, 256)
+    assert model.name == "nano" and model.input_hw == dict(ab.ROWS[row].overrides).get("input_hw", (96, 256))
 
 
 def test_component_rows_switch_what_the_paper_switches() -> None:
@@ -58,7 +59,23 @@ def test_component_rows_switch_what_the_paper_switches() -> None:
     assert [ab.row_config(r, 0, 3).head for r in ("deconv", "3dfcn", "fastocc")] == ["deconv", "3dfcn", "fastocc"]
 
 
-@pytest.mark.parametrize(("row", "history"), [("hist0", 0), ("hist4", 4), ("hist16", 16)])
+def test_issue_26_rows() -> None:
+    """bev-unfold: the paper's BEV-only reading; hist0fuse: the fusion-layer control; hist16cached: the cached
+    queue; nano128: Table III's second input size."""
+    m = {r: ab.row_config(r, 0, 3).model_config() for r in ("bev-unfold", "hist0fuse", "hist16cached", "nano128")}
+    assert (m["bev-unfold"].interp_features, m["bev-unfold"].bev_height.value) == (False, "unfold")
+    assert ab.row_config("bev-unfold", 0, 3).loss.bev > 0  # BEV supervision on, as in bev-only
+    assert (m["hist0fuse"].num_history, m["hist0fuse"].has_temporal, m["hist0fuse"].temporal_fusion.value) == (
+        0, True, "concat")  # the same fusion layer as hist16, without history
+    assert (m["hist16cached"].num_history, m["hist16cached"].temporal_fusion.value) == (16, "cached")
+    assert m["nano128"].input_hw == (128, 352)
+    assert trains_sequentially(ab.row_config("hist0fuse", 0, 3))
+    listed = {tr.row for t in ab.TABLES for tr in t.rows}
+    assert {"bev-unfold", "hist0fuse", "hist16cached", "nano128"} <= listed
+
+
+@pytest.mark.parametrize(("row", "history"), [("hist0", 0), ("hist0fuse", 0), ("hist4", 4), ("hist16", 16),
+                                              ("hist16cached", 16)])
 def test_history_rows_set_history_and_scene_sequential_order(row: str, history: int) -> None:
     cfg = ab.row_config(row, 0, 3)
     assert cfg.model_config().num_history == history
@@ -123,7 +140,8 @@ def test_tables_command_writes_markdown_and_pngs(tmp_path: Path) -> None:
     res.write_text(json.dumps(_fake_results()))
     ab.tables(res, tmp_path / "ab.md", epochs=6)
     assert (tmp_path / "ab.md").read_text() == ab.render_markdown(
-        _fake_results(), 6, {"head": "ab_head.png", "components": "ab_components.png"})
+        _fake_results(), 6, {"head": "ab_head.png", "components": "ab_components.png",
+                             "resolution": "ab_resolution.png"})
     assert (tmp_path / "ab_head.png").stat().st_size > 1000 and not (tmp_path / "ab_history.png").exists()
 
 
@@ -146,13 +164,13 @@ def test_tables_keeps_hand_written_readings(tmp_path: Path) -> None:
     res, md = tmp_path / "ab.json", tmp_path / "ab.md"
     res.write_text(json.dumps({"runs": {}}))
     ab.tables(res, md, epochs=6)
-    assert md.read_text().count(ab.READING_PENDING) == 4  # head, components, history, tta
+    assert md.read_text().count(ab.READING_PENDING) == 5  # head, components, history, resolution, tta
     md.write_text(md.read_text().replace("<!-- reading:head -->\n" + ab.READING_PENDING,
                                          "<!-- reading:head -->\nOurs agrees.\nTwo lines."))
     ab.tables(res, md, epochs=6)
     text = md.read_text()
     assert "<!-- reading:head -->\nOurs agrees.\nTwo lines.\n<!-- /reading -->" in text
-    assert text.count(ab.READING_PENDING) == 3
+    assert text.count(ab.READING_PENDING) == 4
     res.write_text(json.dumps({"runs": {}, "epochs": 4}))
     with pytest.raises(SystemExit, match="E = 4"):
         ab.tables(res, md, epochs=6)
@@ -226,3 +244,10 @@ def test_a_killed_call_still_counts_in_the_wall_time(tmp_path: Path) -> None:
     log = json.loads((run / "ablate_run.json").read_text())
     assert [(c["wall_s"], c["rc"]) for c in log["calls"]] == [(300.0, "killed"), (500.0, 0)]
     assert log["calls"][0]["estimated"] is True and log["wall_s"] == 800.0
+
+
+def test_two_readings_of_one_paper_row_get_no_paper_order() -> None:
+    """bev-only and bev-unfold both stand for the paper's 31.67 row: no "paper < by 0.00" between them."""
+    md = ab.render_markdown(_fake_results(), epochs=6)
+    line = next(ln for ln in md.splitlines() if ln.startswith("- `bev-only` vs `bev-unfold`"))
+    assert "paper" not in line

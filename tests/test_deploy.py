@@ -15,7 +15,16 @@ import pytest
 import torch
 
 from fastocc.checkpoint import CheckpointError, save_checkpoint
-from fastocc.deploy import DeployError, ExportConfig, Predictor, export_model, export_onnx, load_rig, synthetic_rig
+from fastocc.deploy import (
+    DeployError,
+    ExportConfig,
+    Predictor,
+    Rig,
+    export_model,
+    export_onnx,
+    load_rig,
+    synthetic_rig,
+)
 from fastocc.deploy.export import custom_domain_ops
 from fastocc.model import FastOcc, HeadKind, preset
 from occdata.constants import CAMERA_ORDER, CLASS_NAMES
@@ -133,14 +142,18 @@ def test_predictor_onnx_matches_checkpoint(nano_export: tuple[Path, Path, str]) 
         assert (probs.argmax(0) == b).mean() >= 0.999
 
 
-def test_temporal_stream_parity_and_fixed_state(tmp_path: Path) -> None:
+@pytest.mark.parametrize(("fusion", "queue_channels"), [("concat", 16 * 8), ("cached", 16)])
+def test_temporal_stream_parity_and_fixed_state(tmp_path: Path, fusion: str, queue_channels: int) -> None:
     """A temporal nano: exported step with the queue as inputs/outputs; the Predictor keeps it. ONNX and
-    PyTorch agree over a moving stream, and the state keeps its size whatever the stream length."""
-    ckpt = _checkpoint(tmp_path / "t.pt", num_history=2)
+    PyTorch agree over a moving stream, and the state keeps its size whatever the stream length. The
+    "cached" queue holds each frame reduced to C_r = 16 channels, the "concat" one the full C2 * 8 = 128."""
+    ckpt = _checkpoint(tmp_path / "t.pt", num_history=2, temporal_fusion=fusion)
     rep = export_onnx(ExportConfig(checkpoint=ckpt, out=tmp_path / "t.onnx", frames=3))
     assert rep.parity.passed and rep.parity.frames == 3
     meta = json.loads(rep.sidecar.read_text())
-    assert meta["inputs"]["history"]["shape"] == [1, 2, 16 * 8, 100, 100]
+    assert meta["inputs"]["history"]["shape"] == [1, 2, queue_channels, 100, 100]
+    assert meta["outputs"]["history_out"]["shape"] == [1, 2, queue_channels, 100, 100]
+    assert meta["temporal"]["fusion"] == fusion and meta["model_config"]["temporal_fusion"] == fusion
     assert set(meta["inputs"]) == {"images", "history", "T_prev_from_cur", "seq_start"}
     p_torch, p_onnx = Predictor(ckpt), Predictor(rep.out)
     with pytest.raises(DeployError, match="ego_pose"):
@@ -159,6 +172,95 @@ def test_temporal_stream_parity_and_fixed_state(tmp_path: Path) -> None:
         q = p_torch._backend.model.temporal._feats
         sizes.append((st.history.shape, len(st.poses), tuple(q.shape)))
     assert len(set(sizes)) == 1 and sizes[0][1] == 2
+
+
+def test_zero_history_fusion_exports_without_a_queue(tmp_path: Path) -> None:
+    """The fusion-layer control (hist0fuse): the fusion layer is in the graph, no history inputs."""
+    rep = export_onnx(ExportConfig(checkpoint=_checkpoint(tmp_path / "z.pt", zero_history_fusion=True),
+                                   out=tmp_path / "z.onnx", frames=1))
+    assert rep.parity.passed
+    meta = json.loads(rep.sidecar.read_text())
+    assert set(meta["inputs"]) == {"images"} and meta["model_config"]["zero_history_fusion"] is True
+
+
+def _lane_rig(reader, i: int) -> Rig:  # noqa: ANN001
+    """The fixed rig a Predictor streaming from sample i on would use: sample i's calibration."""
+    return Rig(K=reader.small("calib/K")[i].astype(np.float64),
+               T_keyego_from_cam=reader.small("calib/T_keyego_from_cam")[i].astype(np.float64),
+               image_size=reader.small("cam/image_size")[i].astype(np.int64), cameras=CAMERA_ORDER,
+               source=f"store sample {i}")
+
+
+def _lanes(store: Path, model: FastOcc) -> tuple[dict[int, torch.Tensor], list[list[tuple[int, bool]]]]:
+    """The training loader's scene-sequential batches (2 lanes, test transform) through the network in eval
+    mode: class log-probabilities per store index, and each lane's (index, seq_start) stream in order.
+
+    A Predictor holds one rig per stream, while the store's extrinsics move a little from frame to frame
+    (camera vs keyframe time); so each row's calibration is held at its sequence's first sample, the rig
+    the Predictor streams with. Images, poses, augmentation and the queue are the loader's."""
+    from dataclasses import replace
+
+    from fastocc.data import BevAugConfig, ImageAugConfig, LoaderConfig, SampleConfig, make_loader
+    from occdata.store.reader import open_store
+
+    reader = open_store(store)
+    H, W = model.cfg.input_hw
+    sample = SampleConfig(image=ImageAugConfig(H, W, train=False), bev=BevAugConfig(train=False))
+    loader = make_loader(LoaderConfig(store=store, batch_size=2, sequential=True, sample=sample))
+    loader.dataset.set_epoch(0)
+    probs: dict[int, torch.Tensor] = {}
+    lanes: list[list[tuple[int, bool]]] = [[], []]
+    rigs: dict[int, Rig] = {}
+    model.clear_caches()
+    with torch.no_grad():
+        for batch in loader:
+            rows = list(zip(batch.sample_index.tolist(), batch.seq_start.tolist(), strict=True))
+            for row, (idx, start) in enumerate(rows):
+                if start:
+                    rigs[row] = _lane_rig(reader, idx)
+                lanes[row].append((idx, start))
+            inputs = batch.inputs()
+            K = torch.stack([torch.as_tensor(rigs[r].K, dtype=torch.float32) for r in range(len(rows))])
+            T = torch.stack([torch.as_tensor(rigs[r].T_keyego_from_cam, dtype=torch.float32) for r in range(len(rows))])
+            out = model(replace(inputs, K=K, T_keyego_from_cam=T)).voxel_logits.float().log_softmax(1)
+            for row, (idx, _) in enumerate(rows):
+                probs[idx] = out[row]
+    model.clear_caches()
+    return probs, lanes
+
+
+@pytest.mark.parametrize("fusion", ["concat", "cached"])
+def test_scene_order_training_forward_equals_the_streaming_predictor(synth_store: Path, fusion: str) -> None:
+    """What training computes on scene-ordered lanes (batch 2, each lane its own queue, float32 global poses)
+    equals what the Predictor computes streaming each lane frame by frame (raw images, float64 poses),
+    through the network itself and through the export wrapper."""
+    from fastocc.checkpoint import load_model
+    from occdata.store.reader import open_store
+
+    ckpt = _checkpoint(synth_store.parent / f"lanes-{fusion}.pt", num_history=2, temporal_fusion=fusion,
+                       input_hw=(96, 256))
+    model = load_model(ckpt)[0]
+    probs, lanes = _lanes(synth_store, model)
+    reader = open_store(synth_store)
+    poses = reader.small("pose/T_global_from_keyego")
+    assert sum(len(lane) for lane in lanes) == len(probs) == len(reader.done_indices()) >= 6
+    assert sum(not start for lane in lanes for _, start in lane) >= 4  # frames that use their history
+    worst = 0.0
+    for runtime in ("torch", "static"):
+        for lane in lanes:
+            pred = Predictor.from_model(load_model(ckpt)[0], _lane_rig(reader, lane[0][0]), runtime=runtime)
+            for idx, start in lane:
+                sem, p = pred(reader.images(idx), poses[idx], seq_start=start, with_probs=True)
+                diff = float((torch.from_numpy(p).log() - probs[idx]).abs().max())  # = logits up to a constant
+                worst = max(worst, diff)
+                assert diff < 1e-4, (runtime, idx, diff)
+                assert (sem == probs[idx].argmax(0).numpy()).mean() >= 0.999, (runtime, idx)
+    # control: the history matters (a frame predicted without its past differs by far more than the above)
+    idx = lanes[0][-1][0]
+    alone = Predictor.from_model(load_model(ckpt)[0], _lane_rig(reader, lanes[0][0][0]))
+    _, p = alone(reader.images(idx), poses[idx], seq_start=True, with_probs=True)
+    effect = float((torch.from_numpy(p).log() - probs[idx]).abs().max())
+    assert effect > 5e-4 and effect > 50 * worst
 
 
 def test_loader_and_predictor_share_preprocessing(synth_store: Path) -> None:

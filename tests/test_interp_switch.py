@@ -145,3 +145,76 @@ def test_export_honours_the_switch(tmp_path: Path) -> None:
     ckpt = save_checkpoint(tmp_path / "c.pt", cfg, FastOcc(cfg).state_dict())
     rep = export_onnx(ExportConfig(checkpoint=ckpt, out=tmp_path / "m.onnx", frames=1))
     assert rep.parity.passed and rep.parity.max_abs_diff <= 1e-3 and rep.parity.min_agreement >= 0.999
+
+
+# -- the second BEV-only value: channels unfolded into the height bins (the paper's reading) ---------------
+def test_unfold_gives_every_height_its_own_feature_from_the_bev_map_alone() -> None:
+    torch.manual_seed(0)
+    cfg = preset("nano", interp_features=False, bev_height="unfold")
+    head = FastOccHead(cfg).eval()
+    inputs = synthetic_inputs(1, cfg.input_hw)
+    feat_a, bev = _head_inputs(cfg, 1)
+    feat_b, _ = _head_inputs(cfg, 2)
+    assert head.fuse_img is None and head.sampler is None
+    assert head.fuse_bev.out_channels == cfg.fuse_channels * 16
+    with torch.no_grad():
+        logits, bev_map = head(feat_a, bev, inputs)
+        assert torch.equal(logits, head(feat_b, bev, inputs)[0])  # no path from the image features
+        up = F.interpolate(head.fuse_bev(bev_map), size=(200, 200), mode="bilinear", align_corners=False)
+        cf = cfg.fuse_channels
+        for k in (0, 5, 15):  # independent reference: height bin k = channels [k C_f, (k + 1) C_f)
+            ref = head.classifier(F.relu(up[:, k * cf:(k + 1) * cf].permute(0, 2, 3, 1)))  # (1, 200, 200, 18)
+            torch.testing.assert_close(logits[..., k], ref.permute(0, 3, 1, 2), atol=1e-5, rtol=1e-5)
+    assert float((logits[..., 0] - logits[..., 15]).abs().max()) > 1e-3  # varies with height (repeat cannot)
+
+
+def test_unfold_is_validated_carried_by_checkpoints_and_selected_by_train_config(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="bev_height"):
+        preset("nano", bev_height="unfold")  # interpolated features on: the switch does not apply
+    with pytest.raises(ValueError, match="bev_height"):
+        preset("nano", bev_height="sideways")
+    with pytest.raises(ConfigError, match="bev_height"):
+        TrainConfig(bev_height="unfold")
+    cfg = TrainConfig(interp_features=False, bev_height="unfold").model_config()
+    assert cfg.bev_height.value == "unfold"
+    torch.manual_seed(0)
+    path = save_checkpoint(tmp_path / "u.pt", cfg, FastOcc(cfg).state_dict())
+    model, ckpt = load_model(path)
+    assert ckpt.model_config == cfg and model.head.height_bins == 16
+    payload = torch.load(path, weights_only=True)  # written before the field existed: "repeat"
+    old = model_config_to_dict(preset("nano", interp_features=False))
+    del old["bev_height"]
+    payload["model_config"] = json.dumps(old)
+    payload["model"] = FastOcc(preset("nano", interp_features=False)).state_dict()
+    torch.save(payload, path)
+    assert load_model(path)[1].model_config.bev_height.value == "repeat"
+
+
+def test_cli_bev_height_and_temporal_fusion_reach_the_config(monkeypatch: pytest.MonkeyPatch) -> None:
+    from click.testing import CliRunner
+
+    import fastocc.train as train_pkg
+    from cli.fastocc_cli import main
+
+    seen: list[TrainConfig] = []
+
+    def fake_train(cfg: TrainConfig, resume: bool, progress: bool):  # noqa: ANN202
+        seen.append(cfg)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(train_pkg, "train", fake_train)
+    res = CliRunner().invoke(main, ["train", "--no-interp-features", "--bev-height", "unfold", "--temporal-fusion",
+                                    "cached", "--out", "x"])
+    assert res.exit_code == 0, res.output
+    assert (seen[0].bev_height, seen[0].temporal_fusion) == ("unfold", "cached")
+
+
+def test_export_honours_unfold(tmp_path: Path) -> None:
+    pytest.importorskip("onnxruntime")
+    from fastocc.deploy import ExportConfig, export_onnx
+
+    torch.manual_seed(0)
+    cfg = preset("nano", interp_features=False, bev_height="unfold")
+    ckpt = save_checkpoint(tmp_path / "c.pt", cfg, FastOcc(cfg).state_dict())
+    rep = export_onnx(ExportConfig(checkpoint=ckpt, out=tmp_path / "m.onnx", frames=1))
+    assert rep.parity.passed and rep.parity.max_abs_diff <= 1e-3 and rep.parity.min_agreement >= 0.999

@@ -33,3 +33,28 @@ def test_bench_cli_rejects_cuda_without_gpu_in_one_line() -> None:
     result = CliRunner().invoke(main, ["bench", "--device", "cuda", "--repeats", "1"])
     assert result.exit_code == 1
     assert "CUDA is not available" in result.output
+
+
+def test_bench_split_reports_2d_2dto3d_3d_per_preset_with_ratios_and_the_paper() -> None:
+    """`fastocc bench --split` (Table III): every stage of every preset, eager and ONNX Runtime, ratios to the
+    first preset, the paper's tiny split beside ours. Tiny sizes here (plumbing, not figures)."""
+    import pytest
+
+    pytest.importorskip("onnxruntime")
+    result = CliRunner().invoke(main, ["bench", "--split", "--preset", "nano", "--preset", "tiny", "--input-hw", "64",
+                                       "176", "--repeats", "1", "--warmup", "0", "--threads", "1", "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output)
+    assert list(report["presets"]) == ["nano", "tiny"]
+    for entry in report["presets"].values():
+        assert entry["input_hw"] == [64, 176]
+        for rt in ("torch", "onnx"):
+            ms = entry[rt]
+            assert set(ms) == {"2d", "2d_to_3d", "3d", "total"} and min(ms.values()) > 0
+            assert abs(ms["total"] - ms["2d"] - ms["2d_to_3d"] - ms["3d"]) < 1e-6
+    tiny = report["presets"]["tiny"]
+    assert tiny["paper_ms"]["total"] == 62.80 and tiny["backbone_depth"] == 50
+    assert report["presets"]["nano"]["torch_ratio_to_nano"]["total"] == 1.0
+    assert tiny["torch_ratio_to_nano"]["2d"] > 1.0  # ResNet-50 vs a quarter-width ResNet-18, same input
+    bad = CliRunner().invoke(main, ["bench", "--preset", "nano", "--preset", "tiny"])
+    assert bad.exit_code == 2 and "--split" in bad.output

@@ -203,21 +203,23 @@ def test_nonfinite_loss_is_skipped_and_reported(synth_store: Path, tmp_path: Pat
 
 
 def test_full_disk_keeps_previous_checkpoint(synth_store: Path, tmp_path: Path, monkeypatch) -> None:
-    """The epoch-1 save succeeds, the epoch-2 save hits a full disk: clear error, epoch-1 last.pt intact."""
-    import errno
+    """The epoch-1 save succeeds, the epoch-2 save hits a full disk half-way through the real torch.save (which
+    raises a RuntimeError from its zip writer): one clear error, epoch-1 last.pt intact."""
+    import contextlib
+
+    from test_checkpoint import _FillingDisk
 
     import fastocc.checkpoint as ckmod
 
-    real_save, calls = ckmod.torch.save, {"n": 0}
+    real_open, calls = ckmod.atomic_open, {"n": 0}
 
-    def save(obj, f, *args, **kwargs):
+    @contextlib.contextmanager
+    def filling(p):  # noqa: ANN001, ANN202
         calls["n"] += 1
-        if calls["n"] >= 2:
-            f.write(b"partial")  # the disk fills up half-way through the write
-            raise OSError(errno.ENOSPC, "No space left on device")
-        return real_save(obj, f, *args, **kwargs)
+        with real_open(p) as f:
+            yield f if calls["n"] < 2 else _FillingDisk(f, room=100_000)  # the disk fills up half-way
 
-    monkeypatch.setattr(ckmod.torch, "save", save)
+    monkeypatch.setattr(ckmod, "atomic_open", filling)
     cfg = _cfg(tmp_path, synth_store, epochs=2, limit_train_samples=1)
     with pytest.raises(OccDataError, match="No space left on device.*previous checkpoint there is intact"):
         train(cfg, progress=False)
@@ -335,3 +337,34 @@ def test_ctrl_c_while_loader_workers_start_is_held_until_they_have_started() -> 
     assert next(gen)[0] == 1 and events == []
     gen.close()
     assert events == ["iterator released"]
+
+
+def test_step_pace_skips_the_cold_first_step(monkeypatch) -> None:
+    """A 10 s first step then 1 s steps: the pace is 1 s per step, said once, after steps 2-6."""
+    import fastocc.train.setup as setup_mod
+
+    clock = {"t": 0.0}
+    monkeypatch.setattr(setup_mod.time, "perf_counter", lambda: clock["t"])
+    pace = setup_mod.StepPace()
+    said = []
+    for dt in [10.0] + [1.0] * 9:
+        clock["t"] += dt
+        said.append(pace.tick(steps_in_epoch=100))
+    assert said == [None] * 5 + [1.0] + [None] * 4
+    short = setup_mod.StepPace()  # a 3-step epoch: steps 2-3; a 1-step epoch says nothing
+    assert [short.tick(1), short.tick(1)] == [None, None]
+    short.start_epoch()
+    clock["t"] = 0.0
+    out = []
+    for dt in (5.0, 2.0, 2.0):
+        clock["t"] += dt
+        out.append(short.tick(3))
+    assert out == [None, None, 2.0]
+    assert setup_mod.pace_message(2.0, 2, 60).startswith("measured pace: 2.00 s per optimizer step (steps 2-3")
+    assert "~2.0 min per epoch of 60 steps" in setup_mod.pace_message(2.0, 2, 60)
+
+
+def test_training_says_the_measured_pace(synth_store: Path, tmp_path: Path, capsys) -> None:
+    train(_cfg(tmp_path, synth_store, epochs=1), progress=False)
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("measured pace:")]
+    assert len(lines) == 1 and "(steps 2-" in lines[0] and "min per epoch of" in lines[0], lines

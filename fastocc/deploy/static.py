@@ -5,6 +5,9 @@ changes form so that the graph needs standard operators only:
 
 - LSS pooling: the flat voxel index of every frustum point (the network's cached `PoolingIndex`) is a
   constant; pooling is one Gather + one ScatterND(add) (ONNX opset >= 16).
+- Spatial cross-attention (view_transform "attention"): the (voxel, camera) slots, their reference points
+  and the camera counts are constants; the deformable sampling is GridSample (opset >= 16), the mean over
+  cameras one ScatterND(add).
 - Interpolation sampling: bilinear sampling with constant corner rows and weights, as Gathers from a
   channels-last feature table with one zero row appended. Per camera slot (slot j = the j-th camera
   that sees the voxel): 4 Gathers, each times its weight (bilinear weight / cameras seeing the voxel;
@@ -22,6 +25,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from fastocc.model import FastOcc, HeadKind
+from fastocc.model.attention import AttentionGeometry, attention_geometry
 from fastocc.model.geometry import project_points_to_feature, voxel_centres
 from fastocc.model.network import collapse_z
 from fastocc.model.temporal import warp_bev_inverse
@@ -33,10 +37,11 @@ __all__ = ["StaticFastOcc"]
 
 
 class StaticFastOcc(nn.Module):
-    """`forward(images (1, N, 3, H, W) float32[, history (1, T, C, 100, 100), T_prev_from_cur (1, T, 4, 4),
+    """`forward(images (1, N, 3, H, W) float32[, history (1, T, C_q, 100, 100), T_prev_from_cur (1, T, 4, 4),
     seq_start (1,) bool])` -> logits `(1, 18, 200, 200, 16) float32`, semantics `(1, 200, 200, 16) uint8`
     [, the next history]. The temporal arguments exist only when the network has a queue
-    (`num_history` > 0); C = C2 * 8 (V_B with z collapsed into channels)."""
+    (`num_history` > 0); C_q = C2 * 8 (V_B with z collapsed into channels) for the "concat" fusion, C_r for
+    the "cached" one (each frame reduced once, when it is current)."""
 
     def __init__(self, model: FastOcc, rig: Rig) -> None:
         super().__init__()
@@ -47,10 +52,15 @@ class StaticFastOcc(nn.Module):
         H, W = cfg.input_hw
         h, w = cfg.feat_hw
         geo = rig.scene_inputs(torch.zeros(1, cfg.num_cams, 3, H, W))
-        index = model.pooling.index(geo, (h, w))
-        model.pooling.clear_cache()
-        self.register_buffer("point_idx", index.point_idx.clone())
-        self.register_buffer("voxel_idx", index.voxel_idx.clone())
+        if model.attention is not None:
+            att = attention_geometry(geo, cfg, (h, w))
+            for name in ("ref", "query", "target", "valid", "count"):
+                self.register_buffer(f"att_{name}", getattr(att, name).clone())
+        else:
+            index = model.pooling.index(geo, (h, w))
+            model.pooling.clear_cache()
+            self.register_buffer("point_idx", index.point_idx.clone())
+            self.register_buffer("voxel_idx", index.voxel_idx.clone())
         self.num_slots = 0
         if cfg.head is HeadKind.FASTOCC and cfg.interp_features:
             slots = _slot_sampling(geo, cfg.fine_grid, cfg.input_hw, cfg.stride, (h, w))
@@ -60,16 +70,16 @@ class StaticFastOcc(nn.Module):
                 self.register_buffer(f"slot{s}_w", wts)
                 if scatter is not None:
                     self.register_buffer(f"slot{s}_scatter", scatter)
-        if model.temporal is not None:
-            self.register_buffer("bev_identity", torch.eye(4))
 
     @property
     def temporal(self) -> bool:
-        return self.net.temporal is not None
+        """Whether the graph carries a queue (history in, history out): models with past frames."""
+        return self.net.temporal is not None and self.cfg.num_history > 0
 
     def history_shape(self) -> tuple[int, ...]:
-        X, Y, Z = self.cfg.coarse_grid.shape
-        return (1, self.cfg.num_history, self.cfg.context_channels * Z, X, Y)
+        """`(1, T, C_q, 100, 100)`: C_q = C2 * 8 for the "concat" queue, C_r for the "cached" one."""
+        X, Y, _ = self.cfg.coarse_grid.shape
+        return (1, self.cfg.num_history, self.net.temporal.queue_channels, X, Y)
 
     def example_inputs(self, seed: int = 0) -> tuple[Tensor, ...]:
         g = torch.Generator().manual_seed(seed)
@@ -91,19 +101,27 @@ class StaticFastOcc(nn.Module):
                 seq_start: Tensor | None = None) -> tuple[Tensor, ...]:
         net, cfg = self.net, self.cfg
         feat = net.image_stage(images)  # (N, C1, h, w)
-        depth, context = net.depth_net(feat)
-        pooled = lss_pool(depth, context, PoolingIndex(self.point_idx, self.voxel_idx), 1, cfg.coarse_grid.shape)
+        if net.attention is not None:
+            pooled = net.attention.attend(feat, AttentionGeometry(self.att_ref, self.att_query, self.att_target,
+                                                                  self.att_valid, self.att_count))
+        else:
+            depth, context = net.depth_net(feat)
+            pooled = lss_pool(depth, context, PoolingIndex(self.point_idx, self.voxel_idx), 1, cfg.coarse_grid.shape)
         bev = collapse_z(pooled)  # (1, C2*8, 100, 100)
         new_history = None
-        if self.temporal:
-            assert history is not None and T_prev_from_cur is not None and seq_start is not None
-            T = cfg.num_history
-            # a sequence start fills the queue with the current frame (identity poses from the runtime)
-            feats = torch.where(seq_start.view(1, 1, 1, 1, 1), bev.unsqueeze(1).expand_as(history), history)
-            C, X, Y = bev.shape[1:]
-            warped = warp_bev_inverse(feats.reshape(T, C, X, Y), T_prev_from_cur.reshape(T, 4, 4), cfg.coarse_grid)
-            new_history = torch.cat([bev.unsqueeze(1), feats[:, :-1]], dim=1)
-            bev = net.temporal.reduce(torch.cat([bev, warped.reshape(1, T * C, X, Y)], dim=1))
+        if net.temporal is not None:
+            entry = net.temporal.queue_entry(bev)  # (1, C_q, X, Y): the full map, or reduced once ("cached")
+            warped = None
+            if self.temporal:
+                assert history is not None and T_prev_from_cur is not None and seq_start is not None
+                T = cfg.num_history
+                # a sequence start fills the queue with the current frame (identity poses from the runtime)
+                feats = torch.where(seq_start.view(1, 1, 1, 1, 1), entry.unsqueeze(1).expand_as(history), history)
+                Cq, X, Y = entry.shape[1:]
+                warped = warp_bev_inverse(feats.reshape(T, Cq, X, Y), T_prev_from_cur.reshape(T, 4, 4),
+                                          cfg.coarse_grid).reshape(1, T * Cq, X, Y)
+                new_history = torch.cat([entry.unsqueeze(1), feats[:, :-1]], dim=1)
+            bev = net.temporal.fuse(bev, entry, warped)
         logits, class_dim = self._head(feat, bev)
         semantics = logits.argmax(dim=class_dim).to(torch.uint8)  # before any layout change: cache-friendly
         if class_dim == -1:  # channels-last (X, Y, Z, 18) -> (1, 18, X, Y, Z); skipped when only semantics is asked
@@ -117,9 +135,8 @@ class StaticFastOcc(nn.Module):
         if self.cfg.head is not HeadKind.FASTOCC:
             return head(feat, bev, None)[0], 1
         X, Y, Z = self.cfg.fine_grid.shape
-        bev_part = F.interpolate(head.fuse_bev(head.decoder(bev)), size=(X, Y), mode="bilinear", align_corners=False)
-        bev_z = bev_part[0].permute(1, 2, 0).unsqueeze(2)  # (X, Y, 1, Cf): z-repeat by broadcasting
-        if head.fuse_img is None:  # interp_features off: one classifier call per BEV cell, repeated over z
+        bev_z = head.bev_part(head.decoder(bev))[0]  # (X, Y, 1, Cf): z-repeat by broadcasting; or (X, Y, Z, Cf)
+        if head.fuse_img is None:  # interp_features off: one classifier call per BEV cell (or per voxel, unfold)
             return head.classifier(F.relu(bev_z)).expand(X, Y, Z, -1), -1
         img = head.fuse_img(feat)  # (N, Cf, h, w)
         Cf = img.shape[1]

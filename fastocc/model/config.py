@@ -13,9 +13,12 @@ __all__ = [
     "COARSE_GRID",
     "DEPTH_BINS",
     "BackboneConfig",
+    "BevHeight",
     "HeadKind",
     "ModelConfig",
     "PRESETS",
+    "TemporalFusionKind",
+    "ViewTransformKind",
     "preset",
 ]
 
@@ -50,6 +53,27 @@ class HeadKind(StrEnum):
     DECONV = "deconv"  # 3D deconvolution on V_B ("Baseline")
 
 
+class TemporalFusionKind(StrEnum):
+    """How the temporal queue is fused (docs/model.md, "Temporal fusion")."""
+
+    CONCAT = "concat"  # queue of full V_B maps (C2*8 channels); 1x1 conv over all T + 1 of them
+    CACHED = "cached"  # each frame reduced once to C_r channels when current; warp + small fusion per frame
+
+
+class ViewTransformKind(StrEnum):
+    """How image features become the coarse voxel volume V_B (paper Table II)."""
+
+    LSS = "lss"  # depth distribution x context, voxel pooling (BEVDepth; FastOcc and the baselines)
+    ATTENTION = "attention"  # spatial cross-attention from voxel queries, deformable sampling (SurroundOcc*)
+
+
+class BevHeight(StrEnum):
+    """How the FastOcc head gives height to its BEV part when `interp_features` is off (paper Table IV)."""
+
+    REPEAT = "repeat"  # the BEV feature repeated along z: constant over the 16 heights
+    UNFOLD = "unfold"  # channel-to-height: W_B outputs C_f x 16 channels, unfolded into the 16 height bins
+
+
 @dataclass(frozen=True)
 class BackboneConfig:
     """torchvision-layout ResNet; `base_width` 64 is torchvision's, smaller values give narrow nets."""
@@ -71,16 +95,52 @@ class ModelConfig:
     bev_channels: int = 128  # C3: decoded BEV map B at 100 x 100
     fuse_channels: int = 64  # C_f: fused voxel feature V at 200 x 200 x 16
     head: HeadKind = HeadKind.FASTOCC
+    view_transform: ViewTransformKind = ViewTransformKind.LSS
+    attention_heads: int = 4  # spatial cross-attention (view_transform "attention"): heads, C2 divisible by it
+    attention_points: int = 4  # deformable samples per head and camera
     num_history: int = 0  # previous frames in the temporal queue (0 = single frame; paper's base: 16)
     bev_head: bool = True  # auxiliary multi-hot BEV head (training only; FastOcc head only)
     # Ablation (paper Table IV): False drops the interpolated image features P from the FastOcc head, so the
     # fused voxel feature is the upsampled, z-repeated BEV map alone (constant along z). FastOcc head only.
     interp_features: bool = True
+    # With interp_features off: REPEAT (constant along z) or UNFOLD (channels unfolded into the height bins).
+    bev_height: BevHeight = BevHeight.REPEAT
+    temporal_fusion: TemporalFusionKind = TemporalFusionKind.CONCAT
+    temporal_channels: int = 16  # C_r: channels each frame is reduced to in the "cached" queue
+    # Fusion-layer control of the history ablation: build the temporal fusion layer also when num_history
+    # is 0 (the current frame alone through it), so a 0-frame row differs from a history row only by history.
+    zero_history_fusion: bool = False
     num_classes: int = NUM_CLASSES
     stride: int = 16
     fine_grid: OccGrid = GRID
     coarse_grid: OccGrid = COARSE_GRID
     depth_bins: DepthBins = DEPTH_BINS
+
+    def __post_init__(self) -> None:
+        bad = []
+        kinds = (("head", HeadKind), ("bev_height", BevHeight), ("temporal_fusion", TemporalFusionKind),
+                 ("view_transform", ViewTransformKind))
+        for name, kind in kinds:
+            try:
+                object.__setattr__(self, name, kind(getattr(self, name)))  # plain strings -> the enum
+            except ValueError:
+                bad.append(f"{name} = {getattr(self, name)!r} (choose from {[k.value for k in kind]})")
+        if self.num_history < 0:
+            bad.append(f"num_history = {self.num_history} (must be >= 0)")
+        if self.temporal_channels < 1:
+            bad.append(f"temporal_channels = {self.temporal_channels} (must be >= 1)")
+        if self.bev_height == BevHeight.UNFOLD and (self.interp_features or self.head != HeadKind.FASTOCC):
+            bad.append(f"bev_height = {self.bev_height!s} needs the fastocc head with interp_features off")
+        if self.attention_heads < 1 or self.attention_points < 1 or self.context_channels % self.attention_heads:
+            bad.append(f"attention_heads = {self.attention_heads}, attention_points = {self.attention_points} (>= 1; "
+                       f"context_channels {self.context_channels} divisible by the heads)")
+        if bad:
+            raise ValueError("bad model config: " + "; ".join(bad))
+
+    @property
+    def has_temporal(self) -> bool:
+        """Whether the network builds a temporal fusion layer (history, or the zero-history control)."""
+        return self.num_history > 0 or self.zero_history_fusion
 
     @property
     def feat_hw(self) -> tuple[int, int]:

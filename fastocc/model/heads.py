@@ -8,7 +8,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .bev_decoder import BEVDecoder
-from .config import HeadKind, ModelConfig
+from .config import BevHeight, HeadKind, ModelConfig
 from .inputs import SceneInputs
 from .interp import InterpolationSampler
 
@@ -29,9 +29,12 @@ class FastOccHead(nn.Module):
     linear with weights summing to 1: W_B at 100 x 100 before upsampling, W_P on the image map before
     sampling. Nothing of width C3 + C1 is ever materialised at 200 x 200 x 16.
 
-    With `cfg.interp_features` False (the components ablation) the head has no W_P and no sampler: the
-    fused feature is relu(W_B B_z + b), constant along z, so the classifier runs once per BEV cell and
-    its logits are repeated over the Z levels (exact: the classifier is per voxel).
+    With `cfg.interp_features` False (the components ablation) the head has no W_P and no sampler, and the
+    fused feature is the BEV part alone. `cfg.bev_height` says how it varies with height: "repeat" gives
+    relu(W_B B_z + b), constant along z, so the classifier runs once per BEV cell and its logits are
+    repeated over the Z levels (exact: the classifier is per voxel); "unfold" (channel-to-height) has W_B
+    output C_f x Z channels, channel k C_f + c being feature c at height bin k, so the BEV map alone gives
+    every one of the Z heights its own feature.
     """
 
     def __init__(self, cfg: ModelConfig) -> None:
@@ -40,7 +43,8 @@ class FastOccHead(nn.Module):
         c2, c3, cf = cfg.context_channels, cfg.bev_channels, cfg.fuse_channels
         self.fine_shape = cfg.fine_grid.shape
         self.decoder = BEVDecoder(2, c2 * z, c2, c3)
-        self.fuse_bev = nn.Conv2d(c3, cf, 1)  # W_B and the fusion bias
+        self.height_bins = cfg.fine_grid.shape[2] if cfg.bev_height == BevHeight.UNFOLD else 1
+        self.fuse_bev = nn.Conv2d(c3, cf * self.height_bins, 1)  # W_B and the fusion bias
         self.fuse_img: nn.Conv2d | None = None  # W_P
         self.sampler: InterpolationSampler | None = None
         if cfg.interp_features:
@@ -52,15 +56,22 @@ class FastOccHead(nn.Module):
         """feat `(B*N, C1, h, w)`, bev `(B, C2*8, 100, 100)` ->
         logits `(B, 18, 200, 200, 16)`, B `(B, C3, 100, 100)`."""
         bev_map = self.decoder(bev)
-        X, Y, _ = self.fine_shape
-        bev_part = F.interpolate(self.fuse_bev(bev_map), size=(X, Y), mode="bilinear", align_corners=False)
-        bev_z = bev_part.permute(0, 2, 3, 1).unsqueeze(3)  # (B, X, Y, 1, Cf): z-repeat by broadcasting
+        bev_z = self.bev_part(bev_map)  # (B, X, Y, 1 or Z, Cf)
         if self.sampler is None or self.fuse_img is None:  # ablation: no interpolated image features
             logits = self.classifier(F.relu(bev_z)).expand(-1, -1, -1, self.fine_shape[2], -1)
             return logits.permute(0, 4, 1, 2, 3).contiguous(), bev_map
         img_part = self.sampler(self.fuse_img(feat), inputs)  # (B, X, Y, Z, Cf)
         logits = self.classifier(F.relu(img_part + bev_z))  # (B, X, Y, Z, 18)
         return logits.permute(0, 4, 1, 2, 3), bev_map
+
+
+    def bev_part(self, bev_map: Tensor) -> Tensor:
+        """W_B B + b upsampled to the fine grid: `(B, C3, 100, 100)` -> `(B, X, Y, Zb, Cf)`, Zb = 1 (repeated
+        along z by broadcasting) or Z ("unfold": channel k C_f + c is feature c of height bin k)."""
+        X, Y, _ = self.fine_shape
+        x = F.interpolate(self.fuse_bev(bev_map), size=(X, Y), mode="bilinear", align_corners=False)
+        B, Cf = x.shape[0], x.shape[1] // self.height_bins
+        return x.view(B, self.height_bins, Cf, X, Y).permute(0, 3, 4, 1, 2)
 
 
 class FCN3DHead(nn.Module):

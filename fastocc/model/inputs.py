@@ -54,13 +54,14 @@ class ModelOutputs:
     """What the network returns.
 
     voxel_logits: `(B, 18, 200, 200, 16) float32` class logits on the fine grid (augmented frame).
-    depth_probs: `(B*N, 88, H_in/16, W_in/16) float32` softmax over depth bins (probabilities, not logits).
+    depth_probs: `(B*N, 88, H_in/16, W_in/16) float32` softmax over depth bins (probabilities, not logits);
+        None for the attention view transform (no depth net, no depth loss).
     bev_logits: `(B, 18, 200, 200) float32` multi-hot BEV logits, channel c = class c with FREE (17)
         kept as a channel (the paper's M includes empty); None in eval mode or for the baseline heads.
     """
 
     voxel_logits: Tensor
-    depth_probs: Tensor
+    depth_probs: Tensor | None
     bev_logits: Tensor | None = None
 
 

@@ -7,7 +7,8 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from .config import HeadKind, ModelConfig
+from .attention import SpatialCrossAttention
+from .config import HeadKind, ModelConfig, ViewTransformKind
 from .heads import BEVMultiHotHead, build_head
 from .inputs import ModelOutputs, SceneInputs
 from .neck import FPNNeck
@@ -25,7 +26,8 @@ def collapse_z(volume: Tensor) -> Tensor:
 
 
 class FastOcc(nn.Module):
-    """Image stage (ResNet + FPN) -> view stage (depth net, LSS pooling, optional temporal fusion) ->
+    """Image stage (ResNet + FPN) -> view stage (depth net and LSS pooling, or spatial cross-attention; optional
+    temporal fusion) ->
     head stage (FastOcc head or a baseline, plus the BEV multi-hot head in training)."""
 
     def __init__(self, cfg: ModelConfig) -> None:
@@ -35,10 +37,17 @@ class FastOcc(nn.Module):
         # channels-last: oneDNN's convolutions run a ResNet-50 forward+backward ~1.3x faster on CPU
         self.backbone = resnet(cfg.backbone.depth, cfg.backbone.base_width).to(memory_format=torch.channels_last)
         self.neck = FPNNeck(self.backbone.out_channels, cfg.neck_channels)
-        self.depth_net = DepthNet(cfg.neck_channels, cfg.context_channels, cfg.depth_bins.count)
-        self.pooling = LSSPooling(cfg.coarse_grid, cfg.depth_bins.centres(), cfg.input_hw, cfg.stride)
+        self.depth_net: DepthNet | None = None
+        self.pooling: LSSPooling | None = None
+        self.attention: SpatialCrossAttention | None = None
+        if cfg.view_transform == ViewTransformKind.ATTENTION:
+            self.attention = SpatialCrossAttention(cfg)
+        else:
+            self.depth_net = DepthNet(cfg.neck_channels, cfg.context_channels, cfg.depth_bins.count)
+            self.pooling = LSSPooling(cfg.coarse_grid, cfg.depth_bins.centres(), cfg.input_hw, cfg.stride)
         self.temporal = (
-            TemporalFusion(cfg.context_channels * z, cfg.num_history, cfg.coarse_grid) if cfg.num_history > 0 else None
+            TemporalFusion(cfg.context_channels * z, cfg.num_history, cfg.coarse_grid, cfg.temporal_fusion,
+                           cfg.temporal_channels) if cfg.has_temporal else None
         )
         self.head = build_head(cfg)
         use_bev_head = cfg.bev_head and cfg.head is HeadKind.FASTOCC
@@ -52,7 +61,9 @@ class FastOcc(nn.Module):
 
     def clear_caches(self) -> None:
         """Forget cached geometry (LSS indices, sampling weights) and the temporal queue."""
-        self.pooling.clear_cache()
+        for vt in (self.pooling, self.attention):
+            if vt is not None:
+                vt.clear_cache()
         sampler = getattr(self.head, "sampler", None)
         if sampler is not None:
             sampler.clear_cache()
@@ -64,10 +75,14 @@ class FastOcc(nn.Module):
         x = images.flatten(0, 1).contiguous(memory_format=torch.channels_last)
         return self.neck(self.backbone(x)).contiguous()
 
-    def view_stage(self, feat: Tensor, inputs: SceneInputs) -> tuple[Tensor, Tensor]:
-        """F -> depth `(B*N, 88, h, w)` and V_B with z collapsed `(B, C2*8, 100, 100)` (temporally fused)."""
-        depth, context = self.depth_net(feat)
-        bev = collapse_z(self.pooling(depth, context, inputs))
+    def view_stage(self, feat: Tensor, inputs: SceneInputs) -> tuple[Tensor | None, Tensor]:
+        """F -> depth `(B*N, 88, h, w)` (None for the attention view transform, which has no depth net) and
+        V_B with z collapsed `(B, C2*8, 100, 100)` (temporally fused)."""
+        if self.attention is not None:
+            depth, bev = None, collapse_z(self.attention(feat, inputs))
+        else:
+            depth, context = self.depth_net(feat)
+            bev = collapse_z(self.pooling(depth, context, inputs))
         if self.temporal is not None:
             bev = self.temporal(bev, inputs)
         return depth, bev

@@ -8,6 +8,7 @@ from torch import Tensor, nn
 
 from occdata.constants import OccGrid
 
+from .config import TemporalFusionKind
 from .geometry import voxel_centres
 from .inputs import SceneInputs
 
@@ -47,25 +48,50 @@ def warp_bev_inverse(feat_prev: Tensor, T_prevaug_from_curaug: Tensor, grid: Occ
 
 
 class TemporalFusion(nn.Module):
-    """Concatenate the current BEV feature with `num_history` warped previous ones, reduce with a 1x1 conv.
+    """Fuse the current BEV feature with `num_history` previous ones warped into the current frame.
 
-    The queue holds detached per-frame features (nearest first) with their T_global_from_keyego and
-    BEV augmentation M. Where `seq_start` is True (or on the first call) the queue of that sample is
-    filled with the current frame, so the channel count never changes. A batch smaller than the last
-    keeps the first rows of the queue (lanes that ended were the last rows). Per-frame cost is one warp of
-    `num_history` maps, whatever the length of the stream.
+    kind "concat": the queue holds each frame's full map (C channels); the fusion is a 1x1 conv + BN + ReLU
+    over concat(current, T warped maps), (T + 1) C -> C channels (`reduce`).
+    kind "cached": each frame's map is reduced ONCE, when it is the current frame, by a linear 1x1 conv
+    C -> C_r (`compress`; no normalisation, so a queued map is the same function of the weights in training
+    and at inference); the queue holds these reduced maps. Per frame only the warp of T maps of C_r
+    channels and a small residual fusion run: fused = bev + expand(relu(BN(mix(concat(current reduced map,
+    T warped reduced maps))))), mix (T + 1) C_r -> 2 C_r, expand 2 C_r -> C (1x1 convs). `mix` is applied
+    as two convs (current part, history part) summed, which equals the conv of the concatenation without
+    materialising it. The current reduced map is in the fusion so that `compress` gets a gradient (the
+    queued copies are detached, as in the "concat" queue).
+
+    The queue holds detached per-frame maps (nearest first) with their T_global_from_keyego and BEV
+    augmentation M. Where `seq_start` is True (or on the first call) the queue of that sample is filled with
+    the current frame, so the channel count never changes. A batch smaller than the last keeps the first
+    rows of the queue (lanes that ended were the last rows). Per-frame cost is one warp of `num_history`
+    maps, whatever the length of the stream. `num_history` 0 (the fusion-layer control) has no queue: the
+    current frame alone goes through the fusion layer.
     """
 
-    def __init__(self, channels: int, num_history: int, grid: OccGrid) -> None:
+    def __init__(self, channels: int, num_history: int, grid: OccGrid,
+                 kind: TemporalFusionKind = TemporalFusionKind.CONCAT, cached_channels: int = 16) -> None:
         super().__init__()
         self.num_history = num_history
         self.grid = grid
-        self.reduce = nn.Sequential(
-            nn.Conv2d(channels * (num_history + 1), channels, 1, bias=False),
-            nn.BatchNorm2d(channels),
-            nn.ReLU(inplace=True),
-        )
-        self._feats: Tensor | None = None  # (B, T, C, X, Y)
+        self.kind = TemporalFusionKind(kind)
+        T, C = num_history, channels
+        if self.kind is TemporalFusionKind.CACHED:
+            c_r, c_m = cached_channels, 2 * cached_channels
+            self.queue_channels = c_r
+            self.compress = nn.Conv2d(C, c_r, 1)
+            self.mix_current = nn.Conv2d(c_r, c_m, 1, bias=False)
+            self.mix_history = nn.Conv2d(T * c_r, c_m, 1, bias=False) if T > 0 else None
+            self.mix_norm = nn.Sequential(nn.BatchNorm2d(c_m), nn.ReLU(inplace=True))
+            self.expand = nn.Conv2d(c_m, C, 1)
+        else:
+            self.queue_channels = C
+            self.reduce = nn.Sequential(
+                nn.Conv2d(C * (T + 1), C, 1, bias=False),
+                nn.BatchNorm2d(C),
+                nn.ReLU(inplace=True),
+            )
+        self._feats: Tensor | None = None  # (B, T, C_q, X, Y)
         self._poses: Tensor | None = None  # (B, T, 4, 4) T_global_from_keyego
         self._bev_aug: Tensor | None = None  # (B, T, 4, 4) M
 
@@ -73,7 +99,7 @@ class TemporalFusion(nn.Module):
         self._feats = self._poses = self._bev_aug = None
 
     def queue_state(self) -> tuple[Tensor, Tensor, Tensor] | None:
-        """The queue (features `(B, T, C, X, Y)`, poses and BEV augmentations `(B, T, 4, 4)`), detached on
+        """The queue (features `(B, T, C_q, X, Y)`, poses and BEV augmentations `(B, T, 4, 4)`), detached on
         the CPU; None when empty. `load_queue_state` restores it exactly (checkpoints, validation)."""
         if self._feats is None:
             return None
@@ -88,9 +114,26 @@ class TemporalFusion(nn.Module):
         dev = device if device is not None else next(self.parameters()).device
         self._feats, self._poses, self._bev_aug = (v.to(dev) for v in state)
 
+    def queue_entry(self, bev: Tensor) -> Tensor:
+        """What a frame contributes to the queue: `(B, C, X, Y)` -> `(B, C_q, X, Y)` (C_r when cached)."""
+        return self.compress(bev) if self.kind is TemporalFusionKind.CACHED else bev
+
+    def fuse(self, bev: Tensor, entry: Tensor, warped: Tensor | None) -> Tensor:
+        """The fusion layer: current map `(B, C, X, Y)`, its queue entry `(B, C_q, X, Y)` and the warped
+        queue `(B, T C_q, X, Y)` (None without history) -> `(B, C, X, Y)`."""
+        if self.kind is TemporalFusionKind.CACHED:
+            mixed = self.mix_current(entry)
+            if warped is not None:
+                mixed = mixed + self.mix_history(warped)
+            return bev + self.expand(self.mix_norm(mixed))
+        return self.reduce(bev if warped is None else torch.cat([bev, warped], dim=1))
+
     def forward(self, bev: Tensor, inputs: SceneInputs) -> Tensor:
         """bev `(B, C, X, Y)` in the current augmented frame -> fused `(B, C, X, Y)`."""
-        B, C = bev.shape[:2]
+        entry = self.queue_entry(bev)
+        if self.num_history == 0:
+            return self.fuse(bev, entry, None)
+        B, Cq, X, Y = entry.shape
         T = self.num_history
         pose = inputs.T_global_from_keyego
         if pose is None:
@@ -99,20 +142,23 @@ class TemporalFusion(nn.Module):
         if start is not None and self._feats is not None and self._feats.shape[0] > B:
             # Lanes that ended leave a batch from its end (fastocc.data.order keeps the live lanes first).
             self._feats, self._poses, self._bev_aug = self._feats[:B], self._poses[:B], self._bev_aug[:B]
-        if start is None or self._feats is None or self._feats.shape[0] != B or self._feats.shape[2:] != bev.shape[1:]:
+        fresh = self._feats is None or self._feats.shape[0] != B or self._feats.shape[2:] != entry.shape[1:]
+        if start is None or fresh:
             start = torch.ones(B, dtype=torch.bool, device=bev.device)
-            self._feats = bev.new_zeros(B, T, *bev.shape[1:])
+            self._feats = entry.new_zeros(B, T, Cq, X, Y)
             self._poses = pose.new_zeros(B, T, 4, 4)
             self._bev_aug = pose.new_zeros(B, T, 4, 4)
-        cur = bev.detach()
-        s = start.view(B, 1)
-        feats = torch.where(s.view(B, 1, 1, 1, 1), cur[:, None].expand_as(self._feats), self._feats)
-        poses = torch.where(s.view(B, 1, 1, 1), pose[:, None].expand(B, T, 4, 4), self._poses)
-        augs = torch.where(s.view(B, 1, 1, 1), inputs.bev_aug[:, None].expand(B, T, 4, 4), self._bev_aug)
+        cur = entry.detach()
+        feats, poses, augs = self._feats, self._poses, self._bev_aug
+        if bool(start.any()):  # (eager only: the export wrapper always selects)
+            s = start.view(B, 1)
+            feats = torch.where(s.view(B, 1, 1, 1, 1), cur[:, None].expand_as(feats), feats)
+            poses = torch.where(s.view(B, 1, 1, 1), pose[:, None].expand(B, T, 4, 4), poses)
+            augs = torch.where(s.view(B, 1, 1, 1), inputs.bev_aug[:, None].expand(B, T, 4, 4), augs)
         # T_curaug_from_prevaug = M_cur inv(T_g_from_cur) T_g_from_prev inv(M_prev), per queued frame
         T_rel = T_curaug_from_prevaug(pose[:, None], inputs.bev_aug[:, None], poses, augs).reshape(B * T, 4, 4)
-        warped = warp_bev(feats.reshape(B * T, C, *bev.shape[2:]), T_rel, self.grid).view(B, T * C, *bev.shape[2:])
-        fused = self.reduce(torch.cat([bev, warped], dim=1))
+        warped = warp_bev(feats.reshape(B * T, Cq, X, Y), T_rel, self.grid).view(B, T * Cq, X, Y)
+        fused = self.fuse(bev, entry, warped)
         self._feats = torch.cat([cur[:, None], feats[:, :-1]], dim=1)
         self._poses = torch.cat([pose[:, None], poses[:, :-1]], dim=1)
         self._bev_aug = torch.cat([inputs.bev_aug[:, None], augs[:, :-1]], dim=1)

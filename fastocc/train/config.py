@@ -15,7 +15,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fastocc.model.config import PRESETS, HeadKind, ModelConfig, preset
+from fastocc.model.config import (
+    PRESETS,
+    BevHeight,
+    HeadKind,
+    ModelConfig,
+    TemporalFusionKind,
+    ViewTransformKind,
+    preset,
+)
 from occdata.errors import OccDataError
 
 __all__ = [
@@ -80,9 +88,14 @@ class TrainConfig:
     # model
     preset: str = "nano"
     head: str = "fastocc"
+    view_transform: str = "lss"  # lss | attention (spatial cross-attention, the SurroundOcc* row)
     input_hw: tuple[int, int] | None = None  # None = the preset's input size
     num_history: int | None = None  # None = the preset's (temporal models train scene-sequentially)
     interp_features: bool = True  # ablation: False = FastOcc head without interpolated image features
+    bev_height: str = "repeat"  # with interp_features off: repeat (constant along z) | unfold (channel-to-height)
+    temporal_fusion: str = "concat"  # concat | cached (each frame reduced once to temporal_channels, when current)
+    temporal_channels: int = 16  # C_r of the cached queue
+    zero_history_fusion: bool = False  # ablation: the temporal fusion layer without history (num_history 0)
     scene_sequential: bool = False  # walk scenes in order also for single-frame models (history ablation)
     pretrained: str | None = None  # torchvision ResNet state dict for the backbone
     checkpoint_backbone: bool = False  # activation checkpointing of the image backbone (saves memory)
@@ -151,6 +164,17 @@ class TrainConfig:
             bad.append(f"warmup_epochs = {self.warmup_epochs} (must be in [0, epochs])")
         if not self.interp_features and self.head != HeadKind.FASTOCC.value:
             bad.append(f"interp_features = false with head {self.head!r} (only the fastocc head has them)")
+        if self.bev_height not in {b.value for b in BevHeight}:
+            bad.append(f"bev_height {self.bev_height!r} (choose from {[b.value for b in BevHeight]})")
+        elif self.bev_height != BevHeight.REPEAT.value and (self.interp_features or self.head != HeadKind.FASTOCC):
+            bad.append(f"bev_height = {self.bev_height!r} needs head fastocc and interp_features = false")
+        if self.temporal_fusion not in {k.value for k in TemporalFusionKind}:
+            kinds = [k.value for k in TemporalFusionKind]
+            bad.append(f"temporal_fusion {self.temporal_fusion!r} (choose from {kinds})")
+        if self.temporal_channels < 1:
+            bad.append(f"temporal_channels = {self.temporal_channels} (must be >= 1)")
+        if self.view_transform not in {k.value for k in ViewTransformKind}:
+            bad.append(f"view_transform {self.view_transform!r} (choose from {[k.value for k in ViewTransformKind]})")
         if self.input_hw is not None and any(v <= 0 or v % 16 for v in self.input_hw):
             bad.append(f"input_hw = {self.input_hw} (positive multiples of 16)")
         if bad:
@@ -158,7 +182,12 @@ class TrainConfig:
 
     # -- derived -------------------------------------------------------------------------------
     def model_config(self) -> ModelConfig:
-        changes: dict[str, Any] = {"head": HeadKind(self.head), "interp_features": self.interp_features}
+        changes: dict[str, Any] = {"head": HeadKind(self.head), "interp_features": self.interp_features,
+                                   "bev_height": BevHeight(self.bev_height),
+                                   "temporal_fusion": TemporalFusionKind(self.temporal_fusion),
+                                   "temporal_channels": self.temporal_channels,
+                                   "zero_history_fusion": self.zero_history_fusion,
+                                   "view_transform": ViewTransformKind(self.view_transform)}
         if self.input_hw is not None:
             changes["input_hw"] = tuple(self.input_hw)
         if self.num_history is not None:

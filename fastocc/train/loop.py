@@ -43,6 +43,7 @@ from fastocc.train.setup import (
     loss_config,
     make_run,
     new_state,
+    pace_message,
     prepare_out,
     say_start,
 )
@@ -95,7 +96,8 @@ def _micro_loss(run: Run, batch: Batch) -> tuple[torch.Tensor, dict[str, torch.T
         out = run.model(batch.inputs())
     # occupancy_loss selects the camera-masked voxels once for all voxel terms (fastocc/losses.py)
     return occupancy_loss(out.voxel_logits.float(), _targets(batch, run.model_cfg), run.loss_cfg,
-                          out.depth_probs.float(), None if out.bev_logits is None else out.bev_logits.float())
+                          None if out.depth_probs is None else out.depth_probs.float(),
+                          None if out.bev_logits is None else out.bev_logits.float())
 
 
 @dataclass
@@ -222,6 +224,8 @@ def run_epoch(run: Run, state: TrainState) -> bool:
     run.model.train()
     log = _EpochLog()
     data = _data_iter(loader)
+    steps_in_epoch = -(-(per_epoch - p.pos) // run.accum)
+    run.pace.start_epoch()
     try:
         for group, wait in _step_groups(data, run.accum):
             log.wait_epoch += wait
@@ -229,6 +233,9 @@ def run_epoch(run: Run, state: TrainState) -> bool:
             step = train_step(run, state, group)
             bar.update(len(group))
             _log_step(run, state, step, log, bar)
+            pace = run.pace.tick(steps_in_epoch)
+            if pace is not None:
+                run.say(pace_message(pace, min(run.pace.max_steps, steps_in_epoch - 1), -(-per_epoch // run.accum)))
             if run.stop.should_stop(run.info):
                 return False
             if (cfg.save_every_steps and p.opt_steps % cfg.save_every_steps == 0 and p.pos < per_epoch
@@ -439,7 +446,8 @@ def _train(cfg: TrainConfig, info: D.DistInfo, resume: bool, progress: bool, sto
     if info.device.type == "cpu" and info.is_main:
         dt = estimate_step_seconds(run, state.model)
         run.say(f"estimated time per epoch on CPU: ~{dt * per_epoch / 60:.1f} min ({per_epoch} micro-batches x "
-                f"{dt:.2f} s forward+backward, measured on one synthetic batch; data loading not included)")
+                f"{dt:.2f} s forward+backward, one synthetic batch after a warm-up pass; data loading not included; "
+                "the measured pace follows after the first steps)")
     D.barrier(info)
     run.model = state.model
     if info.enabled:  # wrap after the time estimate: DDP's gradient hooks must see only real steps

@@ -9,7 +9,7 @@ import dataclasses
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -30,8 +30,9 @@ from fastocc.train.state import EMA, TrainState, class_counts, load_resume
 from occdata.errors import OccDataError
 from occdata.fileio import write_atomic
 
-__all__ = ["MetricsLog", "Run", "build_model", "check_writable", "estimate_step_seconds", "init_from", "loader_config",
-           "loss_config", "make_run", "new_state", "noise_hook", "prepare_out", "say_start"]
+__all__ = ["MetricsLog", "Run", "StepPace", "build_model", "check_writable", "estimate_step_seconds", "init_from",
+           "loader_config", "loss_config", "make_run", "new_state", "noise_hook", "pace_message", "prepare_out",
+           "say_start"]
 
 
 def noise_hook(seed: int):
@@ -43,6 +44,35 @@ def noise_hook(seed: int):
         return (torch.randn(x.shape, generator=gen).to(x),)
 
     return hook
+
+
+@dataclass
+class StepPace:
+    """The pace of this process's first warm optimizer steps, said once after them: wall seconds per step over
+    steps 2 .. 1 + n of an epoch (data loading included). The first step of a process is slow (allocator,
+    caches, worker start), so the start-up estimate alone can be several times off."""
+
+    max_steps: int = 5
+    said: bool = False
+    _count: int = 0
+    _t0: float = 0.0
+
+    def start_epoch(self) -> None:
+        self._count = 0  # an epoch boundary (validation, saving) must not count as step time
+
+    def tick(self, steps_in_epoch: int) -> float | None:
+        """After each optimizer step: the measured seconds per step once enough warm steps were seen, else None."""
+        if self.said:
+            return None
+        self._count += 1
+        n = min(self.max_steps, steps_in_epoch - 1)
+        if self._count == 1:
+            self._t0 = time.perf_counter()
+            return None
+        if n < 1 or self._count < n + 1:
+            return None
+        self.said = True
+        return (time.perf_counter() - self._t0) / n
 
 
 # -- what does not change during a run ------------------------------------------------------------------
@@ -63,6 +93,7 @@ class Run:
     samples_per_epoch: int = 0
     logger: MetricsLog | None = None
     model: nn.Module | None = None  # what the step calls: the DDP wrapper under torchrun, else the raw network
+    pace: StepPace = field(default_factory=StepPace)
 
     @property
     def out(self) -> Path:
@@ -192,6 +223,7 @@ def estimate_step_seconds(run: Run, model: nn.Module) -> float:
     """Time one forward + backward of a synthetic micro-batch; weights and buffers are restored.
 
     The first pass only warms up (allocator, lazy caches: it took 2-3x a training step); the second is timed.
+    A first guess only: the trainer says the measured pace (`StepPace`) after the first warm steps.
     """
     saved = {k: v.clone() for k, v in model.state_dict().items()}
     dev = run.info.device
@@ -210,6 +242,12 @@ def estimate_step_seconds(run: Run, model: nn.Module) -> float:
     model.load_state_dict(saved)
     model.clear_caches()
     return dt
+
+
+def pace_message(s_per_step: float, warm_steps: int, steps_per_epoch: int) -> str:
+    """The line said after the first warm steps."""
+    return (f"measured pace: {s_per_step:.2f} s per optimizer step (steps 2-{warm_steps + 1} of this run, data "
+            f"loading included): ~{s_per_step * steps_per_epoch / 60:.1f} min per epoch of {steps_per_epoch} steps")
 
 
 class MetricsLog:
