@@ -173,12 +173,17 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
               help="Metres within which a sweep point takes the class of the nearest labelled keyframe point.")
 @click.option("--no-boxes", is_flag=True,
               help="The control: aggregate every point in the global frame, ignoring boxes (moving objects smear).")
+@click.option("--workers", type=int, default=1, show_default=True,
+              help="Worker processes of the embedded Dask LocalCluster, one scene each at a time (1: here).")
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="Run on an existing Dask cluster (tcp://host:8786; default $DASK_SCHEDULER_ADDRESS); the "
+                   "workers must see --root and --out at the same paths.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run: finished scenes are skipped.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @friendly_errors
 def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], scenes: tuple[str, ...],
-           lidar_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, resume: bool,
-           no_progress: bool) -> None:
+           lidar_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, workers: int,
+           scheduler: str | None, resume: bool, no_progress: bool) -> None:
     """Generate Occ3D-style occupancy labels from LiDAR and 3D boxes (and lidarseg when present).
 
     Per scene: LiDAR points aggregated over time, static points in the global frame, points inside a
@@ -186,19 +191,21 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
     voxel of each keyframe's grid, then LiDAR and camera visibility masks. The output is read by
     `occdata build --gts OUT`. See docs/labels.md.
     """
+    from occdata.cluster import ClusterConfig
     from occdata.labels import LabelOptions, LabelsConfig, generate_labels
 
     out_path = local_path(out, "--out")
+    cluster = ClusterConfig(workers=workers, scheduler=scheduler)
     try:
         report = generate_labels(LabelsConfig(
             root=local_path(root, "--root"), out=out_path, version=version, splits=splits or None,
             scenes=scenes or None, resume=resume, progress=not no_progress,
             options=LabelOptions(lidar_sweeps=lidar_sweeps, static_class=static_class, knn_radius=knn_radius,
                                  use_boxes=not no_boxes),
-        ))
-    except KeyboardInterrupt:
+        ), cluster)
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (occdata.cluster.Interrupted)
         click.echo(f"\ninterrupted: finished scenes are kept in {out_path}; rerun with --resume to continue", err=True)
-        sys.exit(130)
+        sys.exit(128 + getattr(exc, "signum", 2))
     seg = "lidarseg classes" if report.with_lidarseg else f"no lidarseg: static points are class {static_class}"
     click.echo(f"{out_path}: {report.scenes_done} scene(s) labelled, {report.scenes_skipped} already done, "
                f"{report.keyframes} keyframes ({seg}); manifest {report.manifest}")

@@ -254,3 +254,17 @@ def test_parked_instances_are_held_where_annotation_stops() -> None:
     held = _held_static(frames, 1.0)
     assert [[b.token for b in h] for h in held] == [[], [], ["a1"], ["a1"]]
     assert _held_static(frames, 0.0) == [(), (), (), ()]
+
+
+def test_two_dask_workers_write_the_same_bytes(synth_root: Path, tmp_path: Path) -> None:
+    """Scenes as Dask tasks (a 2-process LocalCluster) give the files of the in-process run."""
+    from occdata.cluster import ClusterConfig
+
+    cfg = {"root": synth_root, "options": LabelOptions(), "progress": False}
+    generate_labels(LabelsConfig(out=tmp_path / "one", **cfg))
+    report = generate_labels(LabelsConfig(out=tmp_path / "two", **cfg), ClusterConfig(workers=2))
+    assert report.scenes_done == 2
+    one = sorted(p.relative_to(tmp_path / "one") for p in (tmp_path / "one").rglob("*") if p.is_file())
+    assert one == sorted(p.relative_to(tmp_path / "two") for p in (tmp_path / "two").rglob("*") if p.is_file())
+    for rel in one:
+        assert (tmp_path / "one" / rel).read_bytes() == (tmp_path / "two" / rel).read_bytes(), rel
