@@ -9,7 +9,7 @@
    of nuScenes-like sizes, the store's real layout and codecs) to local disk and to a local S3
    server (moto, a separate process on 127.0.0.1);
 3. Dask's overhead per task: the round trip of an empty task against a block task's own time;
-4. labels: a slot for `occdata labels` (filled by its author).
+4. labels: `occdata labels --lidar-sweeps`, one task per scene, 1 and 2 workers (keyframes/s).
 """
 
 from __future__ import annotations
@@ -76,6 +76,31 @@ def bench_build(root: Path, gts: Path | None, block: int, tmp: Path) -> dict[str
     out["speedup_2_over_1"] = out["workers_2"]["samples_per_s"] / out["workers_1"]["samples_per_s"]
     blocks = -(-r1.n_samples // block)
     out["block_task_s_1_worker"] = out["workers_1"]["seconds"] / blocks  # convert + commit of one block
+    return out
+
+
+def bench_labels(root: Path, tmp: Path) -> dict[str, Any]:
+    """`occdata labels --lidar-sweeps` (one task per scene) with 1 worker (in this process) and 2
+    LocalCluster workers; keyframes/s after an untimed warm-up run in every process."""
+    from occdata.labels import LabelOptions, LabelsConfig, generate_labels
+
+    def cfg(name: str) -> LabelsConfig:
+        return LabelsConfig(root=root, out=tmp / name, options=LabelOptions(lidar_sweeps=True), progress=False)
+
+    out: dict[str, Any] = {}
+    generate_labels(cfg("lwarm1"))
+    t0 = time.perf_counter()
+    r1 = generate_labels(cfg("l1"))
+    out["workers_1"] = {"seconds": time.perf_counter() - t0, "keyframes": r1.keyframes,
+                        "keyframes_per_s": r1.keyframes / (time.perf_counter() - t0)}
+    with cluster_client(ClusterConfig(workers=2)) as client:
+        generate_labels(cfg("lwarm2"), client=client)
+        t1 = time.perf_counter()
+        r2 = generate_labels(cfg("l2"), client=client)
+        dt = time.perf_counter() - t1
+        out["workers_2"] = {"seconds": dt, "keyframes": r2.keyframes, "keyframes_per_s": r2.keyframes / dt}
+        out["worker_peak_rss_mb"] = sorted(client.run(_peak_rss_mb).values())
+    out["speedup_2_over_1"] = out["workers_2"]["keyframes_per_s"] / out["workers_1"]["keyframes_per_s"]
     return out
 
 
@@ -204,7 +229,7 @@ def main() -> None:
             "build": bench_build(root, gts, args.block_samples, tmp),
             "write_local": bench_write(lambda p: str(tmp / f"wr{p}.zarr"), args.write_samples, 32,
                                        tuple(args.writers)),
-            "labels": "slot: filled by the author of `occdata labels`",
+            "labels": bench_labels(root, tmp),
         }
         if not args.no_s3:
             port = 5000 + os.getpid() % 1000

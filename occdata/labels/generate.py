@@ -10,6 +10,7 @@ with a record. The same input gives byte-identical files.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 from collections.abc import Iterable
@@ -188,10 +189,12 @@ def run_scene(job: SceneJob) -> dict[str, int]:
     return record["counts"]
 
 
-def generate_labels(cfg: LabelsConfig, cluster: ClusterConfig = ClusterConfig()) -> LabelsReport:  # noqa: B008
+def generate_labels(cfg: LabelsConfig, cluster: ClusterConfig = ClusterConfig(),  # noqa: B008
+                    client: Any = None) -> LabelsReport:
     """Label every chosen scene (see the module docstring): one `run_scene` task per scene, on
-    `cluster` (occdata.cluster: here, a LocalCluster of N workers, or an existing scheduler).
-    Raises `occdata.cluster.Interrupted` on Ctrl-C / SIGTERM (finished scenes are kept)."""
+    `cluster` (occdata.cluster: here, a LocalCluster of N workers, or an existing scheduler), or on
+    `client`, a `distributed.Client` already open. Raises `occdata.cluster.Interrupted` on Ctrl-C /
+    SIGTERM (finished scenes are kept)."""
     inputs, version = load_inputs(cfg)
     header = _options_dict(cfg, version, bool(inputs.lidarseg))
     cfg.out.mkdir(parents=True, exist_ok=True)
@@ -204,11 +207,11 @@ def generate_labels(cfg: LabelsConfig, cluster: ClusterConfig = ClusterConfig())
         todo = [sc for sc in inputs.dataset.scenes if not scene_record_path(cfg.out, sc.name).is_file()]
         skipped = len(inputs.dataset.scenes) - len(todo)
         settings = json.dumps(_settings(header), sort_keys=True)
-        threads = None if cluster.in_process() else 1
+        threads = None if client is None and cluster.in_process() else 1
         jobs = [SceneJob(cfg, sc.name, settings, len(sc.sample_tokens), threads) for sc in todo]
         _INPUTS.clear()
         _INPUTS[cfg] = inputs  # in-process tasks reuse what is loaded
-        with cluster_client(cluster) as client:
-            run_tasks(client, run_scene, jobs, desc="labels", progress=cfg.progress, units=lambda j: j.keyframes)
+        with contextlib.nullcontext(client) if client is not None else cluster_client(cluster) as run_on:
+            run_tasks(run_on, run_scene, jobs, desc="labels", progress=cfg.progress, units=lambda j: j.keyframes)
         manifest = _commit(cfg.out, header, (sc.name for sc in inputs.dataset.scenes))
     return LabelsReport(len(todo), skipped, len(inputs.dataset.samples), bool(inputs.lidarseg), manifest)
