@@ -35,7 +35,8 @@ from occdata.errors import OccDataError
 if TYPE_CHECKING:  # distributed is imported lazily: `occdata` commands that do not run tasks stay light
     from distributed import Client, Future
 
-__all__ = ["SCHEDULER_ENV", "ClusterConfig", "Interrupted", "cluster_client", "dask_setup", "run_tasks"]
+__all__ = ["SCHEDULER_ENV", "ClusterConfig", "Interrupted", "check_stop", "cluster_client", "dask_setup",
+           "run_tasks"]
 
 SCHEDULER_ENV = "DASK_SCHEDULER_ADDRESS"
 T = TypeVar("T")
@@ -164,19 +165,35 @@ class _StopSignals:
             signal.signal(signal.SIGINT, self._prev.get(signal.SIGINT, signal.default_int_handler))
 
     def __enter__(self) -> _StopSignals:
+        global _ACTIVE
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 self._prev[sig] = signal.signal(sig, self._handler)
+            _ACTIVE = self
         return self
 
     def __exit__(self, *exc: object) -> None:
+        global _ACTIVE
         for sig, prev in self._prev.items():
             signal.signal(sig, prev)
         self._prev = {}
+        if _ACTIVE is self:
+            _ACTIVE = None
 
     def check(self) -> None:
         if self.signum is not None:
             raise Interrupted(self.signum)
+
+
+_ACTIVE: _StopSignals | None = None  # the signals of the `run_tasks` running in this process, if any
+
+
+def check_stop() -> None:
+    """For a long task run in this process (client None): raise `Interrupted` once Ctrl-C or SIGTERM
+    has arrived, so it stops within seconds, not at its end; a no-op elsewhere (on a Dask worker).
+    Only call it where stopping is safe (the task publishes its results atomically and last)."""
+    if _ACTIVE is not None:
+        _ACTIVE.check()
 
 
 def run_tasks(client: Client | None, fn: Callable[[T], R], tasks: Sequence[T], *, desc: str,

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from occdata.cluster import check_stop
 from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES
 from occdata.geometry import invert_rigid, transform_points
 from occdata.labels.kernels import NO_LABEL, NearestIndex, majority, points_in_boxes, vote_voxels
@@ -310,6 +311,7 @@ def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions
     rays: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     with_seg = False
     for i in indices:  # pass 1: keyframes, the labelled references
+        check_stop()  # Ctrl-C / SIGTERM of an in-process run: stop between frames
         s = ds.samples[i]
         points, origin, off_ego = _frame_points(s.lidar)
         cls = _keyframe_classes(inputs, s.lidar, len(points))
@@ -329,6 +331,7 @@ def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions
             object_index = {k: NearestIndex.build(*cloud.instance(k), opts.knn_radius) for k in cloud.obj_pts}
         for i in indices:
             for rec in ds.samples[i].sweeps:
+                check_stop()
                 points, _, off_ego = _frame_points(rec)
                 counts.frames += 1
                 counts.points += len(points)
@@ -342,6 +345,7 @@ def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions
     keyframe_boxes = [boxes_for_lidar(inputs.annotations, ds, i, ds.samples[i].lidar) for i in indices]
     held = _held_static(keyframe_boxes, opts.hold_static)
     for n, i in enumerate(indices):
+        check_stop()
         s = ds.samples[i]
         boxes = keyframe_boxes[n] + held[n]
         semantics = _semantics(static, cloud, boxes, invert_rigid(s.T_global_from_keyego))
