@@ -21,17 +21,11 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from occdata.evaluate import EvalConfig, evaluate_predictions  # noqa: E402
-from occdata.geometry import invert_rigid  # noqa: E402
-from occdata.labels.fidelity import Fidelity, score_scene  # noqa: E402
-from occdata.labels.scene import box_class  # noqa: E402
-from occdata.nuscenes import load_nuscenes  # noqa: E402
-from occdata.nuscenes.annotations import load_annotations  # noqa: E402
+from occdata.labels.score import score_tree  # noqa: E402
 from occdata.store.build import BuildConfig, build_store  # noqa: E402
 from occdata.synth import SynthConfig, synthesize  # noqa: E402
 
@@ -60,28 +54,10 @@ def _generate(root: Path, out: Path, extra: list[str]) -> dict[str, float]:
 
 
 def _score(root: Path, gen: Path, truth: Path) -> dict[str, float]:
-    ds = load_nuscenes(root, None)
-    ann = load_annotations(root, ds.version)
-    total, inside, moved, worst = Fidelity(), 0, 0, 1.0
-    class_of = {k: box_class(b) for bs in ann.boxes_by_sample.values() for b in bs for k in [b.instance_token]}
-    for sc in ds.scenes:
-        gens, truths, Ts, boxes = [], [], [], []
-        for tok in sc.sample_tokens:
-            s = ds.sample(tok)
-            with np.load(gen / sc.name / tok / "labels.npz", allow_pickle=False) as g:
-                gens.append(g["semantics"])
-            with np.load(truth / sc.name / tok / "labels.npz", allow_pickle=False) as t:
-                truths.append((t["semantics"], t["mask_lidar"]))
-            Ts.append(invert_rigid(s.T_global_from_keyego))
-            boxes.append(list(ann.boxes_by_sample.get(tok, ())))
-        score = score_scene(gens, truths, Ts, boxes, class_of)
-        total.add(score.voxels)
-        inside += sum(v[0] for v in score.moving.values())
-        moved += sum(v[1] for v in score.moving.values())
-        worst = min(worst, score.worst_instance())
-    return {"precision": total.precision, "surface_recall": total.recall,
-            "semantic_agreement": total.semantic_agreement, "moving_inside": inside / max(moved, 1),
-            "moving_inside_worst_instance": worst, "moving_voxels": moved}
+    t = score_tree(root, gen, truth)
+    return {"precision": t.voxels.precision, "surface_recall": t.voxels.recall,
+            "semantic_agreement": t.voxels.semantic_agreement, "moving_inside": t.moving_fraction,
+            "moving_inside_worst_instance": t.worst_instance, "moving_voxels": t.moving_total}
 
 
 def main() -> None:

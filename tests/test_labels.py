@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 
 from occdata.errors import OccDataError
-from occdata.geometry import invert_rigid
 from occdata.labels import LabelOptions, LabelsConfig, generate_labels
-from occdata.labels.fidelity import Fidelity, score_scene
+from occdata.labels.fidelity import Fidelity
 from occdata.labels.scene import box_class
+from occdata.labels.score import score_tree
 from occdata.nuscenes import load_nuscenes
 from occdata.nuscenes.annotations import load_annotations
 
@@ -52,24 +52,8 @@ def generated(world: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str
 
 
 def _score(world: Path, gen: Path) -> tuple[Fidelity, float, int]:
-    ds = load_nuscenes(world, None)
-    ann = load_annotations(world, ds.version)
-    class_of = {b.instance_token: box_class(b) for bs in ann.boxes_by_sample.values() for b in bs}
-    total, inside, moved = Fidelity(), 0, 0
-    for sc in ds.scenes:
-        gens, truths, Ts, boxes = [], [], [], []
-        for tok in sc.sample_tokens:
-            with np.load(gen / sc.name / tok / "labels.npz", allow_pickle=False) as g:
-                gens.append(g["semantics"].copy())
-            with np.load(world / "gts" / sc.name / tok / "labels.npz", allow_pickle=False) as t:
-                truths.append((t["semantics"].copy(), t["mask_lidar"].copy()))
-            Ts.append(invert_rigid(ds.sample(tok).T_global_from_keyego))
-            boxes.append(list(ann.boxes_by_sample.get(tok, ())))
-        s = score_scene(gens, truths, Ts, boxes, class_of)
-        total.add(s.voxels)
-        inside += sum(v[0] for v in s.moving.values())
-        moved += sum(v[1] for v in s.moving.values())
-    return total, inside / max(moved, 1), moved
+    t = score_tree(world, gen, world / "gts")
+    return t.voxels, t.moving_fraction, t.moving_total
 
 
 def test_fidelity_targets(world: Path, generated: dict[str, Path]) -> None:
