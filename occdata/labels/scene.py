@@ -165,6 +165,11 @@ def _frame_points(rec: LidarRecord) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return transform_points(rec.T_global_from_ego, points_ego), T_global_from_lidar[:3, 3].copy(), off_ego
 
 
+def _to_box(box: BoxRecord, points: np.ndarray) -> np.ndarray:
+    """Global points `(N, 3)` in `box`'s frame, `(N, 3) float64`."""
+    return transform_points(invert_rigid(box.T_global_from_box()), points)
+
+
 def _in_boxes(points: np.ndarray, boxes: tuple[BoxRecord, ...], opts: LabelOptions) -> np.ndarray:
     """`(N,) int32` index of the (margin-grown) box holding each global point `(N, 3)`, or -1."""
     if not boxes:
@@ -183,7 +188,7 @@ def _members(points: np.ndarray, cls: np.ndarray | None, boxes: tuple[BoxRecord,
         return idx
     for b in np.unique(idx[idx >= 0]):
         sel = np.flatnonzero(idx == b)
-        z_box = transform_points(invert_rigid(boxes[b].T_global_from_box()), points[sel])[:, 2]
+        z_box = _to_box(boxes[b], points[sel])[:, 2]
         idx[sel[z_box < -boxes[b].size_wlh[2] / 2 + opts.floor_margin]] = -1
     return idx
 
@@ -197,7 +202,7 @@ def _add_keyframe(cloud: _Cloud, points: np.ndarray, cls: np.ndarray | None, box
         box = boxes[b]
         c = cls[sel] if cls is not None else np.full(int(sel.sum()), box_class(box), np.uint8)
         if opts.use_boxes:
-            p_box = transform_points(invert_rigid(box.T_global_from_box()), points[sel])
+            p_box = _to_box(box, points[sel])
             cloud.add_object(box.instance_token, p_box, c)
         else:  # the control: the box gives the class only, the point stays where it was seen
             cloud.add_static(points[sel], c)
@@ -222,7 +227,7 @@ def _add_sweep(cloud: _Cloud, points: np.ndarray, boxes: tuple[BoxRecord, ...], 
     for b in np.unique(idx[idx >= 0]):
         sel = np.flatnonzero(idx == b)
         box = boxes[b]
-        p_box = transform_points(invert_rigid(box.T_global_from_box()), points[sel])
+        p_box = _to_box(box, points[sel])
         index = object_index.get(box.instance_token)
         if index is None:
             cls_o, d2_o = np.full(len(sel), NO_LABEL, np.uint8), np.full(len(sel), np.inf)
