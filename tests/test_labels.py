@@ -254,22 +254,53 @@ def test_two_dask_workers_write_the_same_bytes(synth_root: Path, tmp_path: Path)
         assert (tmp_path / "one" / rel).read_bytes() == (tmp_path / "two" / rel).read_bytes(), rel
 
 
+def _gated_copy(world: Path, dst: Path) -> tuple[Path, Path]:
+    """`world` as a tree of symlinks in which one LiDAR sweep in the middle of the scene is a FIFO:
+    a run that reaches it blocks until the test writes the file, so the test knows the run is
+    mid-scene. Returns (the FIFO, the real file it stands for)."""
+    shutil.copytree(world, dst, symlinks=False, copy_function=os.symlink)
+    sweeps = sorted((dst / "sweeps" / "LIDAR_TOP").iterdir())
+    gate = sweeps[len(sweeps) // 2]
+    real = gate.resolve()
+    gate.unlink()
+    os.mkfifo(gate)
+    return gate, real
+
+
+def _open_when_read(fifo: Path, timeout: float) -> int:
+    """Open `fifo` for writing once a reader has it open (ENXIO until then); fail after `timeout`."""
+    t_end = time.time() + timeout
+    while True:
+        try:
+            return os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
+        except OSError:
+            if time.time() > t_end:
+                raise AssertionError(f"the run never read {fifo.name}") from None
+            time.sleep(0.05)
+
+
 def test_sigterm_stops_within_seconds_and_resume_completes(world: Path, generated: dict[str, Path],
                                                            tmp_path: Path) -> None:
     """SIGTERM in the middle of a scene (in-process run): exit 143 within seconds, one line, no record
     and no half-written file for that scene; --resume then writes the files of an uninterrupted run."""
-    out = tmp_path / "o"
-    cmd = [sys.executable, "-m", "cli.occdata_cli", "labels", "--root", str(world), "--out", str(out),
+    root, out = tmp_path / "world", tmp_path / "o"
+    gate, real = _gated_copy(world, root)
+    cmd = [sys.executable, "-m", "cli.occdata_cli", "labels", "--root", str(root), "--out", str(out),
            "--lidar-sweeps", "--no-progress"]
     proc = subprocess.Popen(cmd, cwd=REPO, stderr=subprocess.PIPE, text=True)
-    time.sleep(4.0)  # tables and boxes loaded, the scene's aggregation under way
+    fd = _open_when_read(gate, timeout=120)  # the run is reading a sweep in the middle of the scene
     proc.send_signal(signal.SIGTERM)
     t0 = time.time()
+    os.set_blocking(fd, True)
+    os.write(fd, real.read_bytes())  # let the read finish; the run stops at the next frame
+    os.close(fd)
     _, err = proc.communicate(timeout=60)
     assert time.time() - t0 < 10, "did not stop within seconds"
     assert proc.returncode == 143, err
     assert "Traceback" not in err and "--resume" in err
     assert not list((out / ".scenes").glob("*.json"))
+    gate.unlink()
+    os.symlink(real, gate)
     r = subprocess.run([*cmd, "--resume"], cwd=REPO, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     ref = generated["ours"]
