@@ -260,8 +260,9 @@ def _run_on(client: Client, fn: Callable[[T], R], queue: _Queue, stop: _StopSign
             units: Any, on_result: Any, window: int | None) -> None:
     from distributed import wait
 
+    addr = _address(client)  # kept: a closed connection no longer knows it
     if window is None:
-        window = max(2, 2 * sum(_nthreads(client).values()))
+        window = max(2, 2 * sum(_nthreads(client, addr).values()))
     running: dict[Future, Any] = {}
     try:
         while True:
@@ -271,19 +272,17 @@ def _run_on(client: Client, fn: Callable[[T], R], queue: _Queue, stop: _StopSign
                 break
             stop.check()
             if client.status != "running":  # the scheduler went away (the client is reconnecting or closed)
-                raise OccDataError(f"lost the Dask scheduler at {_address(client)} ({client.status}); "
-                                   "everything committed so far is kept: rerun with --resume")
+                raise _lost(addr, str(client.status))
             try:
                 with client.as_current():
                     done, _ = wait(list(running), timeout=0.25, return_when="FIRST_COMPLETED")
             except TimeoutError:
                 done = set()
             except Exception as exc:  # noqa: BLE001 - futures cancelled because the scheduler connection broke
-                raise OccDataError(f"lost the Dask scheduler at {_address(client)} ({type(exc).__name__}); everything "
-                                   "committed so far is kept: rerun with --resume") from None
+                raise _lost(addr, type(exc).__name__) from None
             for f in done:
                 task = running.pop(f)
-                result = _result(client, f)
+                result = _result(client, f, addr)
                 bar.update(units(task) if units else 1)
                 if on_result is not None:
                     queue.add(on_result(task, result))
@@ -300,14 +299,20 @@ def _address(client: Client) -> str:
         return "?"
 
 
-def _nthreads(client: Client) -> dict[str, int]:
+def _lost(addr: str, why: str) -> OccDataError:
+    """The one message for a scheduler that went away, whichever call noticed it first."""
+    return OccDataError(f"lost the Dask scheduler at {addr} ({why}); everything committed so far is kept: "
+                        "rerun with --resume")
+
+
+def _nthreads(client: Client, addr: str) -> dict[str, int]:
     try:
         return client.nthreads()
     except Exception as exc:  # noqa: BLE001 - a scheduler gone between connect and submit
-        raise OccDataError(f"lost the Dask scheduler: {_reason(exc)}") from None
+        raise _lost(addr, _reason(exc)) from None
 
 
-def _result(client: Client, f: Future) -> Any:
+def _result(client: Client, f: Future, addr: str) -> Any:
     from distributed import KilledWorker
 
     try:
@@ -317,10 +322,10 @@ def _result(client: Client, f: Future) -> Any:
     except (OSError, TimeoutError) as exc:
         if client.status in ("running", "connecting") and not _comm_error(exc):
             raise  # the task's own error (a full disk, ...)
-        raise OccDataError(f"lost the Dask scheduler: {_reason(exc)}") from None
+        raise _lost(addr, "connection closed" if _comm_error(exc) else _reason(exc)) from None
     except Exception as exc:
         if client.status not in ("running", "connecting") or type(exc).__name__ == "CancelledError":
-            raise OccDataError(f"lost the Dask scheduler ({client.status}): {_reason(exc)}") from None
+            raise _lost(addr, f"{client.status}: {_reason(exc)}") from None
         raise
 
 

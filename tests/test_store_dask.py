@@ -304,3 +304,23 @@ def test_resume_commits_staged_blocks_without_converting_them(tree, reference, t
     assert converted == [3, 4, 5]
     assert store_digest(out) == reference
     _verify(out)
+
+
+@pytest.mark.parametrize("exc_name", ["CommClosedError", "CancelledError"])
+def test_every_way_of_losing_the_scheduler_says_the_same_line(exc_name: str) -> None:
+    """Whichever call notices first (a result's gather, a cancelled future), one message with the address."""
+    from types import SimpleNamespace
+
+    from distributed.comm.core import CommClosedError
+
+    from occdata.cluster import _result
+
+    exc = CommClosedError("in <TCP (closed) ConnectionPool.gather>: Stream is closed") \
+        if exc_name == "CommClosedError" else type("CancelledError", (Exception,), {})("k")
+
+    def boom() -> None:
+        raise exc
+
+    client = SimpleNamespace(status="running")
+    with pytest.raises(OccDataError, match=r"^lost the Dask scheduler at tcp://127.0.0.1:1 \(.*--resume$"):
+        _result(client, SimpleNamespace(result=boom), "tcp://127.0.0.1:1")
