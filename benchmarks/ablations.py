@@ -418,7 +418,10 @@ def _score(epochs: int, store: str, workers: int, runs_dir: Path, results_path: 
             if run_state(run, epochs) == "done":
                 print(f"TTA off/on for {run} ...", flush=True)
                 tta["runs"][run_name(row, seed)] = score_tta(run, store, workers)
-        results["tta"] = tta
+        if tta["runs"]:
+            results["tta"] = tta
+        else:  # the best row's runs live in another runs folder: keep the TTA already scored
+            print(f"TTA: no finished run of {row} under {runs_dir}; the recorded TTA is kept")
     results["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(), "loadavg_1min": os.getloadavg()[0]}
     _save(results, results_path)
     print(f"wrote {results_path}")
@@ -449,10 +452,16 @@ def latency(preset: str, repeats: int, rounds: int, threads: int | None, results
         sur = run_benchmark(BenchConfig(preset=preset, heads=(HeadKind.DECONV,), repeats=repeats, threads=threads,
                                         view_transform="attention"))
         whole.append({"fastocc": res["heads"]["fastocc"]["total_ms"],
-                      "surroundocc": sur["heads"]["deconv"]["total_ms"]})
+                      "surroundocc": sur["heads"]["deconv"]["total_ms"],
+                      # SurroundOcc*'s split: its 2D-to-3D is the attention transform, its 3D the deconv head
+                      "fastocc_2d_to_3d": res["stages"]["view"]["ms"],
+                      "surroundocc_2d_to_3d": sur["stages"]["view"]["ms"],
+                      "fastocc_3d": res["heads"]["fastocc"]["ms"], "surroundocc_3d": sur["heads"]["deconv"]["ms"]})
     ms = {h.value: statistics.median(r[h.value] for r in per_round) for h in heads}
     ratio = {h.value: statistics.median(r[h.value] / r["fastocc"] for r in per_round) for h in heads}
     ratio["surroundocc"] = statistics.median(r["surroundocc"] / r["fastocc"] for r in whole)  # whole network
+    for part in ("2d_to_3d", "3d"):
+        ratio[f"surroundocc_{part}"] = statistics.median(r[f"surroundocc_{part}"] / r[f"fastocc_{part}"] for r in whole)
     out = {"head_ms": ms, "ratio_to_fastocc": ratio, "rounds_ms": per_round, "config": res["config"],
            "whole_ms": {k: statistics.median(r[k] for r in whole) for k in whole[0]}, "whole_rounds_ms": whole,
            "loadavg_1min": load,
@@ -599,6 +608,10 @@ def _latency_note(lat: dict[str, Any] | None) -> str:
     whole = lat.get("whole_ms")
     whole_text = "" if not whole else (f"; whole network: FastOcc {whole['fastocc']:.0f} ms, SurroundOcc* "
                                        f"{whole['surroundocc']:.0f} ms")
+    r = lat["ratio_to_fastocc"]
+    if "surroundocc_3d" in r:
+        whole_text += (f" (SurroundOcc* / FastOcc: 2D-to-3D {r['surroundocc_2d_to_3d']:.2f}x, 3D "
+                       f"{r['surroundocc_3d']:.2f}x, whole {r['surroundocc']:.2f}x)")
     return (f"3D-side latency ({c['preset']} {c['input_hw'][0]}x{c['input_hw'][1]}, {c['device_name']}, "
             f"{c['threads']} threads, median of {c['repeats']} x {rounds} rounds, "
             f"1-min load {lat['loadavg_1min']:.1f}): "

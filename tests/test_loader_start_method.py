@@ -82,6 +82,29 @@ def test_unguarded_script_gets_one_clear_line(synth_store: Path, tmp_path: Path,
     assert "exited unexpectedly" not in r.stderr
 
 
+@pytest.mark.parametrize("edited", [False, True])
+def test_guard_check_reads_the_script_as_it_ran(tmp_path: Path, edited: bool) -> None:
+    """A guarded script edited on disk while it runs (lines added on top) must not be mistaken for module-level
+    loader code; an unguarded call is still caught."""
+    edit = "open(__file__, 'w').write(chr(10) * 40 + open(__file__).read())" if edited else "pass"
+    r = _run(f"""
+        from fastocc.data.workers import check_main_guard
+        check_main_guard("spawn") if {not edited} else None
+
+        def main():
+            {edit}
+            check_main_guard("spawn")
+            print("ok")
+
+        if __name__ == "__main__":
+            main()
+    """, tmp_path)
+    if edited:
+        assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr
+    else:
+        assert r.returncode == 1 and "script.py:3 creates a data loader" in r.stderr, r.stderr
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_guarded_script_works(synth_store: Path, tmp_path: Path) -> None:

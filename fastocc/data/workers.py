@@ -59,16 +59,21 @@ def _unguarded_main_line() -> int | None:
     `if __name__ == "__main__":`; None when called from a function only, or under the guard."""
     main = sys.modules.get("__main__")
     path = getattr(main, "__file__", None)
-    frame = sys._getframe(1)
+    frame, callee = sys._getframe(1), None
     while frame is not None and not (frame.f_code.co_name == "<module>" and frame.f_globals is vars(main)):
-        frame = frame.f_back
+        frame, callee = frame.f_back, frame
     if frame is None or not path:
         return None
     try:
-        tree = ast.parse(open(path, encoding="utf-8").read())
+        source = open(path, encoding="utf-8").read()
+        tree = ast.parse(source)
     except (OSError, SyntaxError, ValueError):
         return None
     line = frame.f_lineno
+    lines = source.splitlines()
+    names = callee.f_code.co_qualname.split(".") if callee is not None else []
+    if names and (line > len(lines) or not any(n in lines[line - 1] for n in names)):
+        return None  # the script on disk was edited since it started: its line numbers no longer say anything
     for node in tree.body:
         if _is_main_guard(node) and node.lineno <= line <= (node.end_lineno or node.lineno):
             return None
