@@ -17,7 +17,7 @@ from occdata.nuscenes.annotations import load_annotations
 __all__ = ["TreeScore", "score_tree"]
 
 
-@dataclass
+@dataclass(frozen=True)
 class TreeScore:
     """Voxel counts over every keyframe, and the moving instances' (inside, total) voxels pooled."""
 
@@ -31,7 +31,7 @@ class TreeScore:
         return self.moving_inside / max(self.moving_total, 1)
 
 
-def _semantics(folder: Path, scene: str, token: str, *keys: str) -> tuple[np.ndarray, ...]:
+def _arrays(folder: Path, scene: str, token: str, *keys: str) -> tuple[np.ndarray, ...]:
     with np.load(folder / scene / token / "labels.npz", allow_pickle=False) as z:
         return tuple(z[k].copy() for k in keys)
 
@@ -41,15 +41,15 @@ def score_tree(root: Path, generated: Path, truth: Path) -> TreeScore:
     ds = load_nuscenes(root, None)
     ann = load_annotations(root, ds.version)
     class_of = {b.instance_token: box_class(b) for bs in ann.boxes_by_sample.values() for b in bs}
-    out = TreeScore(Fidelity(), 0, 0, 1.0)
+    voxels, inside, total, worst = Fidelity(), 0, 0, 1.0
     for sc in ds.scenes:
         toks = sc.sample_tokens
-        gens = [_semantics(generated, sc.name, t, "semantics")[0] for t in toks]
-        truths = [_semantics(truth, sc.name, t, "semantics", "mask_lidar") for t in toks]
+        gens = [_arrays(generated, sc.name, t, "semantics")[0] for t in toks]
+        truths = [_arrays(truth, sc.name, t, "semantics", "mask_lidar") for t in toks]
         Ts = [invert_rigid(ds.sample(t).T_global_from_keyego) for t in toks]
         score = score_scene(gens, truths, Ts, [list(ann.boxes_by_sample.get(t, ())) for t in toks], class_of)
-        out.voxels.add(score.voxels)
-        out.moving_inside += sum(v[0] for v in score.moving.values())
-        out.moving_total += sum(v[1] for v in score.moving.values())
-        out.worst_instance = min(out.worst_instance, score.worst_instance())
-    return out
+        voxels.add(score.voxels)
+        inside += sum(v[0] for v in score.moving.values())
+        total += sum(v[1] for v in score.moving.values())
+        worst = min(worst, score.worst_instance())
+    return TreeScore(voxels, inside, total, worst)
