@@ -26,10 +26,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from occdata.bev import bev_bits  # noqa: E402
-from occdata.jpeg_check import decode_jpeg_checked  # noqa: E402
 from occdata.nuscenes import load_lidar_points, load_nuscenes  # noqa: E402
-from occdata.projection import project_to_cameras  # noqa: E402
+from occdata.sensors.jpeg_check import decode_jpeg_checked  # noqa: E402
+from occdata.sensors.projection import project_to_cameras  # noqa: E402
+from occdata.store.bev import bev_bits  # noqa: E402
 from occdata.store.build import BuildConfig, build_store  # noqa: E402
 from occdata.store.sample import SampleOptions, _read_jpeg, load_occ3d_labels  # noqa: E402
 

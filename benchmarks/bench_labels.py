@@ -24,7 +24,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from occdata.evaluate import EvalConfig, evaluate_predictions  # noqa: E402
+from occdata.eval.evaluate import EvalConfig, evaluate_predictions  # noqa: E402
 from occdata.labels.score import score_tree  # noqa: E402
 from occdata.store.build import BuildConfig, build_store  # noqa: E402
 from occdata.synth import SynthConfig, synthesize  # noqa: E402

@@ -29,7 +29,7 @@ sys.path.insert(0, str(REPO / "tests"))
 
 from fastocc.data import BevAugConfig, ImageAugConfig, LoaderConfig, SampleConfig, StoreDataset  # noqa: E402
 from fastocc.data.augment import sample_image_aug  # noqa: E402
-from occdata.image_ops import IMAGENET_MEAN, IMAGENET_STD  # noqa: E402
+from occdata.sensors.image_ops import IMAGENET_MEAN, IMAGENET_STD  # noqa: E402
 from occdata.store.build import BuildConfig, build_store  # noqa: E402
 from occdata.store.layout import token_str  # noqa: E402
 from occdata.store.reader import open_store  # noqa: E402

@@ -51,7 +51,7 @@ def _perturb(sem: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def bench_rayiou(sem: np.ndarray, n: int, rng: np.random.Generator) -> dict:
-    from occdata.metrics import RayIoUAccumulator
+    from occdata.eval.metrics import RayIoUAccumulator
 
     origins = np.c_[np.linspace(-30, 30, 8), rng.uniform(-2, 2, 8), np.full(8, 1.84)]
     preds = [_perturb(sem, rng) for _ in range(4)]
@@ -72,7 +72,7 @@ def bench_rayiou(sem: np.ndarray, n: int, rng: np.random.Generator) -> dict:
 
 
 def bench_miou_files(sem: np.ndarray, mask: np.ndarray, n: int, rng: np.random.Generator, tmp: Path) -> dict:
-    from occdata.metrics import MIoUAccumulator
+    from occdata.eval.metrics import MIoUAccumulator
 
     pred_dir, gt_dir = tmp / "pred", tmp / "gt"
     pred_dir.mkdir()
@@ -125,7 +125,7 @@ def bench_eval_store(samples: int, tmp: Path) -> dict:
     """`evaluate_predictions` on a synthetic store of one scene (ground truth copied as predictions)."""
     import shutil
 
-    from occdata.evaluate import EvalConfig, evaluate_predictions
+    from occdata.eval.evaluate import EvalConfig, evaluate_predictions
     from occdata.store.build import BuildConfig, build_store
     from occdata.synth import SynthConfig, synthesize
 

@@ -34,7 +34,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from occdata.cluster import ClusterConfig, cluster_client, run_tasks  # noqa: E402
+from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks  # noqa: E402
 from occdata.store.build import BuildConfig, _create, build_store  # noqa: E402
 from occdata.store.layout import FLAT_ARRAYS, PER_SAMPLE  # noqa: E402
 

@@ -28,8 +28,8 @@ sys.path.insert(0, str(REPO))
 
 from fastocc.data.augment import ImageAugConfig, sample_image_aug  # noqa: E402
 from occdata.constants import FREE_LABEL  # noqa: E402
-from occdata.depth_targets import DEPTH_MAX, DEPTH_MIN, depth_target  # noqa: E402
 from occdata.nuscenes import load_nuscenes  # noqa: E402
+from occdata.sensors.depth_targets import DEPTH_MAX, DEPTH_MIN, depth_target  # noqa: E402
 from occdata.store.build import BuildConfig, build_store  # noqa: E402
 from occdata.store.layout import token_str  # noqa: E402
 from occdata.store.reader import open_store  # noqa: E402

@@ -7,7 +7,7 @@
     python benchmarks/bench_train.py curve --store data.zarr --run runs/img --run runs/noise \\
         --baseline baseline.json --png docs/train_curve.png --json curve.json
 
-The metric code is the project's (`occdata.metrics`, `fastocc.infer.evaluate`); nothing is re-implemented.
+The metric code is the project's (`occdata.eval.metrics`, `fastocc.infer.evaluate`); nothing is re-implemented.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from occdata.store.reader import open_store  # noqa: E402
 
 def baseline(store: str, train_split: str = "train", val_split: str = "val") -> dict:
     """Per-voxel most frequent training label (ties: the lower label), scored on the val split
-    (`occdata.baseline`, also `occdata baseline`)."""
-    from occdata.baseline import image_free_baseline
+    (`occdata.eval.baseline`, also `occdata baseline`)."""
+    from occdata.eval.baseline import image_free_baseline
 
     r = image_free_baseline(open_store(store), train_split, val_split)
     return {"store": str(store), "train_samples": r.train_samples, "val_samples": r.val_samples,

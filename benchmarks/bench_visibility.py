@@ -32,7 +32,7 @@ from occdata.constants import GRID  # noqa: E402
 from occdata.geometry import transform_points  # noqa: E402
 from occdata.nuscenes.reader import load_lidar_points, load_nuscenes  # noqa: E402
 from occdata.visibility import camera_mask, lidar_mask, object_voxels  # noqa: E402
-from occdata.visibility_check import load_occ3d_label, rig_of_sample  # noqa: E402
+from occdata.visibility.check import load_occ3d_label, rig_of_sample  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 LABEL = DATA / "occ3d-label" / "29796060110c4163b07f06eff4af0753" / "labels.npz"

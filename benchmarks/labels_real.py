@@ -28,7 +28,7 @@ from occdata.labels.fidelity import moving_containment  # noqa: E402
 from occdata.labels.scene import box_class  # noqa: E402
 from occdata.nuscenes import load_nuscenes  # noqa: E402
 from occdata.nuscenes.annotations import load_annotations  # noqa: E402
-from occdata.render import prediction_picture  # noqa: E402
+from occdata.view.render import prediction_picture  # noqa: E402
 
 
 def _generate(root: Path, out: Path, extra: list[str]) -> float:

@@ -27,7 +27,7 @@ sys.path.insert(0, str(REPO))
 
 from occdata.constants import FREE_LABEL, GRID  # noqa: E402
 from occdata.visibility import GROUND_CLASSES, camera_mask  # noqa: E402
-from occdata.visibility_check import load_occ3d_label, rig_of_sample  # noqa: E402
+from occdata.visibility.check import load_occ3d_label, rig_of_sample  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 LABEL = DATA / "occ3d-label" / "29796060110c4163b07f06eff4af0753" / "labels.npz"

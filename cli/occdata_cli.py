@@ -143,7 +143,7 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
                                                                  lidar_sweeps=lidar_sweeps),
             progress=not no_progress,
         ))
-    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (occdata.cluster.Interrupted)
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (occdata.runtime.cluster.Interrupted)
         click.echo(f"\ninterrupted: every sample committed so far is kept in {out_path}; rerun the same command "
                    "with --resume to continue", err=True)
         sys.exit(128 + getattr(exc, "signum", 2))
@@ -191,8 +191,8 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
     voxel of each keyframe's grid, then LiDAR and camera visibility masks. The output is read by
     `occdata build --gts OUT`. See docs/labels.md.
     """
-    from occdata.cluster import ClusterConfig
     from occdata.labels import LabelOptions, LabelsConfig, generate_labels
+    from occdata.runtime.cluster import ClusterConfig
 
     out_path = local_path(out, "--out")
     cluster = ClusterConfig(workers=workers, scheduler=scheduler)
@@ -203,7 +203,7 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
             options=LabelOptions(lidar_sweeps=lidar_sweeps, static_class=static_class, knn_radius=knn_radius,
                                  use_boxes=not no_boxes),
         ), cluster)
-    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (occdata.cluster.Interrupted)
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (occdata.runtime.cluster.Interrupted)
         click.echo(f"\ninterrupted: finished scenes are kept in {out_path}; rerun with --resume to continue", err=True)
         sys.exit(128 + getattr(exc, "signum", 2))
     seg = "lidarseg classes" if report.with_lidarseg else f"no lidarseg: static points are class {static_class}"
@@ -301,7 +301,7 @@ def visibility_check(label: str, root: str, version: str | None, sample: str | N
     visible fraction, ours beside the label's. See docs/visibility.md.
     """
     from occdata.constants import CLASS_NAMES
-    from occdata.visibility_check import CheckConfig, check_label
+    from occdata.visibility.check import CheckConfig, check_label
 
     r = check_label(CheckConfig(label=local_path(label, "--label"), root=local_path(root, "--root"), version=version,
                                 sample=sample, max_occluders=max_occluders))
@@ -406,7 +406,7 @@ def baseline(store: str, train_split: str, split: str, as_json: bool) -> None:
     """
     import dataclasses
 
-    from occdata.baseline import image_free_baseline
+    from occdata.eval.baseline import image_free_baseline
     from occdata.store.reader import open_store
 
     r = image_free_baseline(open_store(store), train_split, split)
@@ -441,7 +441,7 @@ def eval_cmd(pred: str, store: str, split: str, mask: str, no_rayiou: bool, as_j
     (14,040 LiDAR-like rays from up to 8 origins of the sample's scene, first-hit class and
     distance). See docs/metrics.md.
     """
-    from occdata.evaluate import EvalConfig, evaluate_predictions, format_table, results_dict, summary_line
+    from occdata.eval.evaluate import EvalConfig, evaluate_predictions, format_table, results_dict, summary_line
 
     report = evaluate_predictions(EvalConfig(pred=local_path(pred, "--pred"), store=store, split=split, mask=mask,  # type: ignore[arg-type]
                                              rayiou=not no_rayiou, progress=not no_progress))

@@ -1,4 +1,4 @@
-"""Cross-check occdata.metrics' RayIoU against the pure-python parts of SparseOcc's evaluation.
+"""Cross-check occdata.eval.metrics' RayIoU against the pure-python parts of SparseOcc's evaluation.
 
     python scripts/crosscheck_sparseocc.py --sparseocc PATH/TO/SparseOcc --store data.zarr \
         --label ../shared/data/occ3d-label/<token>/labels.npz [--json]
@@ -54,8 +54,8 @@ def main() -> None:
     from pyquaternion import Quaternion
 
     from occdata.constants import CLASS_NAMES, FREE_LABEL
-    from occdata.metrics import RayIoUAccumulator, first_hits, lidar_ray_directions
-    from occdata.store.rays import scene_ray_origins
+    from occdata.eval.metrics import RayIoUAccumulator, first_hits, lidar_ray_directions
+    from occdata.eval.rays import scene_ray_origins
     from occdata.store.reader import open_store
 
     ns, EgoPoseDataset = _reference(args.sparseocc)

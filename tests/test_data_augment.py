@@ -17,7 +17,7 @@ from fastocc.data.augment import (
 )
 from fastocc.data.sample import decode_augmented
 from occdata.constants import GRID
-from occdata.depth_targets import depth_target
+from occdata.sensors.depth_targets import depth_target
 
 # A plausible front camera: 1600x900, looking along key-ego +x from 1.5 m height.
 K = np.array([[1266.0, 0, 816.0], [0, 1266.0, 491.0], [0, 0, 1]])

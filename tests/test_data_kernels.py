@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from occdata.depth_targets import (
+from occdata.sensors.depth_targets import (
     depth_target,
     depth_target_reference,
     min_pool_depth,
@@ -13,7 +13,7 @@ from occdata.depth_targets import (
     rasterise_depth,
     rasterise_depth_reference,
 )
-from occdata.image_ops import normalise_chw, normalise_chw_reference, normalise_lut
+from occdata.sensors.image_ops import normalise_chw, normalise_chw_reference, normalise_lut
 
 
 def _random_A(rng: np.random.Generator) -> np.ndarray:

@@ -12,8 +12,8 @@ import zarr
 from replicated_tree import make_replicated_tree
 
 from fastocc.data import Batch, BevAugConfig, ImageAugConfig, LoaderConfig, SampleConfig, StoreDataset, make_loader
-from occdata.bev import unpack_bev
 from occdata.errors import OccDataError
+from occdata.store.bev import unpack_bev
 from occdata.store.build import BuildConfig, build_store
 from occdata.store.reader import open_store
 

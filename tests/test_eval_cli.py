@@ -11,8 +11,8 @@ import pytest
 from click.testing import CliRunner
 
 from cli.occdata_cli import main
-from occdata.metrics import MIoUAccumulator, RayIoUAccumulator
-from occdata.store.rays import scene_ray_origins
+from occdata.eval.metrics import MIoUAccumulator, RayIoUAccumulator
+from occdata.eval.rays import scene_ray_origins
 from occdata.store.reader import open_store
 
 

@@ -135,7 +135,7 @@ def test_bad_split(synth_store: Path) -> None:
 
 def _random_report(seed: int) -> EvalReport:
     from fastocc.infer.evaluate import _report
-    from occdata.metrics import MIoUAccumulator, RayIoUAccumulator
+    from occdata.eval.metrics import MIoUAccumulator, RayIoUAccumulator
 
     rng = np.random.default_rng(seed)
     miou = MIoUAccumulator.from_state(rng.integers(0, 1000, (18, 18)))

@@ -137,7 +137,7 @@ def test_jpeg_with_decoder_warning_is_corrupt_in_worker_processes(world: Path, t
 def test_decoder_warning_is_captured_and_stderr_restored(synth_root: Path, capfd: pytest.CaptureFixture) -> None:
     import cv2
 
-    from occdata.jpeg_check import decode_jpeg_checked
+    from occdata.sensors.jpeg_check import decode_jpeg_checked
 
     good = next((synth_root / "samples" / "CAM_FRONT").glob("*.jpg")).read_bytes()
     img, warning = decode_jpeg_checked(_damage(good, "truncated_with_eoi"), cv2.IMREAD_REDUCED_GRAYSCALE_8)

@@ -242,7 +242,7 @@ def test_parked_instances_are_held_where_annotation_stops() -> None:
 
 def test_two_dask_workers_write_the_same_bytes(synth_root: Path, tmp_path: Path) -> None:
     """Scenes as Dask tasks (a 2-process LocalCluster) give the files of the in-process run."""
-    from occdata.cluster import ClusterConfig
+    from occdata.runtime.cluster import ClusterConfig
 
     cfg = {"root": synth_root, "options": LabelOptions(), "progress": False}
     generate_labels(LabelsConfig(out=tmp_path / "one", **cfg))

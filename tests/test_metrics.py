@@ -1,4 +1,4 @@
-"""Occ3D mIoU and RayIoU (occdata.metrics): hand-computed values, brute-force ray marching, twins."""
+"""Occ3D mIoU and RayIoU (occdata.eval.metrics): hand-computed values, brute-force ray marching, twins."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from occdata.constants import FREE_LABEL, GRID, OccGrid
 from occdata.errors import OccDataError
-from occdata.metrics import (
+from occdata.eval.metrics import (
     MIoUAccumulator,
     RayIoUAccumulator,
     confusion_matrix,

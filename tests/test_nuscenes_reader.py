@@ -8,7 +8,7 @@ import pytest
 from occdata.constants import CAMERA_ORDER
 from occdata.geometry import invert_rigid
 from occdata.nuscenes import load_lidar_points, load_nuscenes, validate_sample
-from occdata.projection import project_lidar_to_image
+from occdata.sensors.projection import project_lidar_to_image
 
 # The official devkit's map_pointcloud_to_image (min_dist 1.0) on this keyframe (DESIGN §12).
 DEVKIT_COUNTS = {

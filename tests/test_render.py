@@ -1,4 +1,4 @@
-"""occdata.render: hand-built grids drawn where and in the colours expected; the prediction picture's
+"""occdata.view.render: hand-built grids drawn where and in the colours expected; the prediction picture's
 layout; class colours present exactly where the truth has those classes."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from occdata.constants import CLASS_COLORS, FREE_LABEL, GRID
-from occdata.render import EGO_COLOR, View, bev_top_view, prediction_picture, render_voxels
+from occdata.view.render import EGO_COLOR, View, bev_top_view, prediction_picture, render_voxels
 
 CAR, BUS, ROAD, MANMADE = 4, 3, 11, 15
 

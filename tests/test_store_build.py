@@ -19,7 +19,7 @@ from replicated_tree import make_replicated_tree
 from test_nuscenes_reader import DEVKIT_COUNTS
 
 from cli.occdata_cli import main
-from occdata.bev import bev_bits_reference, unpack_bev
+from occdata.store.bev import bev_bits_reference, unpack_bev
 from occdata.store.build import BuildConfig, build_store
 from occdata.store.layout import STATE_DONE
 from occdata.store.reader import open_store

@@ -24,8 +24,8 @@ from replicated_tree import make_replicated_tree
 from test_store_build import store_digest
 
 from cli.occdata_cli import main
-from occdata.cluster import ClusterConfig, cluster_client, run_tasks
 from occdata.errors import OccDataError
+from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks
 from occdata.store.blocks import Placer
 from occdata.store.build import BuildConfig, build_store
 
@@ -313,7 +313,7 @@ def test_every_way_of_losing_the_scheduler_says_the_same_line(exc_name: str) -> 
 
     from distributed.comm.core import CommClosedError
 
-    from occdata.cluster import _result
+    from occdata.runtime.cluster import _result
 
     exc = CommClosedError("in <TCP (closed) ConnectionPool.gather>: Stream is closed") \
         if exc_name == "CommClosedError" else type("CancelledError", (Exception,), {})("k")

@@ -21,8 +21,8 @@ from proc_tools import alive, descendants, wait_for
 from test_store_build import store_digest
 
 from cli.occdata_cli import main
+from occdata.runtime.lock import StoreLockedError, store_lock
 from occdata.store.build import BuildConfig, build_store
-from occdata.store.lock import StoreLockedError, store_lock
 
 pytest.importorskip("s3fs")
 moto_server = pytest.importorskip("moto.server")

@@ -21,9 +21,9 @@ from test_store_build import store_digest
 
 from cli.fastocc_cli import main as fastocc_main
 from cli.occdata_cli import main
+from occdata.runtime.lock import store_lock
 from occdata.store.build import BuildConfig, build_store
 from occdata.store.layout import STATE_DONE, STATE_ERROR
-from occdata.store.lock import store_lock
 from occdata.store.reader import open_store
 
 REPO = Path(__file__).resolve().parents[1]

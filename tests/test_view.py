@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from occdata.constants import CLASS_NAMES, FREE_LABEL, GRID
-from occdata.metrics import confusion_matrix
+from occdata.eval.metrics import confusion_matrix
 from occdata.nuscenes.reader import load_lidar_points, load_nuscenes
 from occdata.view.config import FrameOptions, ViewConfig
 from occdata.view.frame import compose_frame

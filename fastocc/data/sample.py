@@ -17,11 +17,11 @@ from fastocc.data.augment import (
     sample_image_aug,
 )
 from fastocc.data.batch import IGNORE_LABEL
-from occdata.bev import unpack_bev
 from occdata.constants import GRID, NUM_CLASSES
-from occdata.depth_targets import DEPTH_MAX, DEPTH_MIN, depth_target
 from occdata.errors import OccDataError
-from occdata.image_ops import normalise_chw, normalise_lut
+from occdata.sensors.depth_targets import DEPTH_MAX, DEPTH_MIN, depth_target
+from occdata.sensors.image_ops import normalise_chw, normalise_lut
+from occdata.store.bev import unpack_bev
 from occdata.store.layout import N_CAM, STATE_DONE, STATE_PENDING
 from occdata.store.reader import StoreReader
 

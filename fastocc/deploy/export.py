@@ -24,7 +24,7 @@ from fastocc.checkpoint import load_model, model_config_to_dict
 from fastocc.model import FastOcc
 from occdata.constants import CLASS_COLORS, CLASS_NAMES
 from occdata.fileio import replace_synced, write_atomic
-from occdata.image_ops import IMAGENET_MEAN, IMAGENET_STD
+from occdata.sensors.image_ops import IMAGENET_MEAN, IMAGENET_STD
 
 from .predictor import TemporalState
 from .rig import DeployError, Rig, load_rig, require_onnx

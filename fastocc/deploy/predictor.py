@@ -23,7 +23,7 @@ import torch
 
 from fastocc.data.sample import warp_normalise
 from fastocc.model.inputs import SceneInputs
-from occdata.image_ops import IMAGENET_MEAN, IMAGENET_STD, normalise_lut
+from occdata.sensors.image_ops import IMAGENET_MEAN, IMAGENET_STD, normalise_lut
 
 from .rig import DeployError, Rig, load_rig, require_onnx, synthetic_rig
 from .sidecar import read_sidecar

@@ -1,4 +1,4 @@
-"""Score a network on a store split with the model-free metric code of `occdata.metrics`.
+"""Score a network on a store split with the model-free metric code of `occdata.eval.metrics`.
 
 One function serves `fastocc eval` and the trainer's validation. It streams: each batch is predicted
 (`predict_split`: scene order, temporal queue, optional BEV-flip TTA), reduced to uint8 labels, fed to
@@ -29,13 +29,13 @@ from fastocc.infer.common import check_device, split_indices
 from fastocc.infer.predict import PredictConfig, predict_split
 from fastocc.model.config import ModelConfig
 from occdata.errors import OccDataError
-from occdata.metrics import (
+from occdata.eval.metrics import (
     MIoUAccumulator,
     MIoUResult,
     RayIoUAccumulator,
     RayIoUResult,
 )
-from occdata.store.rays import scene_ray_origins
+from occdata.eval.rays import scene_ray_origins
 from occdata.store.reader import open_store
 
 __all__ = ["EvalReport", "EvalRun", "MaskKind", "all_reduce_report", "evaluate", "format_report", "reduce_reports",
@@ -72,7 +72,7 @@ class EvalReport:
 
     def to_json(self) -> dict[str, Any]:
         """`occdata eval --json`'s dict (values in percent) plus the inference timing."""
-        from occdata.evaluate import results_dict
+        from occdata.eval.evaluate import results_dict
 
         return results_dict(self.miou, self.rayiou, split=self.split, mask=self.mask, n_samples=self.samples,
                             unlabelled_skipped=self.frames - self.samples, seconds=round(self.seconds, 3),
@@ -251,8 +251,8 @@ def run_eval(run: EvalRun) -> EvalReport:
 
 def format_report(report: EvalReport) -> str:
     """`occdata eval`'s per-class table and summary line, plus the inference rate."""
-    from occdata.evaluate import EvalReport as FileEvalReport
-    from occdata.evaluate import format_table, summary_line
+    from occdata.eval.evaluate import EvalReport as FileEvalReport
+    from occdata.eval.evaluate import format_table, summary_line
 
     lines = [format_table(report.miou, report.rayiou)]
     if report.frames > report.samples:

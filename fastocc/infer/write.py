@@ -25,8 +25,8 @@ from fastocc.infer.predict import PredictConfig, predict_split
 from fastocc.model.config import ModelConfig
 from occdata.errors import OccDataError
 from occdata.fileio import write_atomic
-from occdata.render import prediction_picture
 from occdata.store.reader import StoreReader, open_store
+from occdata.view.render import prediction_picture
 
 __all__ = ["PredictRun", "PredictSummary", "picture_indices", "run_predict", "write_predictions"]
 

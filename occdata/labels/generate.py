@@ -22,7 +22,6 @@ from typing import Any
 import numba
 import numpy as np
 
-from occdata.cluster import ClusterConfig, cluster_client, run_tasks
 from occdata.constants import CLASS_NAMES
 from occdata.errors import OccDataError
 from occdata.fileio import TMP_SUFFIX, npz_bytes, remove_stale_temps, write_atomic
@@ -30,7 +29,8 @@ from occdata.labels.scene import LabelOptions, SceneInputs, label_scene
 from occdata.nuscenes import NuScenesDataset, find_version, load_nuscenes, validate_sample
 from occdata.nuscenes.annotations import load_annotations
 from occdata.nuscenes.lidarseg import lidarseg_index_names, load_lidarseg_index, occ3d_lut
-from occdata.store.lock import store_lock
+from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks
+from occdata.runtime.lock import store_lock
 
 __all__ = ["ALGORITHM_VERSION", "LabelsConfig", "LabelsReport", "SceneJob", "generate_labels", "load_inputs",
            "run_scene", "scene_record_path"]
@@ -192,8 +192,8 @@ def run_scene(job: SceneJob) -> dict[str, int]:
 def generate_labels(cfg: LabelsConfig, cluster: ClusterConfig = ClusterConfig(),  # noqa: B008
                     client: Any = None) -> LabelsReport:
     """Label every chosen scene (see the module docstring): one `run_scene` task per scene, on
-    `cluster` (occdata.cluster: here, a LocalCluster of N workers, or an existing scheduler), or on
-    `client`, a `distributed.Client` already open. Raises `occdata.cluster.Interrupted` on Ctrl-C /
+    `cluster` (occdata.runtime.cluster: here, a LocalCluster of N workers, or an existing scheduler), or on
+    `client`, a `distributed.Client` already open. Raises `occdata.runtime.cluster.Interrupted` on Ctrl-C /
     SIGTERM (finished scenes are kept)."""
     inputs, version = load_inputs(cfg)
     header = _options_dict(cfg, version, bool(inputs.lidarseg))

@@ -22,13 +22,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from occdata.cluster import check_stop
 from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES
 from occdata.geometry import invert_rigid, transform_points
 from occdata.labels.kernels import NO_LABEL, NearestIndex, majority, points_in_boxes, vote_voxels
 from occdata.nuscenes import LidarRecord, NuScenesDataset, SampleRecord, SceneRecord, load_lidar_points
 from occdata.nuscenes.annotations import Annotations, BoxRecord, boxes_for_lidar
 from occdata.nuscenes.lidarseg import DROP, OCC3D_FROM_LIDARSEG, read_lidarseg
+from occdata.runtime.cluster import check_stop
 from occdata.visibility import GROUND_CLASSES, camera_mask, lidar_mask
 
 __all__ = ["EGO_BOX", "LabelOptions", "SceneCounts", "SceneInputs", "label_scene"]

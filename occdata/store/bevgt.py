@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from occdata.bev import bev_bits
 from occdata.errors import OccDataError
+from occdata.runtime.lock import store_lock
+from occdata.store.bev import bev_bits
 from occdata.store.integrity import StoreIntegrity
-from occdata.store.lock import store_lock
 from occdata.store.reader import store_location
 from occdata.store.update import update_samples
 

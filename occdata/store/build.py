@@ -1,6 +1,6 @@
 """`occdata build`: a nuScenes-format tree (+ Occ3D labels) -> one chunked zarr store.
 
-The work runs as tasks on Dask (`occdata.cluster`): one block of `--block-samples` samples per task,
+The work runs as tasks on Dask (`occdata.runtime.cluster`): one block of `--block-samples` samples per task,
 aligned to the store's chunks and shards, each task writing its own chunks (`occdata.store.blocks`):
 many writers, and only sizes and errors travel back to this process, which places the blocks'
 ragged payloads (chunk-aligned, in block order) and owns the metadata. A sample is complete only
@@ -26,11 +26,12 @@ import zarr
 from zarr.codecs import ZstdCodec
 from zarr.core.sync import sync
 
-from occdata.cluster import ClusterConfig, cluster_client, run_tasks
 from occdata.constants import CAMERA_ORDER, CLASS_COLORS, CLASS_NAMES, FREE_LABEL, GRID
 from occdata.errors import OccDataError
 from occdata.nuscenes import LidarRecord, NuScenesDataset, load_nuscenes
 from occdata.nuscenes.reader import confined_path
+from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks
+from occdata.runtime.lock import store_lock
 from occdata.store.blocks import (
     BlockSummary,
     CommitJob,
@@ -54,7 +55,6 @@ from occdata.store.layout import (
     checksummed_names,
     token_width,
 )
-from occdata.store.lock import store_lock
 from occdata.store.reader import StoreReader, store_location
 from occdata.store.sample import SampleOptions, static_arrays, temporal_indices
 from occdata.store.storage import is_remote, join, read_bytes, remove_tree, sibling
@@ -320,7 +320,7 @@ def _all_tokens(ds: NuScenesDataset) -> Iterator[str]:
 
 def build_store(config: BuildConfig, client: Any = None) -> BuildReport:
     """Build (or resume) a store. Raises `OccDataError` on bad options or, with on_error=fail,
-    at the first bad sample, after committing every sample before it; `occdata.cluster.Interrupted`
+    at the first bad sample, after committing every sample before it; `occdata.runtime.cluster.Interrupted`
     on Ctrl-C/SIGTERM. `client`: a `distributed.Client` to use (default: one for `config.workers`
     and `config.scheduler`, closed at the end)."""
     if config.block_samples < 1 or config.workers < 1:

@@ -7,9 +7,9 @@ from typing import Any
 
 import numpy as np
 
-from occdata.bev import unpack_bev
 from occdata.constants import CAMERA_ORDER
 from occdata.errors import OccDataError
+from occdata.store.bev import unpack_bev
 from occdata.store.layout import FLAT_ARRAYS, PER_SAMPLE, STATE_DONE, STATE_ERROR, STATE_PENDING
 from occdata.store.reader import StoreReader
 

@@ -14,12 +14,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from occdata.bev import bev_bits
 from occdata.constants import FREE_LABEL, GRID
 from occdata.errors import OccDataError
-from occdata.jpeg_check import decode_jpeg_checked
 from occdata.nuscenes import LidarRecord, SampleRecord, load_lidar_points, validate_sample
-from occdata.projection import project_to_cameras
+from occdata.sensors.jpeg_check import decode_jpeg_checked
+from occdata.sensors.projection import project_to_cameras
+from occdata.store.bev import bev_bits
 from occdata.store.layout import MIN_TOKEN_BYTES, N_PREV, token_bytes
 
 __all__ = ["MAX_LIDAR_SWEEPS", "SampleError", "SampleOptions", "SampleResult", "depth_points", "jpeg_size",

@@ -13,7 +13,7 @@ from collections.abc import Callable
 import cv2
 
 from occdata.errors import OccDataError
-from occdata.jpeg_check import decode_jpeg_checked
+from occdata.sensors.jpeg_check import decode_jpeg_checked
 from occdata.store.reader import StoreReader
 from occdata.store.verify import Problem
 

@@ -22,9 +22,9 @@ from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES
 from occdata.errors import OccDataError
 from occdata.geometry import invert_rigid, transform_points
 from occdata.nuscenes import LidarRecord, NuScenesDataset, load_lidar_points, load_nuscenes
+from occdata.runtime.lock import store_lock
 from occdata.store.build import check_sweep_files
 from occdata.store.layout import STATE_DONE
-from occdata.store.lock import store_lock
 from occdata.store.reader import open_store, store_location
 from occdata.store.update import update_samples
 from occdata.visibility import camera_mask, lidar_mask

@@ -13,9 +13,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from occdata.render import EGO_COLOR, class_legend
 from occdata.view.config import FrameOptions
 from occdata.view.frame import EGO_SIZE, Frame
+from occdata.view.render import EGO_COLOR, class_legend
 from occdata.view.source import SampleData
 from occdata.view.voxels import VoxelLayer
 
@@ -46,7 +46,7 @@ def height_colors(z: np.ndarray, lo: float = -2.0, hi: float = 4.0) -> np.ndarra
 
 
 def add_legend_plane(scene: Any, classes: list[int], position: tuple[float, float, float]) -> None:
-    """The class legend (occdata.render's) as a picture lying flat in the scene (for the export, which
+    """The class legend (occdata.view.render's) as a picture lying flat in the scene (for the export, which
     has no control panel), readable from behind the car."""
     img = class_legend(classes, width=220)
     h, w = img.shape[:2]

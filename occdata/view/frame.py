@@ -15,7 +15,7 @@ from occdata.view.voxels import VoxelLayer, error_ids, label_ids, layers_from_id
 __all__ = ["EGO_SIZE", "SIDE_OFFSET_M", "Frame", "VoxelGroup", "compose_frame", "ego_box_center"]
 
 SIDE_OFFSET_M = 44.0  # label | prediction: each grid moved this far along y (grids are 80 m wide)
-EGO_SIZE = (4.4, 2.0, 1.6)  # length, width, height (m), as occdata.render draws the ego car
+EGO_SIZE = (4.4, 2.0, 1.6)  # length, width, height (m), as occdata.view.render draws the ego car
 _GROUND_CLASSES = (11, 12, 13, 14)  # driveable_surface, other_flat, sidewalk, terrain
 
 

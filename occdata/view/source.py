@@ -1,5 +1,5 @@
 """What the viewer reads: the scenes of a store (through `StoreReader`) and the prediction files (through
-`occdata.evaluate`'s reader), one sample at a time. No viser, no torch."""
+`occdata.eval.evaluate`'s reader), one sample at a time. No viser, no torch."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from occdata.errors import OccDataError
-from occdata.evaluate import find_predictions, load_prediction
+from occdata.eval.evaluate import find_predictions, load_prediction
 from occdata.store.layout import STATE_DONE
 from occdata.store.reader import StoreReader, open_store
 from occdata.view.voxels import FrustumParams, frustum_params, lift_depth_points

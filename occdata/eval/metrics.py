@@ -541,7 +541,7 @@ class RayIoUResult:
 class RayIoUAccumulator:
     """RayIoU (SparseOcc protocol) over a split: ray counts updated per sample, mergeable.
 
-    >>> acc = RayIoUAccumulator()  # origins: occdata.store.rays.scene_ray_origins(reader, i)
+    >>> acc = RayIoUAccumulator()  # origins: occdata.eval.rays.scene_ray_origins(reader, i)
     >>> acc.update(gt, pred, origins); acc.result().rayiou
     """
 

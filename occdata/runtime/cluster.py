@@ -122,7 +122,7 @@ def cluster_client(config: ClusterConfig) -> Iterator[Client | None]:
         try:
             cluster = LocalCluster(n_workers=config.workers, threads_per_worker=1, processes=True,
                                    host="127.0.0.1", dashboard_address=":0", memory_limit=config.memory_limit,
-                                   silence_logs=logging.CRITICAL, preload=["occdata.cluster"])
+                                   silence_logs=logging.CRITICAL, preload=["occdata.runtime.cluster"])
         except Exception as exc:  # noqa: BLE001 - e.g. a script without `if __name__ == "__main__":`
             raise OccDataError(f"cannot start a Dask LocalCluster of {config.workers} workers: {_reason(exc)} "
                                "(a script that builds must guard its top level with `if __name__ == "

@@ -12,7 +12,7 @@ import numpy as np
 
 from occdata.constants import NUM_CLASSES
 from occdata.errors import OccDataError
-from occdata.metrics import MIoUAccumulator
+from occdata.eval.metrics import MIoUAccumulator
 
 __all__ = ["BaselineResult", "image_free_baseline"]
 

@@ -23,8 +23,8 @@ import numpy as np
 
 from occdata.constants import CLASS_NAMES, FREE_LABEL, GRID
 from occdata.errors import OccDataError
-from occdata.metrics import MIoUAccumulator, MIoUResult, RayIoUAccumulator, RayIoUResult
-from occdata.store.rays import scene_ray_origins
+from occdata.eval.metrics import MIoUAccumulator, MIoUResult, RayIoUAccumulator, RayIoUResult
+from occdata.eval.rays import scene_ray_origins
 
 __all__ = [
     "EvalConfig",

@@ -1,6 +1,6 @@
 """Ray origins of a store sample for RayIoU: the bridge from the store to the pure metric code.
 
-`occdata.metrics` is pure algorithm (arrays in, numbers out); reading a scene's poses from a store
+`occdata.eval.metrics` is pure algorithm (arrays in, numbers out); reading a scene's poses from a store
 lives here.
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from occdata.errors import OccDataError
-from occdata.metrics import ray_origins_keyego
+from occdata.eval.metrics import ray_origins_keyego
 from occdata.store.layout import STATE_DONE
 from occdata.store.reader import StoreReader
 
