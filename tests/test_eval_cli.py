@@ -98,8 +98,9 @@ def test_eval_bad_predictions_give_one_line(bad: str, occ3d_pred: Path, synth_st
     files = sorted(occ3d_pred.glob("*/*/labels.npz"))
     target = files[1]
     sem = np.load(target, allow_pickle=False)["semantics"]
-    expect = {"missing": "1 of 3 labelled 'val' samples have no prediction", "shape": "prediction shape (200, 200, 8)",
-              "dtype": "dtype float32", "range": "labels >= 18", "unknown": "tokens not in store",
+    expect = {"missing": "1 of 3 labelled 'val' samples have no prediction",
+              "shape": "semantics has shape (200, 200, 8)", "dtype": "dtype float32",
+              "range": "values outside 0..17", "unknown": "tokens not in store",
               "corrupt": "not a readable .npz", "key": "no 'semantics' or 'pred'", "scene": "belongs to scene"}[bad]
     if bad == "missing":
         shutil.rmtree(target.parent)

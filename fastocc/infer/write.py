@@ -25,6 +25,7 @@ from fastocc.infer.predict import PredictConfig, predict_split
 from fastocc.model.config import ModelConfig
 from occdata.errors import OccDataError
 from occdata.fileio import write_atomic
+from occdata.occ3d import label_path, write_label
 from occdata.store.reader import StoreReader, open_store
 from occdata.view.render import prediction_picture
 
@@ -51,14 +52,6 @@ class PredictSummary:
     files: int
     pictures: tuple[Path, ...] = field(default_factory=tuple)
     seconds: float = 0.0
-
-
-def _npz_bytes(semantics: np.ndarray) -> bytes:
-    import io
-
-    buf = io.BytesIO()
-    np.savez_compressed(buf, semantics=semantics)
-    return buf.getvalue()
 
 
 def picture_indices(indices: np.ndarray, n: int) -> list[int]:
@@ -114,7 +107,7 @@ def write_predictions(model: nn.Module, model_cfg: ModelConfig, out: Path, cfg: 
             for b in range(len(batch)):
                 idx = int(batch.sample_index[b])
                 token, scene = reader.token(idx), _scene_name(reader, idx)
-                write_atomic(out / scene / token / "labels.npz", _npz_bytes(pred[b]))
+                write_label(label_path(out, scene, token), {"semantics": pred[b]})
                 files += 1
                 if idx in wanted:
                     has = bool(batch.has_labels[b])

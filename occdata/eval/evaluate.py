@@ -13,7 +13,6 @@ import math
 import queue
 import threading
 import time
-import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,10 +20,11 @@ from typing import Any, Literal, TypeVar
 
 import numpy as np
 
-from occdata.constants import CLASS_NAMES, FREE_LABEL, GRID
+from occdata.constants import CLASS_NAMES, FREE_LABEL
 from occdata.errors import OccDataError
 from occdata.eval.metrics import MIoUAccumulator, MIoUResult, RayIoUAccumulator, RayIoUResult
 from occdata.eval.rays import scene_ray_origins
+from occdata.occ3d import LABEL_FILE, find_label_files, read_prediction
 
 __all__ = [
     "EvalConfig",
@@ -32,7 +32,6 @@ __all__ = [
     "evaluate_predictions",
     "find_predictions",
     "format_table",
-    "load_prediction",
     "results_dict",
     "summary_line",
 ]
@@ -71,39 +70,12 @@ def find_predictions(pred: Path) -> dict[str, Path]:
     if not pred.is_dir():
         raise OccDataError(f"prediction folder not found: {pred}")
     found: dict[str, Path] = {}
-    for path in sorted(pred.glob("*/*/labels.npz")) + sorted(pred.glob("*.npz")):
-        token = path.parent.name if path.name == "labels.npz" else path.stem
+    nested = [(p.parent.name, p) for p in find_label_files(pred)]
+    for token, path in nested + [(p.stem, p) for p in sorted(pred.glob("*.npz"))]:
         if token in found:
             raise OccDataError(f"two predictions for token {token}: {found[token]} and {path}")
         found[token] = path
     return found
-
-
-def load_prediction(path: Path) -> np.ndarray:
-    """One prediction file -> `(200, 200, 16) uint8`; one clear error per kind of bad file."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            key = "semantics" if "semantics" in z.files else "pred" if "pred" in z.files else None
-            if key is None:
-                raise OccDataError(f"{path}: no 'semantics' or 'pred' array (found: {', '.join(z.files) or 'none'})")
-            a = z[key]
-    except OccDataError:
-        raise
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise OccDataError(f"{path}: not a readable .npz file ({type(exc).__name__}: {exc})") from None
-    if a.shape != GRID.shape:
-        raise OccDataError(f"{path}: prediction shape {a.shape}, expected {GRID.shape} (x, y, z)")
-    if a.dtype != np.uint8:
-        if not np.issubdtype(a.dtype, np.integer):
-            raise OccDataError(f"{path}: prediction dtype {a.dtype}, expected integer class labels (uint8)")
-        if a.min() < 0 or a.max() >= len(CLASS_NAMES):
-            raise OccDataError(f"{path}: labels outside 0..{len(CLASS_NAMES) - 1} (min {a.min()}, max {a.max()})")
-        a = a.astype(np.uint8)
-    if int(a.max()) >= len(CLASS_NAMES):
-        bad = int((a >= len(CLASS_NAMES)).sum())
-        raise OccDataError(f"{path}: {bad} voxels with labels >= {len(CLASS_NAMES)} (max {int(a.max())}); "
-                           f"labels must be 0..{len(CLASS_NAMES) - 1}, {FREE_LABEL} = free")
-    return a
 
 
 def _split_samples(reader: Any, split: str) -> tuple[list[int], int]:
@@ -199,7 +171,7 @@ def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
         raise OccDataError(f"{len(unknown)} prediction(s) for tokens not in store {reader.path}, "
                            f"e.g. {files[unknown[0]]}")
     for token, path in files.items():
-        if path.name == "labels.npz":
+        if path.name == LABEL_FILE:
             want = scenes[int(scene_index[index_of[token]])]["name"]
             if path.parent.parent.name != want:
                 raise OccDataError(f"{path}: sample {token} belongs to scene {want}, not {path.parent.parent.name}")
@@ -216,7 +188,7 @@ def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
     names = ("labels/semantics",) + ((_MASK_ARRAY[cfg.mask],) if cfg.mask != "none" else ())
     t0 = time.perf_counter()
     bar = tqdm(total=len(indices), desc=f"eval {cfg.split}", unit="sample", disable=not cfg.progress)
-    samples = ((i, arrays, load_prediction(files[store_tokens[i]]))
+    samples = ((i, arrays, read_prediction(files[store_tokens[i]]))
                for i, arrays in _iter_label_blocks(reader, indices, names))
     for i, arrays, pred in _read_ahead(samples):
         path = files[store_tokens[i]]

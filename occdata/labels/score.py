@@ -13,6 +13,7 @@ from occdata.labels.fidelity import Fidelity, score_scene
 from occdata.labels.scene import box_class
 from occdata.nuscenes import load_nuscenes
 from occdata.nuscenes.annotations import load_annotations
+from occdata.occ3d import label_path, read_label
 
 __all__ = ["TreeScore", "score_tree"]
 
@@ -32,8 +33,8 @@ class TreeScore:
 
 
 def _arrays(folder: Path, scene: str, token: str, *keys: str) -> tuple[np.ndarray, ...]:
-    with np.load(folder / scene / token / "labels.npz", allow_pickle=False) as z:
-        return tuple(z[k].copy() for k in keys)
+    label = read_label(label_path(folder, scene, token))
+    return tuple(label[k] for k in keys)
 
 
 def score_tree(root: Path, generated: Path, truth: Path) -> TreeScore:

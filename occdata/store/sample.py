@@ -7,25 +7,23 @@ Pure with respect to the store: reads the sample's files, returns arrays. Bad in
 from __future__ import annotations
 
 import os
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from occdata.constants import FREE_LABEL, GRID
 from occdata.errors import OccDataError
 from occdata.nuscenes import LidarRecord, SampleRecord, load_lidar_points, validate_sample
+from occdata.occ3d import read_label
 from occdata.sensors.jpeg_check import decode_jpeg_checked
 from occdata.sensors.projection import project_to_cameras
 from occdata.store.bev import bev_bits
 from occdata.store.layout import MIN_TOKEN_BYTES, N_PREV, token_bytes
 
 __all__ = ["MAX_LIDAR_SWEEPS", "SampleError", "SampleOptions", "SampleResult", "depth_points", "jpeg_size",
-           "load_occ3d_labels", "process_sample"]
+           "process_sample"]
 
-LABEL_KEYS = ("semantics", "mask_lidar", "mask_camera")
 MAX_LIDAR_SWEEPS = 100  # 5 s of 20 Hz sweeps; more would mostly smear moving objects
 
 
@@ -107,42 +105,6 @@ def _read_jpeg(path: Path, width: int, height: int, options: SampleOptions) -> b
     return enc.tobytes()
 
 
-def load_occ3d_labels(path: Path) -> dict[str, np.ndarray]:
-    """An Occ3D `labels.npz`: semantics / mask_lidar / mask_camera, each `(200, 200, 16) uint8`.
-
-    Only `semantics` is required: a label without masks (custom data) gets all-zero masks, which
-    `occdata visibility` fills in. Raises `SampleError` naming the file for unreadable files, a
-    missing `semantics`, wrong shapes or out-of-range values. Never unpickles.
-    """
-    if Path(path).is_dir():
-        raise SampleError(f"bad labels {path}: a folder, not an .npz file")
-    try:
-        loaded = np.load(path, allow_pickle=False)
-        if not isinstance(loaded, np.lib.npyio.NpzFile):
-            raise SampleError(f"bad labels {path}: not an .npz archive")
-        with loaded as npz:
-            if "semantics" not in npz.files:
-                raise SampleError(f"bad labels {path}: missing keys ['semantics'] (has {sorted(npz.files)})")
-            out = {k: np.asarray(npz[k]) for k in LABEL_KEYS if k in npz.files}
-    except SampleError:
-        raise
-    except (OSError, ValueError, zlib.error, EOFError) as exc:
-        raise SampleError(f"bad labels {path}: unreadable ({exc})") from None
-    for k, v in out.items():
-        if v.shape != GRID.shape:
-            raise SampleError(f"bad labels {path}: {k} has shape {v.shape}, expected {GRID.shape}")
-        if v.dtype.kind not in "biu":
-            raise SampleError(f"bad labels {path}: {k} has dtype {v.dtype}, expected uint8")
-    if out["semantics"].max() > FREE_LABEL or out["semantics"].min() < 0:
-        raise SampleError(f"bad labels {path}: semantics outside 0..{FREE_LABEL}")
-    for k in ("mask_lidar", "mask_camera"):
-        if k not in out:
-            out[k] = np.zeros(GRID.shape, np.uint8)
-        elif out[k].max() > 1 or out[k].min() < 0:
-            raise SampleError(f"bad labels {path}: {k} is not 0/1")
-    return {k: v.astype(np.uint8, copy=False) for k, v in out.items()}
-
-
 def static_arrays(
     sample: SampleRecord,
     scene_index: int,
@@ -154,6 +116,7 @@ def static_arrays(
     """Tokens (`token_width` bytes each), calibration, poses and temporal indices: cheap, valid
     even for failed samples."""
     cams = sample.cameras
+    rig = sample.camera_rig()
     w = token_width
     return {
         "sample/token": token_bytes(sample.token, w),
@@ -164,10 +127,10 @@ def static_arrays(
         "sample/lidar_token": token_bytes(sample.lidar.token, w),
         "cam/token": np.stack([token_bytes(c.token, w) for c in cams]),
         "cam/timestamp": np.array([c.timestamp for c in cams], dtype=np.int64),
-        "cam/image_size": np.array([[c.width, c.height] for c in cams], dtype=np.int32),
-        "calib/K": np.stack([c.K for c in cams]),
+        "cam/image_size": rig.image_size.astype(np.int32),
+        "calib/K": rig.K,
         "calib/T_ego_from_cam": np.stack([c.T_ego_from_cam for c in cams]),
-        "calib/T_keyego_from_cam": np.stack([sample.T_keyego_from_cam(i) for i in range(len(cams))]),
+        "calib/T_keyego_from_cam": rig.T_keyego_from_cam,
         "calib/T_ego_from_lidar": sample.lidar.T_ego_from_lidar,
         "pose/T_global_from_keyego": sample.T_global_from_keyego,
         "pose/T_global_from_ego_cam": np.stack([c.T_global_from_ego for c in cams]),
@@ -193,7 +156,7 @@ def process_sample(
         uvd = depth_points(sample, sweeps, static["calib/K"], static["cam/image_size"], options.min_depth)
         arrays = dict(static)
         if label_path is not None and os.path.lexists(label_path):
-            labels = load_occ3d_labels(label_path)
+            labels = read_label(label_path)
             arrays["labels/present"] = np.bool_(True)
             arrays["labels/semantics"] = labels["semantics"]
             arrays["labels/mask_lidar"] = labels["mask_lidar"]

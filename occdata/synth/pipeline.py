@@ -13,8 +13,8 @@ from tqdm import tqdm
 
 from occdata.constants import CAMERA_ORDER, GRID, LIDAR_CHANNEL
 from occdata.errors import OccDataError
-from occdata.fileio import npz_bytes
 from occdata.geometry import invert_rigid, quaternion_wxyz_from_matrix, transform_points
+from occdata.occ3d import label_path, write_label
 from occdata.synth import render
 from occdata.synth.annotations import (
     LIDARSEG_FROM_OCC3D,
@@ -422,7 +422,7 @@ def synthesize(config: SynthConfig) -> Path:
                     "prev": link[tok][0] if not is_cam else sd_toks[f.channel][k - 1] if k > 0 else "",
                     "next": link[tok][1] if not is_cam else sd_toks[f.channel][k + 1] if k + 1 < config.samples else "",
                 })
-            write_atomic(out / "gts" / scene_name / s_tok / "labels.npz", npz_bytes(labels))
+            write_label(label_path(out / "gts", scene_name, s_tok), labels)
             bar.update(1)
         instances, annotations = annotation_rows(seed, si, sample_toks, keyframe_anns)
         tables["instance"] += instances

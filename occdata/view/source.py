@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from occdata.errors import OccDataError
-from occdata.eval.evaluate import find_predictions, load_prediction
+from occdata.eval.evaluate import find_predictions
+from occdata.occ3d import read_prediction
 from occdata.store.layout import STATE_DONE
 from occdata.store.reader import StoreReader, open_store
 from occdata.view.voxels import FrustumParams, frustum_params, lift_depth_points
@@ -140,7 +141,7 @@ class ViewSource:
 
     def prediction(self, token: str) -> np.ndarray | None:
         path = self.predictions.get(token)
-        return load_prediction(path) if path is not None else None
+        return read_prediction(path) if path is not None else None
 
     def sample(self, scene: SceneEntry, position: int, images: bool = False, points: bool = False) -> SampleData:
         """The keyframe at `position` (0-based) of `scene`; images and LiDAR points only when asked."""

@@ -14,11 +14,11 @@ import numpy as np
 
 from occdata.constants import CLASS_NAMES, FREE_LABEL, GRID
 from occdata.errors import OccDataError
-from occdata.geometry import invert_rigid
 from occdata.nuscenes.reader import load_nuscenes
+from occdata.occ3d import read_label
 from occdata.visibility import MAX_OCCLUDERS, camera_mask
 
-__all__ = ["CheckConfig", "MaskAgreement", "agreement", "check_label", "load_occ3d_label", "rig_of_sample"]
+__all__ = ["CheckConfig", "MaskAgreement", "agreement", "check_label", "rig_of_sample"]
 
 
 @dataclass(frozen=True)
@@ -65,24 +65,6 @@ def agreement(semantics: np.ndarray, computed: np.ndarray, shipped: np.ndarray) 
     )
 
 
-def load_occ3d_label(path: Path) -> dict[str, np.ndarray]:
-    """`semantics`, `mask_lidar`, `mask_camera` of an Occ3D labels.npz, each `(200, 200, 16) uint8`."""
-    path = Path(path)
-    if not path.is_file():
-        raise OccDataError(f"label file not found: {path}")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            out = {k: np.asarray(z[k], np.uint8) for k in ("semantics", "mask_lidar", "mask_camera")}
-    except KeyError as exc:
-        raise OccDataError(f"{path}: not an Occ3D label (missing key {exc})") from None
-    except (OSError, ValueError) as exc:
-        raise OccDataError(f"{path}: cannot read as .npz ({exc})") from None
-    for k, v in out.items():
-        if v.shape != GRID.shape:
-            raise OccDataError(f"{path}: {k} has shape {v.shape}, expected {GRID.shape}")
-    return out
-
-
 def rig_of_sample(root: Path, version: str | None, sample: str | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cameras of one keyframe in its key-ego frame: K `(6, 3, 3)`, T_cam_from_keyego `(6, 4, 4)`,
     image_size `(6, 2)` (W, H)."""
@@ -96,15 +78,13 @@ def rig_of_sample(root: Path, version: str | None, sample: str | None) -> tuple[
             rec = ds.sample(sample)
         except KeyError:
             raise OccDataError(f"sample {sample!r} not found under {root}") from None
-    K = np.stack([c.K for c in rec.cameras])
-    T = np.stack([invert_rigid(rec.T_keyego_from_cam(i)) for i in range(len(rec.cameras))])
-    size = np.array([[c.width, c.height] for c in rec.cameras], np.int64)
-    return K, T, size
+    rig = rec.camera_rig()
+    return rig.K, rig.T_cam_from_keyego, rig.image_size
 
 
 def check_label(config: CheckConfig) -> MaskAgreement:
     """Recompute the label's camera mask with the rig of `config.root` and score it against the label's."""
-    label = load_occ3d_label(config.label)
+    label = read_label(config.label, require_masks=True)
     K, T, size = rig_of_sample(config.root, config.version, config.sample)
     computed = camera_mask(label["semantics"], label["mask_lidar"], K, T, size,
                            np.asarray(GRID.lower, np.float64), GRID.voxel_size, config.max_occluders)
