@@ -120,9 +120,9 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
     Occ3D labels and BEV multi-hot GT when labels exist, and 16-frame temporal indices.
     Kill it at any time and rerun with --resume: the result is identical.
     """
+    from occdata.runtime.storage import is_remote
     from occdata.store.build import BuildConfig, build_store
     from occdata.store.sample import SampleOptions
-    from occdata.store.storage import is_remote
 
     root_path = local_path(root, "--root")
     gts_path = local_path(gts, "--gts") if gts is not None else None

@@ -10,6 +10,8 @@ __all__ = [
     "CAMERA_ORDER",
     "CLASS_COLORS",
     "CLASS_NAMES",
+    "EGO_BOX",
+    "EGO_SIZE",
     "FREE_LABEL",
     "GRID",
     "LIDAR_CHANNEL",
@@ -27,6 +29,12 @@ CAMERA_ORDER: tuple[str, ...] = (
     "CAM_BACK_RIGHT",
 )
 LIDAR_CHANNEL = "LIDAR_TOP"
+
+# The ego car in its own frame (x forward from the rear axle, y left, z up), metres, with a margin:
+# LiDAR returns inside it are the car itself (lidarseg's vehicle.ego), dropped with or without
+# lidarseg; the pictures and the viewer draw this box. The one ego-car size of the project.
+EGO_BOX: tuple[tuple[float, float, float], tuple[float, float, float]] = ((-1.0, -1.1, -0.5), (4.0, 1.1, 2.2))
+EGO_SIZE: tuple[float, float, float] = tuple(hi - lo for lo, hi in zip(*EGO_BOX, strict=True))  # length, width, height
 
 CLASS_NAMES: tuple[str, ...] = (
     "others",

@@ -9,6 +9,7 @@ from pyquaternion import Quaternion
 
 __all__ = [
     "invert_rigid",
+    "points_in_box",
     "project_points",
     "quaternion_wxyz_from_matrix",
     "rotation_from_quaternion_wxyz",
@@ -17,9 +18,18 @@ __all__ = [
 ]
 
 
-def rotation_from_quaternion_wxyz(q_wxyz: Sequence[float]) -> np.ndarray:
-    """3x3 rotation `(3, 3) float64` of a nuScenes quaternion `[w, x, y, z]` (normalised first)."""
-    return Quaternion(*[float(v) for v in q_wxyz]).normalised.rotation_matrix
+def rotation_from_quaternion_wxyz(q_wxyz: Sequence[float] | np.ndarray, normalise: bool = True) -> np.ndarray:
+    """3x3 rotation `(3, 3) float64` of a nuScenes quaternion `[w, x, y, z]`, normalised first.
+
+    The one quaternion-to-matrix rule of the package (calibrations, poses, boxes, the synthetic rig).
+    `normalise=False` keeps a non-unit quaternion's scale, so a rigidity check downstream can reject it."""
+    q = np.asarray(q_wxyz, dtype=np.float64)
+    w, x, y, z = q / np.linalg.norm(q) if normalise else q
+    return np.array([
+        [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
+    ])
 
 
 def quaternion_wxyz_from_matrix(R: np.ndarray) -> list[float]:
@@ -50,6 +60,16 @@ def invert_rigid(T_b_from_a: np.ndarray) -> np.ndarray:
     out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
     out[..., 3, 3] = 1.0
     return out
+
+
+def points_in_box(points_a: np.ndarray, T_box_from_a: np.ndarray, half_size: np.ndarray) -> np.ndarray:
+    """`(N,) bool`: which points `(N, 3)` lie in the closed box `|p_box| <= half_size (3,)` (x along the
+    box's length, y its width, z its height), the box frame given by `T_box_from_a (4, 4)`.
+
+    The one membership rule: the labels generator's kernel has this as its numpy twin, the fidelity
+    measures and the synthetic annotations' point counts use it directly."""
+    p = points_a @ T_box_from_a[:3, :3].T + T_box_from_a[:3, 3]
+    return (np.abs(p) <= half_size).all(axis=1)
 
 
 def transform_points(T_b_from_a: np.ndarray, points_a: np.ndarray) -> np.ndarray:

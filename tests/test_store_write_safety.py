@@ -165,26 +165,23 @@ def test_build_on_a_full_disk_then_resume(synth_root: Path, tmp_path: Path, monk
 
 
 def test_dump_on_a_full_disk_leaves_nothing(store: Path, tmp_path: Path, monkeypatch) -> None:
-    def full_disk(file, **arrays):
-        Path(file).write_bytes(b"PK\x03\x04partial")
-        raise _enospc(file)
+    def full_disk(file, **arrays):  # the archive half-written into the temporary file
+        file.write(b"PK\x03\x04partial")
+        raise _enospc(file.name)
 
     monkeypatch.setattr(np, "savez_compressed", full_disk)
     out = tmp_path / "d.npz"
     code, text = _cli("dump", "--store", str(store), "-i", "0", "--out", str(out))
     assert code == 1 and "No space left on device" in _one_error_line(text)
-    assert list(tmp_path.iterdir()) == [store]  # no d.npz, no d.npz.tmp.npz
+    assert list(tmp_path.iterdir()) == [store]  # no d.npz, no temporary file
 
 
 @pytest.mark.parametrize("cmd", ["show-batch", "check-projection"])
 def test_image_writers_on_a_full_disk_leave_nothing(store: Path, tmp_path: Path, monkeypatch, cmd: str) -> None:
-    real = Path.write_bytes
+    def full_disk(fd: int) -> None:  # the bytes are written; the disk fills when they are flushed
+        raise _enospc(f"fd {fd}")
 
-    def full_disk(self, data):
-        real(self, data[:10])
-        raise _enospc(self)
-
-    monkeypatch.setattr(Path, "write_bytes", full_disk)
+    monkeypatch.setattr(os, "fsync", full_disk)
     out = tmp_path / "pic" / "b.png"
     cli = fastocc_main if cmd == "show-batch" else main
     code, text = _cli(cmd, "--store", str(store), "-i", "0", "--out", str(out), cli=cli)

@@ -138,10 +138,9 @@ def _rig_from_nuscenes(path: Path) -> Rig:
     if not ds.samples:
         raise DeployError(f"nuScenes tree {path} has no sample to take the rig from")
     s = ds.samples[0]
-    return Rig(K=np.stack([c.K for c in s.cameras]).astype(np.float64),
-               T_keyego_from_cam=np.stack([s.T_keyego_from_cam(i) for i in range(len(s.cameras))]),
-               image_size=np.array([[c.width, c.height] for c in s.cameras], dtype=np.int64),
-               cameras=tuple(c.channel for c in s.cameras), source=f"nuScenes {path} sample {s.token}")
+    cams = s.camera_rig()
+    return Rig(K=cams.K.astype(np.float64), T_keyego_from_cam=cams.T_keyego_from_cam, image_size=cams.image_size,
+               cameras=cams.channels, source=f"nuScenes {path} sample {s.token}")
 
 
 def load_rig(source: str | Path | None) -> Rig:

@@ -13,8 +13,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from occdata.constants import FREE_LABEL, GRID
+from occdata.geometry import invert_rigid, points_in_box
+from occdata.nuscenes.annotations import moving_instances
 
-__all__ = ["Fidelity", "SceneScore", "instance_containment", "moving_containment", "moving_tracks",
+__all__ = ["Fidelity", "SceneScore", "instance_containment", "moving_containment",
            "observable_surface", "score_scene", "voxel_fidelity"]
 
 
@@ -75,11 +77,9 @@ def voxel_fidelity(generated: np.ndarray, truth: np.ndarray, truth_mask_lidar: n
 
 
 def _in_box(centers: np.ndarray, T_keyego_from_box: np.ndarray, size_wlh: np.ndarray, dilate: int) -> np.ndarray:
-    T_box_from_keyego = np.linalg.inv(T_keyego_from_box)
-    p = centers @ T_box_from_keyego[:3, :3].T + T_box_from_keyego[:3, 3]
     w, length, h = np.asarray(size_wlh, np.float64)
     half = np.array([length / 2, w / 2, h / 2]) + dilate * GRID.voxel_size
-    return (np.abs(p) <= half).all(axis=1)
+    return points_in_box(centers, invert_rigid(T_keyego_from_box), half)
 
 
 def instance_containment(generated: np.ndarray, cls: int, track: list[tuple[np.ndarray, np.ndarray]], now: int,
@@ -123,22 +123,12 @@ class SceneScore:
         return min(shares, default=1.0)
 
 
-def moving_tracks(boxes_by_keyframe: list[list], min_travel: float = 1.0) -> set[str]:
-    """Instance tokens whose box centre travels more than `min_travel` metres over the scene;
-    `boxes_by_keyframe`: per keyframe, its BoxRecords."""
-    centers: dict[str, list[np.ndarray]] = {}
-    for boxes in boxes_by_keyframe:
-        for b in boxes:
-            centers.setdefault(b.instance_token, []).append(np.asarray(b.center_global, np.float64))
-    return {k for k, c in centers.items() if np.ptp(np.stack(c), axis=0)[:2].max() > min_travel}
-
-
 def moving_containment(generated: list[np.ndarray], T_keyego_from_global: list[np.ndarray],
                        boxes_by_keyframe: list[list], class_of: dict[str, int]) -> dict[str, tuple[int, int]]:
     """Per moving instance, `(inside, total)` generated voxels summed over the keyframes
     (`instance_containment`); `generated[k] (X, Y, Z) uint8`, the key-ego transform and the
     BoxRecords of keyframe k; `class_of`: instance -> its Occ3D class."""
-    movers = moving_tracks(boxes_by_keyframe)
+    movers = moving_instances(boxes_by_keyframe)
     tracks: dict[str, list] = {}
     for boxes in boxes_by_keyframe:
         for b in boxes:

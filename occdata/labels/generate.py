@@ -24,11 +24,12 @@ import numpy as np
 
 from occdata.constants import CLASS_NAMES
 from occdata.errors import OccDataError
-from occdata.fileio import TMP_SUFFIX, npz_bytes, remove_stale_temps, write_atomic
+from occdata.fileio import TMP_SUFFIX, remove_stale_temps, write_atomic
 from occdata.labels.scene import LabelOptions, SceneInputs, label_scene
 from occdata.nuscenes import NuScenesDataset, find_version, load_nuscenes, validate_sample
 from occdata.nuscenes.annotations import load_annotations
 from occdata.nuscenes.lidarseg import lidarseg_index_names, load_lidarseg_index, occ3d_lut
+from occdata.occ3d import LABEL_FILE, label_path, write_label
 from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks
 from occdata.runtime.lock import store_lock
 
@@ -122,7 +123,7 @@ def _package_version() -> str:
 def _write_scene(out: Path, scene: str, labels: dict[str, dict[str, np.ndarray]], record: dict[str, Any]) -> None:
     """Each keyframe's file atomically, then the scene's record (its completion mark)."""
     for token, arrays in labels.items():
-        write_atomic(out / scene / token / "labels.npz", npz_bytes(arrays))
+        write_label(label_path(out, scene, token), arrays)
     write_atomic(scene_record_path(out, scene), json.dumps(record, indent=1, sort_keys=True).encode())
 
 
@@ -201,7 +202,7 @@ def generate_labels(cfg: LabelsConfig, cluster: ClusterConfig = ClusterConfig(),
     with store_lock(cfg.out, "labels"):
         _check_out(cfg, header)
         # What a killed run left half-written (we hold the lock: no other writer is live).
-        for folder in {p.parent for p in cfg.out.glob(f"*/*/.labels.npz.*{TMP_SUFFIX}")} | {cfg.out / _RECORDS}:
+        for folder in {p.parent for p in cfg.out.glob(f"*/*/.{LABEL_FILE}.*{TMP_SUFFIX}")} | {cfg.out / _RECORDS}:
             if folder.is_dir():
                 remove_stale_temps(folder)
         todo = [sc for sc in inputs.dataset.scenes if not scene_record_path(cfg.out, sc.name).is_file()]

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
+from occdata.geometry import points_in_box
+
 __all__ = [
     "NO_LABEL",
     "NearestIndex",
@@ -59,8 +61,7 @@ def points_in_boxes_reference(points: np.ndarray, T_box_from_world: np.ndarray, 
     """Numpy twin of `points_in_boxes`."""
     out = np.full(len(points), -1, np.int32)
     for b in range(len(T_box_from_world) - 1, -1, -1):  # reverse, so the first box wins
-        p = points @ T_box_from_world[b, :3, :3].T + T_box_from_world[b, :3, 3]
-        out[(np.abs(p) <= half_size[b]).all(axis=1)] = b
+        out[points_in_box(points, T_box_from_world[b], half_size[b])] = b
     return out
 
 

@@ -22,20 +22,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES
+from occdata.constants import EGO_BOX, FREE_LABEL, GRID, NUM_CLASSES
 from occdata.geometry import invert_rigid, transform_points
 from occdata.labels.kernels import NO_LABEL, NearestIndex, majority, points_in_boxes, vote_voxels
 from occdata.nuscenes import LidarRecord, NuScenesDataset, SampleRecord, SceneRecord, load_lidar_points
-from occdata.nuscenes.annotations import Annotations, BoxRecord, boxes_for_lidar
+from occdata.nuscenes.annotations import Annotations, BoxRecord, boxes_for_lidar, moving_instances
 from occdata.nuscenes.lidarseg import DROP, OCC3D_FROM_LIDARSEG, read_lidarseg
 from occdata.runtime.cluster import check_stop
 from occdata.visibility import GROUND_CLASSES, camera_mask, lidar_mask
 
-__all__ = ["EGO_BOX", "LabelOptions", "SceneCounts", "SceneInputs", "label_scene"]
+__all__ = ["LabelOptions", "SceneCounts", "SceneInputs", "label_scene"]
 
-# The ego car in its own frame (x forward from the rear axle, y left, z up), metres: LiDAR returns
-# inside it are the car itself (lidarseg's vehicle.ego), dropped with or without lidarseg.
-EGO_BOX = ((-1.0, -1.1, -0.5), (4.0, 1.1, 2.2))
 # Occ3D classes that are never an object's own points (ground, buildings, vegetation).
 _STUFF = np.array(sorted({*GROUND_CLASSES, 15, 16}), np.uint8)
 
@@ -50,10 +47,10 @@ class LabelOptions:
     floor_margin: without lidarseg, points this close above a box's floor stay static (ground).
     static_class: the Occ3D class of static points when there is no lidarseg. use_boxes=False is
     the control that aggregates every point in the global frame (moving objects smear); without
-    lidarseg its boxes still give their points' classes. hold_static: an instance whose box moves
-    less than this many metres over the scene is parked: at keyframes where it has no box
-    (annotation stops once an object is out of sight) it is drawn at its nearest annotated pose
-    (0: never)."""
+    lidarseg its boxes still give their points' classes. hold_static: an instance whose box centre
+    spans less than this many metres in x and y over the scene is parked (`moving_instances`): at
+    keyframes where it has no box (annotation stops once an object is out of sight) it is drawn at
+    its nearest annotated pose (0: never)."""
 
     lidar_sweeps: bool = False
     knn_radius: float = 0.5
@@ -280,23 +277,22 @@ def _masks(semantics: np.ndarray, sample: SampleRecord, rays: tuple[np.ndarray, 
     origins = np.broadcast_to(transform_points(T_keyego_from_global, rays[0][None])[0], ends.shape)
     m_lidar = lidar_mask(semantics, origins, ends, lower, GRID.voxel_size) | (semantics != FREE_LABEL)
     m_lidar = m_lidar.astype(np.uint8)
-    K = np.stack([c.K for c in sample.cameras])
-    T_cam_from_grid = np.stack([invert_rigid(sample.T_keyego_from_cam(i)) for i in range(len(sample.cameras))])
-    size = np.array([[c.width, c.height] for c in sample.cameras])
-    return m_lidar, camera_mask(semantics, m_lidar, K, T_cam_from_grid, size, lower, GRID.voxel_size)
+    rig = sample.camera_rig()
+    return m_lidar, camera_mask(semantics, m_lidar, rig.K, rig.T_cam_from_keyego, rig.image_size, lower,
+                                GRID.voxel_size)
 
 
 def _held_static(keyframe_boxes: list[tuple[BoxRecord, ...]], travel: float) -> list[tuple[BoxRecord, ...]]:
-    """Per keyframe, the boxes of parked instances (centre moving < `travel` m over their track)
-    that have no box there: each instance's box at its nearest annotated keyframe."""
+    """Per keyframe, the boxes of parked instances (not `moving_instances(..., travel)`) that have no
+    box there: each instance's box at its nearest annotated keyframe."""
     track: dict[str, list[tuple[int, BoxRecord]]] = defaultdict(list)
     for k, boxes in enumerate(keyframe_boxes):
         for b in boxes:
             track[b.instance_token].append((k, b))
     out: list[list[BoxRecord]] = [[] for _ in keyframe_boxes]
-    for items in track.values():
-        centers = np.stack([b.center_global for _, b in items])
-        if travel <= 0 or np.ptp(centers, axis=0).max() >= travel:
+    moving = moving_instances(keyframe_boxes, travel) if travel > 0 else set(track)
+    for instance, items in track.items():
+        if instance in moving:
             continue
         seen = np.array([k for k, _ in items])
         for k in range(len(keyframe_boxes)):

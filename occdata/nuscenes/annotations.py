@@ -13,7 +13,7 @@ the previous sample is kept as it is; instances only in the previous sample are 
 
 from __future__ import annotations
 
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -21,11 +21,13 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from occdata.errors import OccDataError
+from occdata.geometry import transform_from_pose
 from occdata.nuscenes.records import LidarRecord, NuScenesDataset
 from occdata.nuscenes.rows import RowProblem, field, floats, integer, ref, short
 from occdata.nuscenes.tables import iter_table_rows, load_table
 
-__all__ = ["Annotations", "BoxRecord", "boxes_for_lidar", "load_annotations", "slerp_wxyz"]
+__all__ = ["MOVING_TRAVEL_M", "Annotations", "BoxRecord", "boxes_for_lidar", "load_annotations", "moving_instances",
+           "slerp_wxyz"]
 
 
 @dataclass(frozen=True, eq=False, slots=True)
@@ -50,15 +52,7 @@ class BoxRecord:
     def T_global_from_box(self) -> np.ndarray:
         """`(4, 4) float64`: box frame (x forward along the length, y left, z up, origin at the
         centre) -> global. The quaternion is normalised first, as pyquaternion does."""
-        w, x, y, z = self.rotation_wxyz / np.linalg.norm(self.rotation_wxyz)
-        T = np.eye(4)
-        T[:3, :3] = [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-        T[:3, 3] = self.center_global
-        return T
+        return transform_from_pose(self.center_global, self.rotation_wxyz)
 
 
 @dataclass(frozen=True, eq=False)
@@ -352,3 +346,19 @@ def _check_tracks(rows: list[_Row], every_token: set[str]) -> None:
                 raise OccDataError(f"{where} {other_tok!r} is a box of another instance")
             if getattr(other, back) != row.token:
                 raise OccDataError(f"{where} is {other_tok!r}, but that row's {back} is {getattr(other, back)!r}")
+
+
+# An instance moves when its box centre's ground-plane (x-y) extent over the scene reaches this many
+# metres; the height is left out (annotators' z jitter is no motion). The one definition of
+# "moving": the labels generator holds the others at their nearest pose, the fidelity measures score it.
+MOVING_TRAVEL_M = 1.0
+
+
+def moving_instances(boxes_by_keyframe: Sequence[Sequence[BoxRecord]], travel: float = MOVING_TRAVEL_M) -> set[str]:
+    """Instance tokens whose box centres span `travel` metres or more in x or y (global frame) over the
+    keyframes' boxes `boxes_by_keyframe` (per keyframe, its `BoxRecord`s)."""
+    centers: dict[str, list[np.ndarray]] = {}
+    for boxes in boxes_by_keyframe:
+        for b in boxes:
+            centers.setdefault(b.instance_token, []).append(np.asarray(b.center_global, np.float64))
+    return {k for k, c in centers.items() if np.ptp(np.stack(c)[:, :2], axis=0).max() >= travel}

@@ -10,7 +10,7 @@ import numpy as np
 
 from occdata.geometry import invert_rigid
 
-__all__ = ["CameraRecord", "LidarRecord", "NuScenesDataset", "SampleRecord", "SceneRecord"]
+__all__ = ["CameraRecord", "CameraRig", "LidarRecord", "NuScenesDataset", "SampleRecord", "SceneRecord"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -30,6 +30,23 @@ class CameraRecord:
     timestamp: int  # microseconds
     width: int
     height: int
+
+
+@dataclass(frozen=True, eq=False)
+class CameraRig:
+    """A keyframe's cameras in its key-ego frame, in CAMERA_ORDER: `K (N, 3, 3) float64`,
+    `T_keyego_from_cam (N, 4, 4) float64` (exact, through global), `image_size (N, 2) int64` (W, H).
+    Built in one place (`SampleRecord.camera_rig`) for the store, the masks and the deploy rig."""
+
+    K: np.ndarray
+    T_keyego_from_cam: np.ndarray
+    image_size: np.ndarray
+    channels: tuple[str, ...]
+
+    @property
+    def T_cam_from_keyego(self) -> np.ndarray:
+        """`(N, 4, 4) float64`: key ego -> each camera."""
+        return np.stack([invert_rigid(T) for T in self.T_keyego_from_cam])
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,6 +97,15 @@ class SampleRecord:
         """Exact camera -> key-ego transform through global (DESIGN §2), `(4, 4) float64`."""
         cam = self.cameras[i]
         return invert_rigid(self.T_global_from_keyego) @ cam.T_global_from_ego @ cam.T_ego_from_cam
+
+    def camera_rig(self) -> CameraRig:
+        """The 6 cameras' intrinsics, key-ego poses and image sizes (`CameraRig`)."""
+        return CameraRig(
+            K=np.stack([c.K for c in self.cameras]),
+            T_keyego_from_cam=np.stack([self.T_keyego_from_cam(i) for i in range(len(self.cameras))]),
+            image_size=np.array([[c.width, c.height] for c in self.cameras], dtype=np.int64),
+            channels=tuple(c.channel for c in self.cameras),
+        )
 
     def T_cam_from_lidar(self, i: int, sweep: LidarRecord | None = None) -> np.ndarray:
         """The devkit's chain lidar(t_i) -> ego(t_i) -> global -> ego(t_cam) -> camera, `(4, 4) float64`,

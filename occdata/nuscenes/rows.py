@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from occdata.errors import OccDataError
+from occdata.geometry import rotation_from_quaternion_wxyz
 
 __all__ = ["RowProblem", "field", "floats", "integer", "pose", "ref", "rotation_matrix", "short"]
 
@@ -71,16 +72,7 @@ def rotation_matrix(q_wxyz: Any, where: str) -> np.ndarray:
     A value that is not 4 numbers raises `RowProblem`."""
     q = floats(q_wxyz, (4,), f"{where} rotation (quaternion w, x, y, z)")
     n = np.linalg.norm(q)
-    if np.isfinite(n) and abs(n - 1.0) < 1e-3:
-        q = q / n
-    w, x, y, z = q
-    return np.array(
-        [
-            [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
-        ]
-    )
+    return rotation_from_quaternion_wxyz(q, normalise=bool(np.isfinite(n) and abs(n - 1.0) < 1e-3))
 
 
 def pose(row: dict[str, Any], table: str) -> np.ndarray:

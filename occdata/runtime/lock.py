@@ -91,7 +91,7 @@ def _holder(path: Path) -> str:
 @contextmanager
 def _lease(url: str, info: dict[str, object]) -> Iterator[None]:
     """Hold the lease object `url` (the local lock is already held) for the `with` body."""
-    from occdata.store.storage import read_bytes, remove_tree, write_atomic
+    from occdata.runtime.storage import read_bytes, remove_tree, write_atomic
 
     raw = read_bytes(url)
     if raw is not None:

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import zarr
 
+from occdata.runtime.storage import join, read_bytes, write_atomic
 from occdata.store.layout import (
     FLAT_ARRAYS,
     FLAT_OF_OFFSETS,
@@ -39,7 +40,6 @@ from occdata.store.layout import (
     checksummed_names,
 )
 from occdata.store.sample import SampleResult, process_sample
-from occdata.store.storage import join, read_bytes, write_atomic
 
 __all__ = ["BlockSummary", "CommitJob", "ConvertJob", "Placer", "commit_block", "convert_block", "flat_footprint",
            "open_flat", "open_for_task", "run_job", "staged_summary", "staging_file"]

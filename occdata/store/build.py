@@ -32,6 +32,7 @@ from occdata.nuscenes import LidarRecord, NuScenesDataset, load_nuscenes
 from occdata.nuscenes.reader import confined_path
 from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks
 from occdata.runtime.lock import store_lock
+from occdata.runtime.storage import is_remote, join, read_bytes, remove_tree, sibling
 from occdata.store.blocks import (
     BlockSummary,
     CommitJob,
@@ -57,7 +58,6 @@ from occdata.store.layout import (
 )
 from occdata.store.reader import StoreReader, store_location
 from occdata.store.sample import SampleOptions, static_arrays, temporal_indices
-from occdata.store.storage import is_remote, join, read_bytes, remove_tree, sibling
 
 __all__ = ["BuildConfig", "BuildReport", "build_store", "check_sweep_files", "find_label_files", "identity_diff",
            "label_layouts", "sample_checksums"]

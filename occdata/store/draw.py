@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from occdata.errors import OccDataError
+from occdata.fileio import write_atomic
 from occdata.store.reader import StoreReader
 
 __all__ = ["check_image_path", "depth_colors", "draw_projection", "write_image"]
@@ -54,14 +55,10 @@ def check_image_path(out: Path) -> None:
 def write_image(out: Path, bgr: np.ndarray) -> None:
     """Write an image atomically: a full disk leaves neither a partial file nor a traceback."""
     check_image_path(out)
-    tmp = out.with_name(f".{out.name}.tmp{out.suffix}")
+    ok, buf = cv2.imencode(out.suffix, bgr)
+    if not ok:
+        raise OccDataError(f"cannot encode {out}")
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        ok, buf = cv2.imencode(out.suffix, bgr)
-        if not ok:
-            raise OccDataError(f"cannot encode {out}")
-        tmp.write_bytes(buf.tobytes())
-        tmp.replace(out)
+        write_atomic(out, buf.tobytes())
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
         raise OccDataError(f"cannot write {out}: {exc.strerror or exc}") from None

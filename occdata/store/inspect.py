@@ -9,6 +9,7 @@ import numpy as np
 
 from occdata.constants import CAMERA_ORDER
 from occdata.errors import OccDataError
+from occdata.fileio import atomic_open
 from occdata.store.bev import unpack_bev
 from occdata.store.layout import FLAT_ARRAYS, PER_SAMPLE, STATE_DONE, STATE_ERROR, STATE_PENDING
 from occdata.store.reader import StoreReader
@@ -96,12 +97,9 @@ def dump_sample(reader: StoreReader, index: int, out: Path) -> list[str]:
     if a["visibility/present"]:
         data["visibility_camera"] = a["visibility/camera"]
         data["visibility_lidar"] = a["visibility/lidar"]
-    tmp = out.with_name(out.name + ".tmp.npz")
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(tmp, **data)
-        tmp.replace(out)
+        with atomic_open(out) as f:
+            np.savez_compressed(f, **data)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
         raise OccDataError(f"cannot write {out}: {exc.strerror or exc}") from None
     return sorted(data)

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from occdata.geometry import invert_rigid, points_in_box
 from occdata.synth.tables import make_token
 from occdata.synth.world import BOX, P_COS, P_CX, P_CY, P_HX, P_HY, P_SIN, P_TYPE, P_Z0, P_Z1, SceneWorld, place_parts
 
@@ -137,6 +138,15 @@ def object_parts(world: SceneWorld, key: str, t_us: int) -> np.ndarray:
     return place_parts(a.parts, *a.pose_at(world.path, t_us))
 
 
+def _box_pose(center: np.ndarray, yaw: float) -> np.ndarray:
+    """`T_global_from_box (4, 4)` of a box standing upright at `center (3,)` turned by `yaw`."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    T = np.eye(4)
+    T[:2, :2] = ((c, -s), (s, c))
+    T[:3, 3] = center
+    return T
+
+
 def points_in_boxes(points: np.ndarray, boxes: ObjectBoxes, margin: float = POINT_MARGIN) -> np.ndarray:
     """`(N, B) bool`: point n `(N, 3)` (the boxes' frame) lies in box b: within `margin` of it, but
     more than `margin` above its bottom face (module docstring)."""
@@ -148,12 +158,11 @@ def points_in_boxes(points: np.ndarray, boxes: ObjectBoxes, margin: float = POIN
         reach = 0.5 * float(np.hypot(w, length)) + margin + 1e-6
         lo, hi = np.searchsorted(xs, [boxes.center[b, 0] - reach, boxes.center[b, 0] + reach])
         cand = order[lo:hi]
-        c, s = np.cos(boxes.yaw[b]), np.sin(boxes.yaw[b])
-        d = points[cand] - boxes.center[b]
-        lx = c * d[:, 0] + s * d[:, 1]
-        ly = -s * d[:, 0] + c * d[:, 1]
-        inside[cand, b] = ((np.abs(lx) <= length / 2 + margin) & (np.abs(ly) <= w / 2 + margin)
-                           & (d[:, 2] <= h / 2 + margin) & (d[:, 2] > -h / 2 + margin))
+        # The margin-grown box raised by `margin`: its bottom face, `margin` above the box's, is open.
+        T_box_from_global = invert_rigid(_box_pose(boxes.center[b] + (0.0, 0.0, margin), boxes.yaw[b]))
+        half = np.array([length / 2 + margin, w / 2 + margin, h / 2])
+        inside[cand, b] = points_in_box(points[cand], T_box_from_global, half) & (
+            points[cand, 2] > boxes.center[b, 2] - h / 2 + margin)
     return inside
 
 

@@ -13,8 +13,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from occdata.constants import EGO_SIZE
 from occdata.view.config import FrameOptions
-from occdata.view.frame import EGO_SIZE, Frame
+from occdata.view.frame import Frame
 from occdata.view.render import EGO_COLOR, class_legend
 from occdata.view.source import SampleData
 from occdata.view.voxels import VoxelLayer

@@ -7,15 +7,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from occdata.constants import GRID
+from occdata.constants import EGO_BOX, GRID
 from occdata.view.config import FrameOptions
 from occdata.view.source import SampleData
 from occdata.view.voxels import VoxelLayer, error_ids, label_ids, layers_from_ids
 
-__all__ = ["EGO_SIZE", "SIDE_OFFSET_M", "Frame", "VoxelGroup", "compose_frame", "ego_box_center"]
+__all__ = ["SIDE_OFFSET_M", "Frame", "VoxelGroup", "compose_frame", "ego_box_center"]
 
 SIDE_OFFSET_M = 44.0  # label | prediction: each grid moved this far along y (grids are 80 m wide)
-EGO_SIZE = (4.4, 2.0, 1.6)  # length, width, height (m), as occdata.view.render draws the ego car
 _GROUND_CLASSES = (11, 12, 13, 14)  # driveable_surface, other_flat, sidewalk, terrain
 
 
@@ -42,8 +41,8 @@ class Frame:
 
 
 def ego_box_center(semantics: np.ndarray | None) -> tuple[float, float, float]:
-    """Centre of the ego box (key ego, m): at the origin in x and y, standing on the highest ground
-    voxel within 4 m of the origin (z = 0 m ground when there is none)."""
+    """Centre of the ego box (`EGO_BOX`, key ego, m), its z measured from the highest ground voxel
+    within 4 m of the origin (z = 0 m ground when there is none)."""
     ground_top = 0.0
     if semantics is not None:
         lab = np.asarray(semantics)
@@ -53,7 +52,8 @@ def ego_box_center(semantics: np.ndarray | None) -> tuple[float, float, float]:
         k = np.flatnonzero(np.isin(patch, _GROUND_CLASSES).any(axis=(0, 1)))
         if k.size:
             ground_top = GRID.lower[2] + GRID.voxel_size * (int(k.max()) + 1)
-    return 0.0, 0.0, ground_top + EGO_SIZE[2] / 2
+    (lx, ly, lz), (hx, hy, hz) = EGO_BOX
+    return (lx + hx) / 2, (ly + hy) / 2, ground_top + (lz + hz) / 2
 
 
 def _keep(layers: list[VoxelLayer], opts: FrameOptions) -> tuple[VoxelLayer, ...]:

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from occdata.constants import CLASS_COLORS, CLASS_NAMES, FREE_LABEL, GRID, OccGrid
+from occdata.constants import CLASS_COLORS, CLASS_NAMES, EGO_BOX, FREE_LABEL, GRID, OccGrid
 
 __all__ = [
     "EGO_COLOR",
@@ -58,11 +58,11 @@ class View:
 
 
 def _with_ego(occ_labels: np.ndarray, grid: OccGrid) -> tuple[np.ndarray, np.ndarray]:
-    """Label grid -> (labels, colour table) with the ego box (4.4 x 2 x 1.6 m at the origin) as label 18."""
+    """Label grid -> (labels, colour table) with the free voxels of the ego car (`EGO_BOX`) as label 18."""
     labels = occ_labels.copy()
     centers = grid.voxel_centers()
-    ego = (np.abs(centers[..., 0]) < 2.2) & (np.abs(centers[..., 1]) < 1.0) & (centers[..., 2] < 0.6) & (
-        centers[..., 2] > -0.4)
+    lo, hi = np.array(EGO_BOX[0]), np.array(EGO_BOX[1])
+    ego = ((centers > lo) & (centers < hi)).all(axis=-1)
     labels[ego & (labels == FREE_LABEL)] = 18
     palette = np.vstack([_PALETTE, np.array([EGO_COLOR], dtype=np.uint8)])
     return labels, palette

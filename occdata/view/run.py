@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -14,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from occdata.errors import OccDataError
+from occdata.fileio import write_atomic
 from occdata.view.config import ViewConfig
 from occdata.view.draw import SceneDrawer, add_legend_plane
 from occdata.view.frame import SIDE_OFFSET_M, compose_frame
@@ -113,26 +112,6 @@ def _record(server: Any, source: ViewSource, scene: SceneEntry, cfg: ViewConfig)
     return serializer.as_html(dark_mode=True)
 
 
-def _write_atomic(path: Path, text: str) -> int:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path.stat().st_size
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 def export_html(cfg: ViewConfig) -> ExportReport:
     """Write `cfg.export`: one HTML file (viser's client with the recorded scene inlined) that plays the
     chosen scene's keyframes in a browser with no server and no network."""
@@ -148,7 +127,8 @@ def export_html(cfg: ViewConfig) -> ExportReport:
         text = _record(server, source, scene, cfg)
     finally:
         server.stop()
-    size = _write_atomic(cfg.export, text)
+    write_atomic(cfg.export, text.encode("utf-8"))
+    size = cfg.export.stat().st_size
     return ExportReport(path=cfg.export, scene=scene.name, n_keyframes=len(scene.indices), n_bytes=size)
 
 

@@ -28,6 +28,7 @@ import numpy as np
 from numba import njit, prange
 
 from occdata.constants import FREE_LABEL
+from occdata.sensors.raycast import segment_advance, segment_setup
 
 __all__ = [
     "GROUND_CLASSES",
@@ -52,65 +53,6 @@ CLEARANCE_RADIUS = 16  # cap of the empty-space distance map the traversal uses 
 
 
 @njit(cache=True)
-def _dda_setup(
-    a: np.ndarray, b: np.ndarray, lower: np.ndarray, voxel_size: float, shape: np.ndarray,
-    idx: np.ndarray, step: np.ndarray, t_next: np.ndarray, t_delta: np.ndarray,
-) -> tuple[bool, float]:
-    """Clip segment a->b (param t in [0, 1]) to the grid; fill the start voxel `idx`, `step`, next
-    boundary `t_next` and `t_delta` (3,) scratch arrays; returns (non-empty, t at the segment end)."""
-    d = b - a
-    t0, t1 = 0.0, 1.0
-    for k in range(3):
-        lo = lower[k]
-        hi = lower[k] + shape[k] * voxel_size
-        if abs(d[k]) < 1e-15:
-            if a[k] < lo or a[k] >= hi:
-                t0, t1 = 1.0, 0.0
-        else:
-            ta = (lo - a[k]) / d[k]
-            tb = (hi - a[k]) / d[k]
-            if ta > tb:
-                ta, tb = tb, ta
-            t0 = max(t0, ta)
-            t1 = min(t1, tb)
-    if t0 > t1:
-        return False, t1
-    for k in range(3):
-        step[k] = 0
-        t_next[k] = np.inf
-        t_delta[k] = np.inf
-        p = a[k] + t0 * d[k]
-        i = int(np.floor((p - lower[k]) / voxel_size))
-        i = min(max(i, 0), shape[k] - 1)
-        idx[k] = i
-        if d[k] > 0.0:
-            step[k] = 1
-            t_next[k] = (lower[k] + (i + 1) * voxel_size - a[k]) / d[k]
-            t_delta[k] = voxel_size / d[k]
-        elif d[k] < 0.0:
-            step[k] = -1
-            t_next[k] = (lower[k] + i * voxel_size - a[k]) / d[k]
-            t_delta[k] = -voxel_size / d[k]
-    return True, t1
-
-
-@njit(cache=True)
-def _advance(idx: np.ndarray, step: np.ndarray, t_next: np.ndarray, t_delta: np.ndarray, shape: np.ndarray) -> float:
-    """Step into the next voxel along the ray; returns the entry t of the new voxel (inf if it left the grid)."""
-    k = 0
-    if t_next[1] < t_next[k]:
-        k = 1
-    if t_next[2] < t_next[k]:
-        k = 2
-    t_enter = t_next[k]
-    idx[k] += step[k]
-    t_next[k] += t_delta[k]
-    if idx[k] < 0 or idx[k] >= shape[k]:
-        return np.inf
-    return t_enter
-
-
-@njit(cache=True)
 def _occluders_before(
     occluders: np.ndarray, clearance: np.ndarray, a: np.ndarray, b: np.ndarray, target: np.ndarray,
     lower: np.ndarray, voxel_size: float, shape: np.ndarray, cap: int,
@@ -122,7 +64,7 @@ def _occluders_before(
     step = np.empty(3, np.int64)
     t_next = np.empty(3)
     t_delta = np.empty(3)
-    ok, t_end = _dda_setup(a, b, lower, voxel_size, shape, idx, step, t_next, t_delta)
+    ok, t_end = segment_setup(a, b, lower, voxel_size, shape, idx, step, t_next, t_delta)
     count = 0
     if not ok:
         return count
@@ -163,7 +105,7 @@ def _occluders_before(
                 if idx[k_exit] < 0 or idx[k_exit] >= shape[k_exit]:
                     return count
                 continue
-        if _advance(idx, step, t_next, t_delta, shape) > t_end:
+        if segment_advance(idx, step, t_next, t_delta, shape) > t_end:
             return count
 
 
@@ -393,12 +335,12 @@ def lidar_ray_mask(
         step = np.empty(3, np.int64)
         t_next = np.empty(3)
         t_delta = np.empty(3)
-        ok, t_end = _dda_setup(origins[n], endpoints[n], lower, voxel_size, shape, idx, step, t_next, t_delta)
+        ok, t_end = segment_setup(origins[n], endpoints[n], lower, voxel_size, shape, idx, step, t_next, t_delta)
         if not ok:
             continue
         while True:
             out[idx[0], idx[1], idx[2]] = 1  # benign race: every writer stores 1
-            t = _advance(idx, step, t_next, t_delta, shape)
+            t = segment_advance(idx, step, t_next, t_delta, shape)
             if t > t_end:
                 break
     return out
