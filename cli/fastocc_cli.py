@@ -14,8 +14,8 @@ from cli.options import config_choice, json_option, progress_option, store_optio
 __all__ = ["main"]
 
 # Choices from the configs that define them (read when first used: these modules import torch).
-PRESETS = "fastocc.model.config:PRESETS"
-HEADS = "fastocc.model.config:HeadKind"
+PRESET_SOURCE = "fastocc.model.config:PRESETS"
+HEAD_SOURCE = "fastocc.model.config:HeadKind"
 STORE_HELP = "Store path or fsspec URL."
 
 
@@ -29,9 +29,9 @@ def main() -> None:
 
 
 @main.command()
-@click.option("--preset", "preset_names", type=config_choice(PRESETS), multiple=True,
+@click.option("--preset", "preset_names", type=config_choice(PRESET_SOURCE), multiple=True,
               help="Model preset (default nano); with --split repeat it (default tiny, small and base).")
-@click.option("--head", type=config_choice(HEADS, "all"), default="fastocc",
+@click.option("--head", type=config_choice(HEAD_SOURCE, "all"), default="fastocc",
               help="'all' compares the heads in one run.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu")
 @click.option("--batch", type=click.IntRange(min=1), default=1)
@@ -167,9 +167,9 @@ def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height
 @store_option(default=None, help="Store path or fsspec URL (default data.zarr, or the config file's).")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="TOML file of TrainConfig fields (a [train] table or top level); options below override it.")
-@click.option("--preset", "preset_name", type=config_choice(PRESETS), default=None,
+@click.option("--preset", "preset_name", type=config_choice(PRESET_SOURCE), default=None,
               help="Model preset (default nano).")
-@click.option("--head", type=config_choice(HEADS), default=None, help="3D-side head.")
+@click.option("--head", type=config_choice(HEAD_SOURCE), default=None, help="3D-side head.")
 @click.option("--interp-features/--no-interp-features", "interp_features", default=None,
               help="Ablation: --no-interp-features drops the interpolated image features from the FastOcc head "
               "(the BEV branch alone feeds the classifier). Default: on.")
