@@ -8,7 +8,7 @@ import os
 import signal
 import sys
 import urllib.parse
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -16,7 +16,7 @@ import click
 
 from occdata.errors import OccDataError
 
-__all__ = ["DEFAULT_STORE", "EXIT_TERMINATED", "friendly_errors", "local_path", "stop_on_sigterm"]
+__all__ = ["DEFAULT_STORE", "EXIT_TERMINATED", "exit_on_interrupt", "friendly_errors", "local_path", "stop_on_sigterm"]
 
 EXIT_TERMINATED = 143  # 128 + SIGTERM, as a shell reports a process killed by it
 
@@ -70,6 +70,18 @@ def stop_on_sigterm(fn: F) -> F:
             signal.signal(signal.SIGTERM, old)
 
     return wrapper  # type: ignore[return-value]
+
+
+@contextlib.contextmanager
+def exit_on_interrupt(message: str) -> Iterator[None]:
+    """Ctrl-C (KeyboardInterrupt) or SIGTERM (occdata.runtime.cluster.Interrupted, a KeyboardInterrupt
+    carrying `signum`) inside the block: `message` on stderr and exit status 128 + the signal (130 or
+    143, as a shell reports it), no traceback. The work must have kept what it finished."""
+    try:
+        yield
+    except KeyboardInterrupt as exc:
+        click.echo(f"\n{message}", err=True)
+        raise SystemExit(128 + int(getattr(exc, "signum", signal.SIGINT))) from None
 
 
 def local_path(value: str | Path, option: str) -> Path:

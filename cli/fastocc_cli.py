@@ -8,11 +8,15 @@ from pathlib import Path
 
 import click
 
-from cli._common import DEFAULT_STORE, friendly_errors, stop_on_sigterm
+from cli._common import exit_on_interrupt, friendly_errors, stop_on_sigterm
+from cli.options import config_choice, json_option, progress_option, store_option
 
 __all__ = ["main"]
 
-HEAD_CHOICES = ("fastocc", "3dfcn", "deconv", "all")
+# Choices from the configs that define them (read when first used: these modules import torch).
+PRESET_SOURCE = "fastocc.model.config:PRESETS"
+HEAD_SOURCE = "fastocc.model.config:HeadKind"
+STORE_HELP = "Store path or fsspec URL."
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -25,23 +29,25 @@ def main() -> None:
 
 
 @main.command()
-@click.option("--preset", "preset_names", type=click.Choice(["nano", "tiny", "small", "base"]), multiple=True,
+@click.option("--preset", "preset_names", type=config_choice(PRESET_SOURCE), multiple=True,
               help="Model preset (default nano); with --split repeat it (default tiny, small and base).")
-@click.option("--head", type=click.Choice(HEAD_CHOICES), default="fastocc", help="'all' compares the heads in one run.")
+@click.option("--head", type=config_choice(HEAD_SOURCE, "all"), default="fastocc",
+              help="'all' compares the heads in one run.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu")
 @click.option("--batch", type=click.IntRange(min=1), default=1)
 @click.option("--repeats", type=click.IntRange(min=1), default=5, help="Timed runs; the median is reported.")
 @click.option("--warmup", type=click.IntRange(min=0), default=1, help="Untimed runs first.")
-@click.option("--mode", type=click.Choice(["infer", "train"]), default="infer", help="train = forward + backward.")
+@click.option("--mode", type=config_choice("fastocc.bench:BenchConfig.mode"), default="infer",
+              help="train = forward + backward.")
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="torch CPU threads (default: torch's).")
-@click.option("--runtime", "runtimes", multiple=True, type=click.Choice(["torch", "compile", "onnx", "all"]),
+@click.option("--runtime", "runtimes", multiple=True, type=config_choice("fastocc.bench:RUNTIMES", "all"),
               help="End-to-end latency per frame (raw images -> preprocessing -> semantics) through the Predictor "
               "for eager PyTorch, torch.compile and/or ONNX Runtime in one run; repeat or use 'all'.")
 @click.option("--split", is_flag=True, help="The paper's Table III split: 2D / 2D-to-3D / 3D / total per preset, "
               "eager PyTorch and ONNX Runtime (--runtime torch|onnx to keep one), ratios between presets.")
 @click.option("--input-hw", "input_hw", type=(int, int), default=None,
               help="With --split: network input H W for every preset (default: each preset's).")
-@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
+@json_option()
 def bench(
     preset_names: tuple[str, ...],
     head: str,
@@ -139,7 +145,7 @@ def export_cmd(checkpoint: Path, out: Path, rig: str | None, opset: int, frames:
 
 
 @main.command("show-batch")
-@click.option("--store", default=DEFAULT_STORE, show_default=True, help="Store path or fsspec URL.")
+@store_option(help=STORE_HELP)
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="PNG to write.")
 @click.option("--index", "-i", type=click.IntRange(min=0), default=0, help="Store index of the sample.")
 @click.option("--train", is_flag=True, help="Random training augmentation (default: the test transform).")
@@ -158,22 +164,25 @@ def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height
 
 
 @main.command()
-@click.option("--store", default=None, help="Store path (default data.zarr, or the config file's).")
+@store_option(default=None, help="Store path or fsspec URL (default data.zarr, or the config file's).")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="TOML file of TrainConfig fields (a [train] table or top level); options below override it.")
-@click.option("--preset", "preset_name", type=click.Choice(["nano", "tiny", "small", "base"]), default=None,
+@click.option("--preset", "preset_name", type=config_choice(PRESET_SOURCE), default=None,
               help="Model preset (default nano).")
-@click.option("--head", type=click.Choice(["fastocc", "3dfcn", "deconv"]), default=None, help="3D-side head.")
+@click.option("--head", type=config_choice(HEAD_SOURCE), default=None, help="3D-side head.")
 @click.option("--interp-features/--no-interp-features", "interp_features", default=None,
               help="Ablation: --no-interp-features drops the interpolated image features from the FastOcc head "
               "(the BEV branch alone feeds the classifier). Default: on.")
-@click.option("--view-transform", "view_transform", type=click.Choice(["lss", "attention"]), default=None,
+@click.option("--view-transform", "view_transform", type=config_choice("fastocc.model.config:ViewTransformKind"),
+              default=None,
               help="2D-to-3D view transform: lss (depth net + voxel pooling, default) or attention (spatial "
               "cross-attention from voxel queries, the paper's SurroundOcc* row with --head deconv).")
-@click.option("--bev-height", "bev_height", type=click.Choice(["repeat", "unfold"]), default=None,
+@click.option("--bev-height", "bev_height", type=config_choice("fastocc.model.config:BevHeight"),
+              default=None,
               help="With --no-interp-features: repeat the BEV feature along z (default) or unfold its channels "
               "into the 16 height bins (channel-to-height).")
-@click.option("--temporal-fusion", "temporal_fusion", type=click.Choice(["concat", "cached"]), default=None,
+@click.option("--temporal-fusion", "temporal_fusion", type=config_choice("fastocc.model.config:TemporalFusionKind"),
+              default=None,
               help="Models with history: concat (full maps in the queue, default) or cached (each frame reduced "
               "once, when current; warp + small fusion per frame).")
 @click.option("--epochs", type=click.IntRange(min=1), default=None, help="Epochs over the training split.")
@@ -188,13 +197,14 @@ def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height
 @click.option("--resume", is_flag=True, help="Continue the run in --out exactly where it stopped (--epochs may grow).")
 @click.option("--init-from", "init_from", type=click.Path(dir_okay=False), default=None,
               help="Start a NEW run from this checkpoint's weights (model, and EMA if present); not with --resume.")
-@click.option("--warn-signal", "warn_signal", type=click.Choice(["USR1", "USR2", "none"]), default=None,
+@click.option("--warn-signal", "warn_signal", type=config_choice("fastocc.train.config:WARN_SIGNALS"),
+              default=None,
               help="Signal that, like SIGTERM, stops at the next step and saves last.pt (default USR1).")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="Default: cuda if available.")
 @click.option("--val-every", type=click.IntRange(min=0), default=None, help="Validate every N epochs (0 = never).")
-@click.option("--no-progress", is_flag=True, help="Hide the progress bar.")
+@progress_option()
 @friendly_errors
-def train(config_file: Path | None, resume: bool, no_progress: bool, **options: object) -> None:
+def train(config_file: Path | None, resume: bool, progress: bool, **options: object) -> None:
     """Train FastOcc on a store: AdamW + warm-up/cosine by samples, EMA, validation, exact resume.
 
     Single process: `fastocc train --store data.zarr --out runs/nano`. Several GPUs or CPU processes:
@@ -209,11 +219,9 @@ def train(config_file: Path | None, resume: bool, no_progress: bool, **options: 
     names = {"preset_name": "preset", "batch_size": "batch_size", "val_every": "val_every"}
     overrides = {names.get(k, k): v for k, v in options.items()}
     cfg = load_config(config_file, overrides)
-    try:
-        result = run_training(cfg, resume=resume, progress=not no_progress)
-    except KeyboardInterrupt:  # Ctrl-C during start-up, before the loop (which saves) has begun
-        click.echo("\ninterrupted during start-up, before the first training step: nothing to save", err=True)
-        raise SystemExit(EXIT_INTERRUPTED) from None
+    # The loop saves on Ctrl-C itself and returns; a KeyboardInterrupt here came during start-up.
+    with exit_on_interrupt("interrupted during start-up, before the first training step: nothing to save"):
+        result = run_training(cfg, resume=resume, progress=progress)
     if result.interrupted:
         raise SystemExit(EXIT_INTERRUPTED)
     if result.preempted:
@@ -227,7 +235,7 @@ def train(config_file: Path | None, resume: bool, no_progress: bool, **options: 
                    f"weights) {best}; {result.out}")
 
 
-_STORE = click.option("--store", default="data.zarr", show_default=True, help="Store path or fsspec URL.")
+_STORE = store_option(help=STORE_HELP)
 _CKPT = click.option("--checkpoint", "checkpoint", required=True, type=click.Path(path_type=Path),
                      help="A checkpoint written by fastocc (carries its model config; no preset flags).")
 _SPLIT = click.option("--split", default="val", show_default=True, help="Store split to run on.")
@@ -257,11 +265,11 @@ def _predict_config(store: str, split: str, batch_size: int, workers: int, tta: 
 @_BATCH
 @_DEVICE
 @_WORKERS
-@click.option("--no-progress", "quiet", is_flag=True, help="No progress bar.")
+@progress_option()
 @friendly_errors
 @stop_on_sigterm
 def predict(checkpoint: Path, store: str, split: str, out: Path, tta: bool, png: int, batch_size: int, device: str,
-            workers: int, quiet: bool) -> None:
+            workers: int, progress: bool) -> None:
     """Predict a store split with a checkpoint and write the Occ3D layout (score it with `occdata eval`).
 
     Samples run in scene order (the temporal queue of models with history is carried); each file is
@@ -270,7 +278,7 @@ def predict(checkpoint: Path, store: str, split: str, out: Path, tta: bool, png:
     from fastocc.infer.write import PredictRun, run_predict
 
     cfg = _predict_config(store, split, batch_size, workers, tta, device)
-    summary = run_predict(PredictRun(checkpoint=checkpoint, out=out, predict=cfg, png=png, progress=not quiet))
+    summary = run_predict(PredictRun(checkpoint=checkpoint, out=out, predict=cfg, png=png, progress=progress))
     if os.environ.get("RANK", "0") != "0":  # under torchrun every rank holds the combined summary
         return
     click.echo(f"wrote {summary.files} predictions to {summary.out} in {summary.seconds:.1f} s"
@@ -282,18 +290,18 @@ def predict(checkpoint: Path, store: str, split: str, out: Path, tta: bool, png:
 @_STORE
 @_SPLIT
 @_TTA
-@click.option("--mask", type=click.Choice(["camera", "lidar", "none"]), default="camera", show_default=True,
+@click.option("--mask", type=config_choice("fastocc.infer.evaluate:MaskKind"), default="camera", show_default=True,
               help="Voxels scored by mIoU (camera = the official Occ3D protocol). RayIoU uses no mask.")
 @click.option("--no-rayiou", is_flag=True, help="Skip RayIoU (mIoU only).")
-@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
+@json_option()
 @_BATCH
 @_DEVICE
 @_WORKERS
-@click.option("--no-progress", "quiet", is_flag=True, help="No progress bar.")
+@progress_option()
 @friendly_errors
 @stop_on_sigterm
 def eval_cmd(checkpoint: Path, store: str, split: str, tta: bool, mask: str, no_rayiou: bool, as_json: bool,
-             batch_size: int, device: str, workers: int, quiet: bool) -> None:
+             batch_size: int, device: str, workers: int, progress: bool) -> None:
     """Score a checkpoint on a store split: Occ3D mIoU, RayIoU@1/2/4 m and inference frames/s.
 
     Predictions stay in memory; the metric code is `occdata eval`'s, so the numbers equal
@@ -303,7 +311,7 @@ def eval_cmd(checkpoint: Path, store: str, split: str, tta: bool, mask: str, no_
 
     cfg = _predict_config(store, split, batch_size, workers, tta, device)
     report = run_eval(EvalRun(checkpoint=checkpoint, predict=cfg, rayiou=not no_rayiou, mask=mask,  # type: ignore[arg-type]
-                              progress=not quiet))
+                              progress=progress))
     if os.environ.get("RANK", "0") == "0":  # under torchrun every rank holds the combined report
         click.echo(json.dumps(report.to_json(), indent=2) if as_json else format_report(report))
 

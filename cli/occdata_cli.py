@@ -3,12 +3,24 @@
 from __future__ import annotations
 
 import json
-import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 import numpy as np
 
-from cli._common import DEFAULT_STORE, friendly_errors, local_path, stop_on_sigterm
+from cli._common import DEFAULT_STORE, exit_on_interrupt, friendly_errors, local_path, stop_on_sigterm
+from cli.options import (
+    cluster_options,
+    config_choice,
+    json_option,
+    progress_option,
+    root_options,
+    store_option,
+)
+
+if TYPE_CHECKING:
+    from occdata.runtime.cluster import ClusterConfig
 
 __all__ = ["main"]
 
@@ -31,9 +43,9 @@ def main() -> None:
 @click.option("--seed", default=0, show_default=True, type=int, help="World seed (same seed, same bytes).")
 @click.option("--width", default=1600, show_default=True, type=click.IntRange(min=16), help="Image width.")
 @click.option("--height", default=900, show_default=True, type=click.IntRange(min=16), help="Image height.")
-@click.option("--no-progress", is_flag=True, help="Hide the progress bar.")
+@progress_option()
 @friendly_errors
-def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: int, no_progress: bool) -> None:
+def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: int, progress: bool) -> None:
     """Write a synthetic nuScenes-format world with Occ3D labels and exact depth maps.
 
     Tables (v1.0-mini), 6 ray-cast camera images, a 32-beam LiDAR sweep per keyframe and 9
@@ -43,16 +55,15 @@ def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: in
     from occdata.synth import SynthConfig, synthesize
 
     root = synthesize(SynthConfig(out=local_path(out, "--out"), scenes=scenes, samples=samples, seed=seed,
-                                  width=width, height=height, progress=not no_progress))
+                                  width=width, height=height, progress=progress))
     click.echo(f"wrote {scenes} scenes x {samples} samples to {root}")
 
 
 @main.command()
-@click.option("--root", required=True, metavar="DIR", help="nuScenes-format dataset root (a folder or a file:// URL).")
-@click.option("--version", default=None, help="Version folder (v1.0-trainval, v1.0-mini, ...); auto if only one.")
+@root_options()
 @click.option("--check-files/--no-check-files", default=True, show_default=True,
               help="Check that every keyframe image and LiDAR file exists.")
-@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
+@json_option("Print the summary as JSON.")
 @friendly_errors
 def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> None:
     """Read and validate a nuScenes-format tree; print scenes and samples per split.
@@ -80,8 +91,7 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
 
 
 @main.command()
-@click.option("--root", required=True, metavar="DIR", help="nuScenes-format dataset root (a folder or a file:// URL).")
-@click.option("--version", default=None, help="Version folder (v1.0-trainval, v1.0-mini, ...); auto if only one.")
+@root_options()
 @click.option("--out", default=DEFAULT_STORE, show_default=True, metavar="STORE",
               help="Output zarr store: a folder, or an fsspec URL (s3://bucket/data.zarr; needs occdata[s3]).")
 @click.option("--gts", default=None, metavar="DIR",
@@ -91,13 +101,10 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
                    "which no sample finds its file is an error.")
 @click.option("--split", "splits", multiple=True,
               help="Keep only scenes of this split (repeatable): train, val, test, mini_train, mini_val, ...")
-@click.option("--workers", type=int, default=1, show_default=True,
-              help="Worker processes of the embedded Dask LocalCluster (1: in this process).")
-@click.option("--scheduler", default=None, metavar="ADDRESS",
-              help="Run on an existing Dask cluster (tcp://host:8786; default $DASK_SCHEDULER_ADDRESS) "
-                   "instead of a LocalCluster.")
+@cluster_options()
 @click.option("--resume", is_flag=True, help="Continue an interrupted build of the same inputs and options.")
-@click.option("--on-error", type=click.Choice(["fail", "skip"]), default="fail", show_default=True,
+@click.option("--on-error", type=config_choice("occdata.store.build:BuildConfig.on_error"), default="fail",
+              show_default=True,
               help="fail: stop at the first bad sample (everything before it stays committed); "
                    "skip: record the error in the store and go on.")
 @click.option("--block-samples", type=int, default=32, show_default=True,
@@ -109,11 +116,11 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
 @click.option("--lidar-sweeps", type=click.IntRange(0, 100), default=0, show_default=True, metavar="N",
               help="Depth targets from the keyframe LiDAR sweep plus up to N previous sweeps (20 Hz, "
                    "motion-compensated to each camera; needs the sweeps/ files). 0: the keyframe alone.")
-@click.option("--no-progress", is_flag=True, help="No progress bar.")
+@progress_option()
 @friendly_errors
-def build(root: str, version: str | None, out: str, gts: str | None, splits: tuple[str, ...], workers: int,
-          scheduler: str | None, resume: bool, on_error: str, block_samples: int, image_scale: float, jpeg_quality: int,
-          lidar_sweeps: int, no_progress: bool) -> None:
+def build(root: str, version: str | None, out: str, gts: str | None, splits: tuple[str, ...], cluster: ClusterConfig,
+          resume: bool, on_error: str, block_samples: int, image_scale: float, jpeg_quality: int, lidar_sweeps: int,
+          progress: bool) -> None:
     """Convert a nuScenes-format tree (+ Occ3D labels) into one chunked zarr store.
 
     Stores per keyframe: the 6 camera images, calibrations and poses, LiDAR depth targets,
@@ -125,28 +132,18 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
     from occdata.store.sample import SampleOptions
 
     root_path = local_path(root, "--root")
-    gts_path = local_path(gts, "--gts") if gts is not None else None
-    if gts_path is not None:
-        click.echo(f"labels: {gts_path} (--gts)")
-    elif (root_path / "gts").is_dir():
-        gts_path = root_path / "gts"
-        click.echo(f"labels: {gts_path} (found in the dataset root)")
-    else:
-        click.echo(f"labels: none (no --gts, and {root_path / 'gts'} does not exist): the store will be unlabelled")
+    gts_path = _labels_folder(root_path, local_path(gts, "--gts") if gts is not None else None)
     out_path = out if is_remote(out) else local_path(out, "--out")
-    try:
+    with exit_on_interrupt(f"interrupted: every sample committed so far is kept in {out_path}; rerun the same "
+                           "command with --resume to continue"):
         report = build_store(BuildConfig(
             root=root_path, out=out_path, version=version, gts=gts_path,
-            labels_required=gts is not None, splits=splits, workers=workers, scheduler=scheduler, resume=resume,
-            on_error=on_error,  # type: ignore[arg-type]
+            labels_required=gts is not None, splits=splits, workers=cluster.workers, scheduler=cluster.scheduler,
+            resume=resume, on_error=on_error,  # type: ignore[arg-type]
             block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality,
                                                                  lidar_sweeps=lidar_sweeps),
-            progress=not no_progress,
+            progress=progress,
         ))
-    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (occdata.runtime.cluster.Interrupted)
-        click.echo(f"\ninterrupted: every sample committed so far is kept in {out_path}; rerun the same command "
-                   "with --resume to continue", err=True)
-        sys.exit(128 + getattr(exc, "signum", 2))
     for note in report.warnings:
         click.echo(f"warning: {note}", err=True)
     click.echo(
@@ -157,9 +154,21 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
         click.echo("errors are recorded in the store: see `occdata info --store ...`", err=True)
 
 
+# moves into BuildConfig (runtime branch)
+def _labels_folder(root: Path, gts: Path | None) -> Path | None:
+    """The labels folder: --gts, else <root>/gts if it exists, else none; says which on stdout."""
+    if gts is not None:
+        click.echo(f"labels: {gts} (--gts)")
+        return gts
+    if (root / "gts").is_dir():
+        click.echo(f"labels: {root / 'gts'} (found in the dataset root)")
+        return root / "gts"
+    click.echo(f"labels: none (no --gts, and {root / 'gts'} does not exist): the store will be unlabelled")
+    return None
+
+
 @main.command()
-@click.option("--root", required=True, metavar="DIR", help="nuScenes-format dataset root (a folder or a file:// URL).")
-@click.option("--version", default=None, help="Version folder (v1.0-trainval, v1.0-mini, ...); auto if only one.")
+@root_options()
 @click.option("--out", required=True, metavar="DIR",
               help="Output folder: <out>/<scene>/<sample_token>/labels.npz (Occ3D's layout) + labels.json.")
 @click.option("--split", "splits", multiple=True, help="Only scenes of this split (repeatable).")
@@ -173,17 +182,13 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
               help="Metres within which a sweep point takes the class of the nearest labelled keyframe point.")
 @click.option("--no-boxes", is_flag=True,
               help="The control: aggregate every point in the global frame, ignoring boxes (moving objects smear).")
-@click.option("--workers", type=int, default=1, show_default=True,
-              help="Worker processes of the embedded Dask LocalCluster, one scene each at a time (1: here).")
-@click.option("--scheduler", default=None, metavar="ADDRESS",
-              help="Run on an existing Dask cluster (tcp://host:8786; default $DASK_SCHEDULER_ADDRESS); the "
-                   "workers must see --root and --out at the same paths.")
+@cluster_options(per_worker=", one scene each at a time")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run: finished scenes are skipped.")
-@click.option("--no-progress", is_flag=True, help="No progress bar.")
+@progress_option()
 @friendly_errors
 def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], scenes: tuple[str, ...],
-           lidar_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, workers: int,
-           scheduler: str | None, resume: bool, no_progress: bool) -> None:
+           lidar_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, cluster: ClusterConfig,
+           resume: bool, progress: bool) -> None:
     """Generate Occ3D-style occupancy labels from LiDAR and 3D boxes (and lidarseg when present).
 
     Per scene: LiDAR points aggregated over time, static points in the global frame, points inside a
@@ -192,35 +197,25 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
     `occdata build --gts OUT`. See docs/labels.md.
     """
     from occdata.labels import LabelOptions, LabelsConfig, generate_labels
-    from occdata.runtime.cluster import ClusterConfig
 
     out_path = local_path(out, "--out")
-    cluster = ClusterConfig(workers=workers, scheduler=scheduler)
-    try:
+    with exit_on_interrupt(f"interrupted: finished scenes are kept in {out_path}; rerun with --resume to continue"):
         report = generate_labels(LabelsConfig(
             root=local_path(root, "--root"), out=out_path, version=version, splits=splits or None,
-            scenes=scenes or None, resume=resume, progress=not no_progress,
+            scenes=scenes or None, resume=resume, progress=progress,
             options=LabelOptions(lidar_sweeps=lidar_sweeps, static_class=static_class, knn_radius=knn_radius,
                                  use_boxes=not no_boxes),
         ), cluster)
-    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (occdata.runtime.cluster.Interrupted)
-        click.echo(f"\ninterrupted: finished scenes are kept in {out_path}; rerun with --resume to continue", err=True)
-        sys.exit(128 + getattr(exc, "signum", 2))
     seg = "lidarseg classes" if report.with_lidarseg else f"no lidarseg: static points are class {static_class}"
     click.echo(f"{out_path}: {report.scenes_done} scene(s) labelled, {report.scenes_skipped} already done, "
                f"{report.keyframes} keyframes ({seg}); manifest {report.manifest}")
 
 
-# A plain string, not click.Path: click would turn an fsspec URL such as file:///x/y.zarr into file:/x/y.zarr.
-_store_opt = click.option("--store", default=DEFAULT_STORE, show_default=True, metavar="STORE",
-                          help="An occdata zarr store: a folder or an fsspec URL (file://, s3://, ...).")
-
-
 @main.command("bev-gt")
-@_store_opt
-@click.option("--no-progress", is_flag=True, help="No progress bar.")
+@store_option()
+@progress_option()
 @friendly_errors
-def bev_gt(store: str, no_progress: bool) -> None:
+def bev_gt(store: str, progress: bool) -> None:
     """(Re)compute the BEV multi-hot ground truth from the stored voxel labels.
 
     One uint32 bit field per BEV cell (bit c: class c occurs in the column; bit 17 = free).
@@ -230,12 +225,12 @@ def bev_gt(store: str, no_progress: bool) -> None:
     from occdata.store.reader import open_store
 
     open_store(store)  # validates the schema first
-    n = compute_bev_gt(store, progress=not no_progress)
+    n = compute_bev_gt(store, progress=progress)
     click.echo(f"{store}: BEV GT written for {n} labelled samples")
 
 
 @main.command()
-@_store_opt
+@store_option()
 @click.option("--recompute", is_flag=True,
               help="Recompute for every labelled sample (default: only those without a shipped camera mask), "
                    "and print the agreement with the shipped masks per class.")
@@ -244,9 +239,9 @@ def bev_gt(store: str, no_progress: bool) -> None:
                    "keyframe sweep and of up to N previous sweeps (Occ3D aggregates sweeps).")
 @click.option("--root", default=None, metavar="DIR",
               help="With --lidar-sweeps: the nuScenes-format tree (default: the store's source root).")
-@click.option("--no-progress", is_flag=True, help="No progress bar.")
+@progress_option()
 @friendly_errors
-def visibility(store: str, recompute: bool, lidar_sweeps: int | None, root: str | None, no_progress: bool) -> None:
+def visibility(store: str, recompute: bool, lidar_sweeps: int | None, root: str | None, progress: bool) -> None:
     """Occ3D-style camera and LiDAR masks from the stored semantics (docs/visibility.md).
 
     LiDAR mask: voxels the stored keyframe LiDAR rays pass through or end in, plus every object
@@ -257,7 +252,7 @@ def visibility(store: str, recompute: bool, lidar_sweeps: int | None, root: str 
     """
     from occdata.store.visibility_cmd import compute_visibility
 
-    report = compute_visibility(store, recompute=recompute, progress=not no_progress, lidar_sweeps=lidar_sweeps,
+    report = compute_visibility(store, recompute=recompute, progress=progress, lidar_sweeps=lidar_sweeps,
                                 root=local_path(root, "--root") if root is not None else None)
     click.echo(f"{store}: visibility computed for {report.computed} samples "
                f"({report.seconds_per_sample:.2f} s/sample); {report.skipped_unlabelled} unlabelled skipped")
@@ -285,13 +280,12 @@ def visibility(store: str, recompute: bool, lidar_sweeps: int | None, root: str 
 
 @main.command("visibility-check")
 @click.option("--label", required=True, metavar="FILE", help="An Occ3D labels.npz (a path or a file:// URL).")
-@click.option("--root", required=True, metavar="DIR",
-              help="nuScenes-format root whose camera rig to use (cameras are rigid on the car).")
-@click.option("--version", default=None, help="Version folder; auto if only one.")
+@root_options("nuScenes-format root whose camera rig to use (cameras are rigid on the car; a folder or a "
+              "file:// URL).")
 @click.option("--sample", default=None, help="Sample token whose cameras to use (default: the first keyframe).")
 @click.option("--max-occluders", default=7, show_default=True, type=click.IntRange(min=0),
               help="Object voxels a camera ray may cross before a voxel stops being visible (0 = strict).")
-@click.option("--json", "as_json", is_flag=True, help="Print the figures as JSON.")
+@json_option("Print the figures as JSON.")
 @friendly_errors
 def visibility_check(label: str, root: str, version: str | None, sample: str | None, max_occluders: int,
                      as_json: bool) -> None:
@@ -321,8 +315,8 @@ def visibility_check(label: str, root: str, version: str | None, sample: str | N
 
 
 @main.command()
-@_store_opt
-@click.option("--json", "as_json", is_flag=True, help="Print everything as JSON (scene table included).")
+@store_option()
+@json_option("Print everything as JSON (scene table included).")
 @friendly_errors
 def info(store: str, as_json: bool) -> None:
     """Samples, scenes, arrays (shapes, dtypes, chunks), attrs and recorded errors of a store."""
@@ -353,11 +347,11 @@ def info(store: str, as_json: bool) -> None:
 
 
 @main.command()
-@_store_opt
-@click.option("--no-progress", is_flag=True, help="No progress bar.")
+@store_option()
+@progress_option()
 @click.option("--images", is_flag=True, help="Also decode every stored image and report damaged JPEGs.")
 @friendly_errors
-def verify(store: str, no_progress: bool, images: bool) -> None:
+def verify(store: str, progress: bool, images: bool) -> None:
     """Recompute every committed sample's checksums; report corruption with the sample it hits.
 
     With --images, also decode every stored image and report those that libjpeg decodes only with
@@ -370,13 +364,13 @@ def verify(store: str, no_progress: bool, images: bool) -> None:
     from occdata.store.verify import pending_samples, verify_store
 
     reader = open_store(store)
-    with tqdm(total=reader.n_samples, desc="verify", unit="sample", disable=no_progress) as bar:
+    with tqdm(total=reader.n_samples, desc="verify", unit="sample", disable=not progress) as bar:
         problems = verify_store(reader, progress=bar.update)
     pending = pending_samples(reader)
     if images:
         from occdata.store.verify_images import verify_images
 
-        with tqdm(total=len(reader.done_indices()), desc="images", unit="sample", disable=no_progress) as bar:
+        with tqdm(total=len(reader.done_indices()), desc="images", unit="sample", disable=not progress) as bar:
             problems += verify_images(reader, progress=bar.update)
     if problems:
         for p in problems:
@@ -393,10 +387,10 @@ def verify(store: str, no_progress: bool, images: bool) -> None:
 
 
 @main.command()
-@_store_opt
+@store_option()
 @click.option("--train-split", default="train", show_default=True, help="Split whose labels are counted.")
 @click.option("--split", default="val", show_default=True, help="Split to score.")
-@click.option("--json", "as_json", is_flag=True, help="Print the results as JSON (fractions).")
+@json_option("Print the results as JSON (fractions).")
 @friendly_errors
 def baseline(store: str, train_split: str, split: str, as_json: bool) -> None:
     """Score the image-free baseline: every voxel's most frequent training label.
@@ -423,17 +417,15 @@ def baseline(store: str, train_split: str, split: str, as_json: bool) -> None:
 @click.option("--pred", required=True, metavar="DIR",
               help="Predictions: <scene>/<token>/labels.npz (key 'semantics', the Occ3D layout) or <token>.npz "
                    "(key 'semantics' or 'pred'); uint8 (200, 200, 16), 17 = free.")
-@click.option("--store", default=DEFAULT_STORE, show_default=True, metavar="STORE",
-              help="The occdata store holding the ground truth and poses (a folder or an fsspec URL).")
+@store_option(help="The occdata store holding the ground truth and poses (a folder or an fsspec URL).")
 @click.option("--split", default="val", show_default=True, help="Split to score (every labelled sample of it).")
-@click.option("--mask", type=click.Choice(["camera", "lidar", "none"]), default="camera", show_default=True,
+@click.option("--mask", type=config_choice("occdata.eval.evaluate:MaskName"), default="camera", show_default=True,
               help="Visibility mask for mIoU (Occ3D uses camera). RayIoU uses no mask.")
 @click.option("--no-rayiou", is_flag=True, help="Skip RayIoU (mIoU only, much faster).")
-@click.option("--json", "as_json", is_flag=True, help="Print the results as JSON (percent; null = class absent).")
-@click.option("--no-progress", is_flag=True, help="No progress bar.")
+@json_option("Print the results as JSON (percent; null = class absent).")
+@progress_option()
 @friendly_errors
-def eval_cmd(pred: str, store: str, split: str, mask: str, no_rayiou: bool, as_json: bool,
-             no_progress: bool) -> None:
+def eval_cmd(pred: str, store: str, split: str, mask: str, no_rayiou: bool, as_json: bool, progress: bool) -> None:
     """Score saved predictions: Occ3D mIoU (+ geometry IoU) and RayIoU@1/2/4 m, on the CPU.
 
     mIoU: one confusion matrix over the split, voxels inside the mask, mean over the 17 semantic
@@ -444,7 +436,7 @@ def eval_cmd(pred: str, store: str, split: str, mask: str, no_rayiou: bool, as_j
     from occdata.eval.evaluate import EvalConfig, evaluate_predictions, format_table, results_dict, summary_line
 
     report = evaluate_predictions(EvalConfig(pred=local_path(pred, "--pred"), store=store, split=split, mask=mask,  # type: ignore[arg-type]
-                                             rayiou=not no_rayiou, progress=not no_progress))
+                                             rayiou=not no_rayiou, progress=progress))
     if as_json:
         click.echo(json.dumps(results_dict(report.miou, report.rayiou, split=report.split, mask=report.mask,
                                            n_samples=report.n_samples,
@@ -458,7 +450,7 @@ def eval_cmd(pred: str, store: str, split: str, mask: str, no_rayiou: bool, as_j
 
 
 @main.command()
-@_store_opt
+@store_option()
 @click.option("--index", "-i", type=int, required=True, help="Sample index in the store.")
 @click.option("--out", required=True, metavar="FILE", help="Output .npz file (a path or a file:// URL).")
 @friendly_errors
@@ -478,7 +470,7 @@ def dump(store: str, index: int, out: str) -> None:
 
 
 @main.command("check-projection")
-@_store_opt
+@store_option()
 @click.option("--index", "-i", type=int, default=0, show_default=True, help="Sample index in the store.")
 @click.option("--out", required=True, metavar="FILE", help="Output .png file (a path or a file:// URL).")
 @friendly_errors
@@ -491,17 +483,15 @@ def check_projection(store: str, index: int, out: str) -> None:
 
 
 @main.command()
-@_store_opt
+@store_option()
 @click.option("--pred", default=None, metavar="DIR", help="Prediction folder (as `occdata eval --pred`).")
 @click.option("--scene", default=None, help="Scene to show first (the one exported with --export).")
 @click.option("--split", default=None, help="Only the scenes of this split (default: all).")
-@click.option("--view", "view_name", type=click.Choice(["label", "prediction", "side", "error"]), default=None,
+@click.option("--view", "view_name", type=config_choice("occdata.view.config:VIEWS"), default=None,
               help="Initial view (default: side with --pred, else label).")
-@click.option("--mask", default="none", show_default=True,
-              type=click.Choice(["none", "camera", "lidar", "camera (occdata visibility)",
-                                 "lidar (occdata visibility)"]),
+@click.option("--mask", default="none", show_default=True, type=config_choice("occdata.view.config:MASK_CHOICES"),
               help="Voxels outside this mask are grey (camera: what mIoU scores).")
-@click.option("--style", type=click.Choice(["flat", "cubes"]), default="flat", show_default=True,
+@click.option("--style", type=config_choice("occdata.view.config:STYLES"), default="flat", show_default=True,
               help="flat: exact class colours; cubes: lit boxes.")
 @click.option("--lidar", is_flag=True, help="Also draw the stored LiDAR depth points in 3D.")
 @click.option("--host", default="127.0.0.1", show_default=True, help="Address to serve on (others expose the data).")
@@ -516,8 +506,6 @@ def view(store: str, pred: str | None, scene: str | None, split: str | None, vie
     Serves a local web viewer and prints its URL (Ctrl-C stops it); with --export, writes one scene
     as an HTML file that opens in any browser with no server. Needs `pip install -e '.[view]'`.
     """
-    from pathlib import Path
-
     from occdata.view import FrameOptions, ViewConfig, run_view
 
     name = view_name or ("side" if pred else "label")

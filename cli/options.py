@@ -1,0 +1,116 @@
+"""Options that several commands share, defined once, and choices read from the configs that own them."""
+
+from __future__ import annotations
+
+import enum
+import functools
+import importlib
+import typing
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import click
+
+from cli._common import DEFAULT_STORE
+from occdata.errors import OccDataError
+
+__all__ = ["ConfigChoice", "cluster_options", "config_choice", "json_option", "progress_option", "root_options",
+           "store_option"]
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+ROOT_HELP = "nuScenes-format dataset root (a folder or a file:// URL)."
+STORE_HELP = "An occdata zarr store: a folder or an fsspec URL (file://, s3://, ...)."
+
+
+class ConfigChoice(click.Choice):  # type: ignore[type-arg]
+    """A `click.Choice` whose values come from the config module that defines them (one copy), read on
+    first use: those modules import zarr or torch, which starting the CLI and `--help` of a group should
+    not pay for."""
+
+    def __init__(self, source: str, extra: tuple[str, ...] = (), case_sensitive: bool = True) -> None:
+        # no super().__init__: it would store the choices now
+        self.source = source
+        self.extra = extra
+        self.case_sensitive = case_sensitive
+        self._choices: tuple[str, ...] | None = None
+
+    @property  # type: ignore[override]
+    def choices(self) -> tuple[str, ...]:
+        if self._choices is None:
+            self._choices = (*_values(_resolve(self.source)), *self.extra)
+        return self._choices
+
+
+def config_choice(source: str, *extra: str) -> ConfigChoice:
+    """Choices from `"module:Name"` (a Literal alias, an Enum, a dict's keys or a tuple) or from
+    `"module:Class.field"` (the Literal annotation of a dataclass field); `extra` values follow them
+    (e.g. "all")."""
+    return ConfigChoice(source, extra)
+
+
+def _resolve(source: str) -> Any:
+    module_name, _, attr = source.partition(":")
+    name, _, field = attr.partition(".")
+    obj = getattr(importlib.import_module(module_name), name)
+    return typing.get_type_hints(obj)[field] if field else obj
+
+
+def _values(obj: Any) -> tuple[str, ...]:
+    if typing.get_origin(obj) is typing.Literal:
+        return tuple(str(v) for v in typing.get_args(obj))
+    if isinstance(obj, type) and issubclass(obj, enum.Enum):
+        return tuple(str(m.value) for m in obj)
+    return tuple(obj)  # a tuple, or a dict's keys
+
+
+def root_options(help: str = ROOT_HELP) -> Callable[[F], F]:
+    """`--root DIR` (required) and `--version` (the version folder under it)."""
+    root = click.option("--root", required=True, metavar="DIR", help=help)
+    version = click.option("--version", default=None,
+                           help="Version folder (v1.0-trainval, v1.0-mini, ...); auto if only one.")
+    return lambda fn: root(version(fn))
+
+
+def store_option(default: str | None = DEFAULT_STORE, help: str = STORE_HELP) -> Callable[[F], F]:
+    """`--store STORE`. A plain string, not click.Path: click would turn an fsspec URL such as
+    file:///x/y.zarr into file:/x/y.zarr."""
+    return click.option("--store", default=default, show_default=default is not None, metavar="STORE", help=help)
+
+
+def progress_option(help: str = "No progress bar.") -> Callable[[F], F]:
+    """`--no-progress`, handed to the command as `progress` (True unless given)."""
+    return click.option("--no-progress", "progress", flag_value=False, default=True, help=help)
+
+
+def json_option(help: str = "Print the result as JSON.") -> Callable[[F], F]:
+    """`--json`, handed to the command as `as_json`."""
+    return click.option("--json", "as_json", is_flag=True, help=help)
+
+
+def cluster_options(per_worker: str = "") -> Callable[[F], F]:
+    """`--workers` and `--scheduler`, handed to the command as one `cluster`
+    (occdata.runtime.cluster.ClusterConfig, which validates them). `per_worker`: what each worker
+    does, for the help text (", one scene each at a time")."""
+
+    def decorate(fn: F) -> F:
+        @functools.wraps(fn)
+        def wrapper(*args: Any, workers: int, scheduler: str | None, **kwargs: Any) -> Any:
+            from occdata.runtime.cluster import ClusterConfig
+
+            try:
+                cluster = ClusterConfig(workers=workers, scheduler=scheduler)
+            except OccDataError as exc:
+                raise click.ClickException(str(exc)) from None
+            return fn(*args, cluster=cluster, **kwargs)
+
+        workers = click.option("--workers", type=int, default=1, show_default=True,
+                               help=f"Worker processes of the embedded Dask LocalCluster{per_worker} "
+                                    "(1: in this process).")
+        scheduler = click.option("--scheduler", default=None, metavar="ADDRESS",
+                                 help="Run on an existing Dask cluster (tcp://host:8786; default "
+                                      "$DASK_SCHEDULER_ADDRESS) instead of a LocalCluster; its workers must "
+                                      "see --root and --out at the same paths.")
+        return workers(scheduler(wrapper))  # type: ignore[return-value]
+
+    return decorate
