@@ -17,16 +17,16 @@ Tables and the runs behind their rows (a run shared by two tables is trained onc
 
 Steps:
 
-    python benchmarks/ablations.py status                     # done / missing runs, the commands to run them
-    python benchmarks/ablations.py run fastocc --seed 0       # fastocc train into runs/ablate/fastocc-s0
-    python benchmarks/ablations.py score                      # val mIoU (camera mask), RayIoU, geometry IoU
-    python benchmarks/ablations.py latency                    # 3D-side latency of each head / FastOcc head
-    python benchmarks/ablations.py steptime                   # training s/step per row, one run at a time
-    python benchmarks/ablations.py tables                     # docs/ablations.md, PNGs, from docs/ablations.json
+    python -m benchmarks.ablations status                    # done / missing runs, the commands to run them
+    python -m benchmarks.ablations run fastocc --seed 0      # fastocc train into runs/ablate/fastocc-s0
+    python -m benchmarks.ablations score                     # val mIoU (camera mask), RayIoU, geometry IoU
+    python -m benchmarks.ablations latency                   # 3D-side latency of each head / FastOcc head
+    python -m benchmarks.ablations steptime                  # training s/step per row, one run at a time
+    python -m benchmarks.ablations tables                    # docs/ablations.md, PNGs, from docs/ablations.json
 
 `run` resumes a run whose folder holds last.pt; it records wall time per call in ablate_run.json in the
-run folder. `score` reuses benchmarks/bench_train.py's checkpoint evaluation (the project's metric code)
-and caches per checkpoint, so it can be re-run as runs land.
+run folder. `score` scores checkpoints with `fastocc.infer.score` (the project's metric code; learning
+curves through `benchmarks.curves`) and caches per checkpoint, so it can be re-run as runs land.
 """
 
 from __future__ import annotations
@@ -37,7 +37,6 @@ import fcntl
 import json
 import math
 import os
-import platform
 import re
 import shlex
 import shutil
@@ -50,11 +49,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "benchmarks"))
-
-from fastocc.train.config import TrainConfig, config_to_toml, load_config  # noqa: E402
+from benchmarks.provenance import REPO, machine
+from fastocc.train.config import TrainConfig, config_to_toml, load_config
 
 __all__ = ["ROWS", "TABLES", "Row", "Table", "TableRow", "render_markdown", "row_config", "verdict"]
 
@@ -285,14 +281,21 @@ def lane_commands(todo: Sequence[tuple[str, int]], epochs: int, store: str | Non
     threads = 1 if lanes > 1 and len(todo) > 1 else 2
     extra = f" --epochs {epochs} --threads {threads}" + (f" --store {shlex.quote(store)}" if store else "")
     extra += f" --runs-dir {shlex.quote(str(runs_dir))}" if runs_dir != RUNS_DIR else ""
-    script = shlex.quote(os.path.relpath(Path(__file__).resolve()))
+    me = _self_command()
     cmds = []
     for k in range(min(lanes, len(todo))):
         share = todo[k::lanes]
-        chain = "; ".join(f"{shlex.quote(sys.executable)} {script} run {r} --seed {s}{extra}" for r, s in share)
+        chain = "; ".join(f"{me} run {r} --seed {s}{extra}" for r, s in share)
         log = runs_dir / "logs" / f"lane{k}.log"
         cmds.append(f"mkdir -p {runs_dir}/logs && nohup bash -c {shlex.quote(chain)} > {log} 2>&1 &")
     return cmds
+
+
+def _self_command() -> str:
+    """This module's command line from the current folder: `python -m` finds the package only from the
+    repository root, so elsewhere the root goes on PYTHONPATH."""
+    py = f"{shlex.quote(sys.executable)} -m benchmarks.ablations"
+    return py if Path.cwd().resolve() == REPO else f"PYTHONPATH={shlex.quote(str(REPO))} {py}"
 
 
 def status(epochs: int, store: str | None, runs_dir: Path) -> list[tuple[str, int]]:
@@ -319,13 +322,14 @@ def load_results(path: Path) -> dict[str, Any]:
 
 def score_run(run: Path, store: str, workers: int) -> dict[str, Any]:
     """Final scores of last.pt (mIoU camera mask, RayIoU, geometry IoU) and the val-mIoU learning curve
-    over the epoch checkpoints, with benchmarks/bench_train.py's evaluation (cached in the run folder)."""
-    from bench_train import evaluate_checkpoint, run_curve
+    over the epoch checkpoints (`benchmarks.curves`), both cached in the run folder."""
+    from benchmarks.curves import run_curve
+    from fastocc.infer.score import score_checkpoint
 
     curve = run_curve(run, store, rayiou=False, workers=workers)
     steps = int(_last_meta(run).get("opt_steps", -1))
     final = _cached(run / "ablate_score.json", steps, store,
-                    lambda: evaluate_checkpoint(run / "last.pt", store, noise=False, rayiou=True, workers=workers))
+                    lambda: score_checkpoint(run / "last.pt", store, "val", rayiou=True, workers=workers))
     wall = json.loads((run / "ablate_run.json").read_text()) if (run / "ablate_run.json").is_file() else {}
     return {"miou": final["miou"], "rayiou": final["rayiou"], "geo_iou": final["geo_iou"],
             "frames_per_s": final.get("frames_per_s"), "opt_steps": steps, "s_per_step": seconds_per_step(run),
@@ -351,26 +355,18 @@ def _cached(cache: Path, steps: int, store: str, compute: Callable[[], dict[str,
 
 
 def score_tta(run: Path, store: str, workers: int) -> dict[str, Any]:
-    """Flip TTA off and on for one run's last.pt, in one process (bench_tta's metrics dict each); cached in
-    the run folder (ablate_tta.json) per checkpoint, like the scores."""
-    from bench_tta import _metrics
-
-    from fastocc.checkpoint import load_model
-    from fastocc.infer.evaluate import evaluate
-    from fastocc.infer.predict import PredictConfig
-
-    model, ckpt = load_model(run / "last.pt")
+    """Flip TTA off and on for one run's last.pt (`score_checkpoint` each); cached in the run folder
+    (ablate_tta.json) per checkpoint, like the scores."""
+    from fastocc.infer.score import score_checkpoint
 
     def both() -> dict[str, Any]:
-        out = {}
-        for tta in (False, True):
-            cfg = PredictConfig(store=store, split="val", workers=workers, tta=tta)
-            out["on" if tta else "off"] = _metrics(evaluate(model, ckpt.model_config, cfg, progress=False))
+        out: dict[str, Any] = {"on" if tta else "off": score_checkpoint(run / "last.pt", store, "val", tta=tta,
+                                                                        workers=workers) for tta in (False, True)}
         out["time_factor"] = out["on"]["infer_seconds"] / out["off"]["infer_seconds"]
         out["loadavg_1min"] = os.getloadavg()[0]
         return {"tta": out}
 
-    return _cached(run / "ablate_tta.json", int(ckpt.meta.get("opt_steps", -1)), store, both)["tta"]
+    return _cached(run / "ablate_tta.json", int(_last_meta(run).get("opt_steps", -1)), store, both)["tta"]
 
 
 def best_row(results: dict[str, Any]) -> str | None:
@@ -422,7 +418,7 @@ def _score(epochs: int, store: str, workers: int, runs_dir: Path, results_path: 
             results["tta"] = tta
         else:  # the best row's runs live in another runs folder: keep the TTA already scored
             print(f"TTA: no finished run of {row} under {runs_dir}; the recorded TTA is kept")
-    results["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(), "loadavg_1min": os.getloadavg()[0]}
+    results["machine"] = machine()
     _save(results, results_path)
     print(f"wrote {results_path}")
 
@@ -465,7 +461,7 @@ def latency(preset: str, repeats: int, rounds: int, threads: int | None, results
     out = {"head_ms": ms, "ratio_to_fastocc": ratio, "rounds_ms": per_round, "config": res["config"],
            "whole_ms": {k: statistics.median(r[k] for r in whole) for k in whole[0]}, "whole_rounds_ms": whole,
            "loadavg_1min": load,
-           "command": f"python benchmarks/ablations.py latency --preset {preset} --repeats {repeats} --rounds {rounds}"
+           "command": f"python -m benchmarks.ablations latency --preset {preset} --repeats {repeats} --rounds {rounds}"
                       + (f" --threads {threads}" if threads else "")}
     with _results_lock(results_path):
         results = load_results(results_path)
@@ -506,7 +502,7 @@ def step_time(rows: Sequence[str], samples: int, rounds: int, threads: int | Non
     out = {"s_per_step": {r: statistics.median(p[r] for p in per_round) for r in rows},
            "ratio": {r: statistics.median(p[r] / p[rows[0]] for p in per_round) for r in rows},
            "rounds": per_round, "samples": samples, "threads": threads, "loadavg_1min": load,
-           "command": f"python benchmarks/ablations.py steptime --rows {','.join(rows)} --samples {samples} "
+           "command": f"python -m benchmarks.ablations steptime --rows {','.join(rows)} --samples {samples} "
                       f"--rounds {rounds}" + (f" --threads {threads}" if threads else "")}
     with _results_lock(results_path):
         results = load_results(results_path)
@@ -517,7 +513,7 @@ def step_time(rows: Sequence[str], samples: int, rounds: int, threads: int | Non
 
 def _step_time_note(st: dict[str, Any] | None) -> str:
     if not st:
-        return "Training cost alone: pending (`python benchmarks/ablations.py steptime` on an idle machine)."
+        return "Training cost alone: pending (`python -m benchmarks.ablations steptime` on an idle machine)."
     first = next(iter(st["s_per_step"]))
     per = ", ".join(f"{r} {v:.2f}" + ("" if r == first else f" ({st['ratio'][r]:.2f}x)")
                     for r, v in st["s_per_step"].items())
@@ -603,7 +599,7 @@ def _comparison_lines(t: Table, results: dict[str, Any]) -> list[str]:
 
 def _latency_note(lat: dict[str, Any] | None) -> str:
     if not lat:
-        return "3D-side latency: pending (`python benchmarks/ablations.py latency`)."
+        return "3D-side latency: pending (`python -m benchmarks.ablations latency`)."
     c, ms, rounds = lat["config"], lat["head_ms"], len(lat.get("rounds_ms", [1]))
     whole = lat.get("whole_ms")
     whole_text = "" if not whole else (f"; whole network: FastOcc {whole['fastocc']:.0f} ms, SurroundOcc* "
@@ -692,12 +688,12 @@ def readings_of(md_text: str) -> dict[str, str]:
 
 
 def _commands_section(epochs: int) -> list[str]:
-    return ["## Commands", "", "```", WORLD, f"python benchmarks/ablations.py status --epochs {epochs}   "
+    return ["## Commands", "", "```", WORLD, f"python -m benchmarks.ablations status --epochs {epochs}   "
             "# prints the nohup commands for the missing runs (two lanes)",
-            f"python benchmarks/ablations.py run ROW --seed S --epochs {epochs} [--threads 1]",
-            f"python benchmarks/ablations.py score --epochs {epochs}", "python benchmarks/ablations.py latency",
-            "python benchmarks/ablations.py steptime   # on an idle machine",
-            f"python benchmarks/ablations.py tables --epochs {epochs}", "```", "",
+            f"python -m benchmarks.ablations run ROW --seed S --epochs {epochs} [--threads 1]",
+            f"python -m benchmarks.ablations score --epochs {epochs}", "python -m benchmarks.ablations latency",
+            "python -m benchmarks.ablations steptime   # on an idle machine",
+            f"python -m benchmarks.ablations tables --epochs {epochs}", "```", "",
             f"Rows: {', '.join(f'`{r}`' for r in ROWS)}. Raw numbers: `docs/ablations.json`.", ""]
 
 

@@ -18,17 +18,13 @@ the calling thread (`time.thread_time`: at 1 thread torch, the numba kernels and
 intra-op thread all compute there), which a loaded machine inflates far less than wall time; on an idle
 machine the two agree. Run it alone on an idle machine for figures to quote.
 
-    PYTHONPATH=. python benchmarks/bench_temporal.py --preset nano --input-hw 96 256 --rounds 3 --json out.json
+    python -m benchmarks.bench_temporal --preset nano --input-hw 96 256 --rounds 3 --json out.json
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import statistics
-import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -38,15 +34,14 @@ from typing import Any
 import numpy as np
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from benchmarks.common import write_json
+from benchmarks.provenance import finish, machine
+from fastocc.deploy import ExportConfig, Predictor, export_model, synthetic_rig
+from fastocc.deploy.export import _stream_poses
+from fastocc.losses import LossConfig, occupancy_loss
+from fastocc.model import FastOcc, ModelConfig, preset, synthetic_inputs
 
-from fastocc.deploy import ExportConfig, Predictor, export_model, synthetic_rig  # noqa: E402
-from fastocc.deploy.export import _stream_poses  # noqa: E402
-from fastocc.losses import LossConfig, occupancy_loss  # noqa: E402
-from fastocc.model import FastOcc, ModelConfig, preset, synthetic_inputs  # noqa: E402
-
-__all__ = ["ROWS", "run"]
+__all__ = ["ROWS", "format_report", "run"]
 
 ROWS: dict[str, dict[str, Any]] = {
     "hist0": {"num_history": 0},
@@ -148,7 +143,7 @@ def run(name: str = "nano", input_hw: tuple[int, int] | None = (96, 256), channe
     """The measurement described in the module docstring; a JSON-ready dict."""
     torch.set_num_threads(threads)
     cfgs = _configs(name, input_hw, channels)
-    load = os.getloadavg()[0]
+    record = machine(threads=threads)
     with tempfile.TemporaryDirectory() as tmp:
         streams = _predictors(cfgs, runtimes, threads, Path(tmp), seed)
         steps = _train_steps(cfgs, seed) if train_repeats else {}
@@ -180,19 +175,18 @@ def run(name: str = "nano", input_hw: tuple[int, int] | None = (96, 256), channe
     result["config"] = {
         "preset": name, "input_hw": list(first.input_hw), "temporal_channels": channels, "threads": threads,
         "runtimes": list(runtimes), "rounds": rounds, "repeats": repeats, "warmup": warmup,
-        "train_repeats": train_repeats, "seed": seed, "torch": torch.__version__, "machine": platform.platform(),
-        "cpus": os.cpu_count(), "loadavg_1min_at_start": load, "loadavg_1min_at_end": os.getloadavg()[0],
-        "rows": {row: ROWS[row] for row in cfgs},
+        "train_repeats": train_repeats, "seed": seed, "rows": {row: ROWS[row] for row in cfgs},
         "goal": "cached16 <= 1.15x hist0 inference latency, <= 1.25x hist0 training step",
     }
+    result["machine"] = finish(record)
     return result
 
 
 def format_report(res: dict[str, Any]) -> str:
-    c = res["config"]
+    c, m = res["config"], res["machine"]
     lines = [f"preset {c['preset']} {c['input_hw'][0]}x{c['input_hw'][1]}, C_r {c['temporal_channels']}, "
              f"{c['threads']} thread(s), {c['rounds']} rounds x {c['repeats']} frames; 1-min load "
-             f"{c['loadavg_1min_at_start']:.1f} -> {c['loadavg_1min_at_end']:.1f}; ratios to hist0 (wall / CPU)"]
+             f"{m['loadavg_1min']:.1f} -> {m['loadavg_1min_end']:.1f}; ratios to hist0 (wall / CPU)"]
     for rt, rows in res["inference"].items():
         for row, v in rows.items():
             lines.append(f"  infer {rt:<5} {row:<9} {v['ms']:7.1f} ms/frame ({v['frames_per_s']:5.2f} frames/s, "
@@ -221,12 +215,9 @@ def main(argv: list[str] | None = None) -> None:
     hw = None if args.input_hw == [0, 0] else (args.input_hw[0], args.input_hw[1])
     res = run(args.preset, hw, args.temporal_channels, args.threads, tuple(args.runtimes), args.rounds,
               args.repeats, args.warmup, args.train_repeats)
-    res["config"]["command"] = "PYTHONPATH=. python benchmarks/bench_temporal.py " + " ".join(
-        sys.argv[1:] if argv is None else argv)
     print(format_report(res))
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(res, indent=1) + "\n")
+        write_json(res, args.json, indent=1)
 
 
 if __name__ == "__main__":

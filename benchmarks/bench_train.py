@@ -1,31 +1,31 @@
 """Does `fastocc train` learn? Image-free baseline, checkpoint evaluation and the learning-curve PNG (issue #11).
 
     # 1. the best image-free baseline: per-voxel most frequent TRAINING label, scored on val (camera mask)
-    python benchmarks/bench_train.py baseline --store data.zarr --json baseline.json
+    python -m benchmarks.bench_train baseline --store data.zarr --json baseline.json
     # 2. val mIoU of every checkpoint of runs (snap_*.pt, epoch_*.pt, last.pt), with the shared evaluation;
     #    a run trained with noise_images = true is scored with noise images too; PNG of loss and mIoU
-    python benchmarks/bench_train.py curve --store data.zarr --run runs/img --run runs/noise \\
+    python -m benchmarks.bench_train curve --store data.zarr --run runs/img --run runs/noise \\
         --baseline baseline.json --png docs/train_curve.png --json curve.json
 
-The metric code is the project's (`occdata.eval.metrics`, `fastocc.infer.evaluate`); nothing is re-implemented.
+The metric code is the project's (`occdata.eval.metrics`, `fastocc.infer.score`); nothing is re-implemented.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import platform
-import sys
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from benchmarks.common import write_json
+from benchmarks.curves import run_curve
+from benchmarks.provenance import machine
+from occdata.store.reader import open_store
 
-from occdata.store.reader import open_store  # noqa: E402
+__all__ = ["baseline", "plot"]
 
 
 def baseline(store: str, train_split: str = "train", val_split: str = "val") -> dict:
@@ -37,57 +37,6 @@ def baseline(store: str, train_split: str = "train", val_split: str = "val") -> 
     return {"store": str(store), "train_samples": r.train_samples, "val_samples": r.val_samples,
             "miou_camera_mask": r.miou_camera_mask, "miou_no_mask": r.miou_no_mask,
             "per_class_iou_camera_mask": [None if np.isnan(x) else x for x in r.per_class_iou_camera_mask]}
-
-
-def evaluate_checkpoint(path: Path, store: str, noise: bool, rayiou: bool, workers: int) -> dict:
-    import torch
-
-    from fastocc.checkpoint import load_model
-    from fastocc.infer.evaluate import evaluate
-    from fastocc.infer.predict import PredictConfig
-    from fastocc.train.setup import noise_hook
-
-    model, ckpt = load_model(path, "cpu", prefer_ema=True)
-    if noise:
-        model.backbone.register_forward_pre_hook(noise_hook(12345))
-    torch.manual_seed(0)
-    rep = evaluate(model, ckpt.model_config, PredictConfig(store=store, split="val", workers=workers),
-                   rayiou=rayiou, progress=False)
-    return {"checkpoint": path.name, "opt_steps": int(ckpt.meta.get("opt_steps", 0)),
-            "samples_seen": int(ckpt.meta.get("samples_seen", 0)), "ema": ckpt.ema is not None,
-            "miou": float(rep.miou.miou), "rayiou": None if rep.rayiou is None else float(rep.rayiou.rayiou),
-            "geo_iou": float(rep.miou.geo_iou), "frames_per_s": float(rep.frames_per_s)}
-
-
-def run_curve(run: Path, store: str, rayiou: bool, workers: int, every: int = 1) -> dict:
-    cfg = json.loads((run / "config.json").read_text())
-    noise = bool(cfg.get("noise_images"))
-    ckpts = {}
-    for p in sorted(run.glob("snap_*.pt")) + sorted(run.glob("epoch_*.pt")) + [run / "last.pt"]:
-        if p.is_file():
-            from fastocc.checkpoint import load_checkpoint
-
-            step = int(load_checkpoint(p).meta.get("opt_steps", 0))
-            ckpts.setdefault(step, p)  # one checkpoint per step count
-    cache_path = run / "bench_eval.json"  # results per (checkpoint name, step): re-runs only score new ones
-    cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
-    steps = sorted(ckpts)
-    keep = set(steps[every - 1::every]) | set(steps[-1:])  # every k-th checkpoint, and always the last
-    points = []
-    for step, p in sorted(ckpts.items()):
-        if step not in keep:
-            continue
-        key = f"{p.name}@{step}@{store}@{rayiou}"
-        if key not in cache:
-            cache[key] = evaluate_checkpoint(p, store, noise, rayiou, workers)
-            cache_path.write_text(json.dumps(cache, indent=1))
-        points.append(cache[key])
-    records = [json.loads(ln) for ln in (run / "metrics.jsonl").read_text().splitlines() if ln.strip()]
-    train = [r for r in records if r["kind"] == "train"]
-    epochs = [r for r in records if r["kind"] == "epoch"]
-    return {"run": str(run), "noise_images": noise, "config": cfg, "points": points,
-            "loss": [(r["samples_seen"], r["loss"]) for r in train],
-            "data_wait": [r["data_wait"] for r in train], "epochs": epochs}
 
 
 def plot(curves: list[dict], baseline_miou: float | None, path: Path) -> None:
@@ -157,6 +106,7 @@ def main() -> None:
     c.add_argument("--every", type=int, default=1, help="score every k-th checkpoint (and the last)")
     c.add_argument("--json", type=Path)
     args = ap.parse_args()
+    record = machine()
     t0 = time.perf_counter()
     if args.cmd == "baseline":
         out = baseline(args.store)
@@ -172,10 +122,10 @@ def main() -> None:
             pts = ", ".join(f"{p['samples_seen']}: {100 * p['miou']:.2f}%" for p in cv["points"])
             print(f"{cv['run']} ({'noise' if cv['noise_images'] else 'images'}): val mIoU by samples seen {pts}")
         print(f"wrote {args.png}")
-    out["machine"] = {"platform": platform.platform(), "cpus": __import__("os").cpu_count()}
+    out["machine"] = record
     out["seconds"] = time.perf_counter() - t0
     if args.json:
-        args.json.write_text(json.dumps(out, indent=1, default=str) + "\n")
+        write_json(out, args.json, indent=1)
 
 
 if __name__ == "__main__":

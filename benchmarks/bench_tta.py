@@ -9,29 +9,26 @@ Without --store a synthetic world is written and built in a temporary folder (`o
 and val scenes). Without --checkpoint a randomly initialised nano network is used (seed 0): its TTA
 metric change says nothing about a trained model, and the output says which weights were used.
 
-    python benchmarks/bench_tta.py [--store S] [--checkpoint C] [--split val] [--repeats 2] [--json out.json]
+    python -m benchmarks.bench_tta [--store S] [--checkpoint C] [--split val] [--repeats 2] [--json out.json]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
-import sys
 import tempfile
-import time
 from pathlib import Path
 
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from benchmarks.common import emit_json
+from benchmarks.provenance import machine
+from fastocc.checkpoint import load_model
+from fastocc.infer import PredictConfig
+from fastocc.infer.evaluate import EvalReport, evaluate
+from fastocc.infer.score import report_metrics
+from fastocc.model import FastOcc, preset
 
-from fastocc.checkpoint import load_model  # noqa: E402
-from fastocc.infer import PredictConfig  # noqa: E402
-from fastocc.infer.evaluate import EvalReport, evaluate  # noqa: E402
-from fastocc.model import FastOcc, preset  # noqa: E402
+__all__ = ["make_store"]
 
 
 def make_store(tmp: Path, scenes: int, samples: int, width: int, height: int) -> Path:
@@ -43,11 +40,6 @@ def make_store(tmp: Path, scenes: int, samples: int, width: int, height: int) ->
     out = tmp / "data.zarr"
     build_store(BuildConfig(root=root, out=out, gts=root / "gts", progress=False))
     return out
-
-
-def _metrics(r: EvalReport) -> dict:
-    return {"miou": r.miou.miou, "geo_iou": r.miou.geo_iou, "rayiou": r.rayiou.rayiou if r.rayiou else None,
-            "infer_seconds": r.infer_seconds, "frames_per_s": r.frames_per_s, "samples": r.samples}
 
 
 def main() -> None:
@@ -63,7 +55,7 @@ def main() -> None:
     ap.add_argument("--synth-size", default="800x450", help="WxH of the synthetic images")
     ap.add_argument("--json", type=Path, default=None, help="Also write the summary here.")
     args = ap.parse_args()
-
+    record = machine(threads=torch.get_num_threads(), device=args.device)
     with tempfile.TemporaryDirectory() as tmp:
         store = args.store
         if store is None:
@@ -85,23 +77,17 @@ def main() -> None:
         plain = min(runs[False], key=lambda r: r.infer_seconds)
         aug = min(runs[True], key=lambda r: r.infer_seconds)
         summary = {
-            "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
-                        "threads": torch.get_num_threads(), "device": args.device,
-                        "loadavg_1min": os.getloadavg()[0]},
+            "machine": record,
             "store": str(args.store) if args.store else f"synthetic {args.synth_scenes} scenes x "
                                                         f"{args.synth_samples} samples, {args.synth_size}",
             "split": args.split, "weights": weights, "model": cfg.name, "input_hw": list(cfg.input_hw),
             "repeats": args.repeats,
-            "plain": _metrics(plain), "tta": _metrics(aug),
+            "plain": report_metrics(plain), "tta": report_metrics(aug),
             "time_factor": aug.infer_seconds / plain.infer_seconds,
             "miou_change_points": 100 * (aug.miou.miou - plain.miou.miou),
             "rayiou_change_points": 100 * (aug.rayiou.rayiou - plain.rayiou.rayiou),
-            "timestamp": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
         }
-    text = json.dumps(summary, indent=2)
-    print(text)
-    if args.json:
-        args.json.write_text(text + "\n")
+    emit_json(summary, args.json)
 
 
 if __name__ == "__main__":

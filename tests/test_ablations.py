@@ -1,30 +1,18 @@
-"""benchmarks/ablations.py: the rows are valid training configs that differ from the recipe only where the
+"""benchmarks.ablations: the rows are valid training configs that differ from the recipe only where the
 ablation says; the history rows train scene-sequentially; the tables apply "not resolved" by the seed
 spread (hand-made numbers); status prints at most two background lanes."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import pytest
 
+from benchmarks import ablations as ab
 from fastocc.train.config import TrainConfig, flat_config, load_config
 from fastocc.train.setup import trains_sequentially
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _load_driver():  # noqa: ANN202
-    spec = importlib.util.spec_from_file_location("ablations", REPO / "benchmarks" / "ablations.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["ablations"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-ab = _load_driver()
 RECIPE = load_config(REPO / "benchmarks" / "configs" / "learn_nano_18ep.toml")
 
 
@@ -105,7 +93,7 @@ def _fake_results() -> dict:
     latency = {"head_ms": {"fastocc": 100.0, "3dfcn": 250.0, "deconv": 150.0},
                "ratio_to_fastocc": {"fastocc": 1.0, "3dfcn": 2.5, "deconv": 1.5},
                "config": {"preset": "nano", "input_hw": [128, 352], "device_name": "cpu", "threads": 2, "repeats": 5},
-               "loadavg_1min": 1.25, "command": "python benchmarks/ablations.py latency --preset nano --repeats 5"}
+               "loadavg_1min": 1.25, "command": "python -m benchmarks.ablations latency --preset nano --repeats 5"}
     return {"runs": runs, "latency": latency, "store": "w8v.zarr"}
 
 
@@ -129,7 +117,7 @@ def test_tables_markdown_from_hand_made_results() -> None:
     assert "| 2.50 |" in md  # 3D FCN head latency ratio
     assert "(nano 128x352, cpu, 2 threads, median of 5 x 1 rounds, 1-min load 1.2): fastocc 100 ms, 3dfcn 250 ms" in md
     assert "| 0 previous frames (`hist0`) | - | pending |" in md
-    assert "python benchmarks/ablations.py run ROW --seed S --epochs 6" in md
+    assert "python -m benchmarks.ablations run ROW --seed S --epochs 6" in md
 
 
 def test_tables_command_writes_markdown_and_pngs(tmp_path: Path) -> None:
@@ -222,7 +210,7 @@ def test_step_time_takes_the_second_epoch_and_renders_ratios(tmp_path: Path) -> 
     (tmp_path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in recs))
     assert ab._timed_s_per_step(tmp_path) == 2.0  # 8 s over steps 5..9, the warm-up epoch left out
     st = {"s_per_step": {"fastocc": 0.5, "3dfcn": 1.0}, "ratio": {"fastocc": 1.0, "3dfcn": 2.0},
-          "rounds": [{}, {}], "samples": 40, "threads": 1, "command": "python benchmarks/ablations.py steptime"}
+          "rounds": [{}, {}], "samples": 40, "threads": 1, "command": "python -m benchmarks.ablations steptime"}
     note = ab._step_time_note(st)
     assert "s/step fastocc 0.50, 3dfcn 1.00 (2.00x)" in note and "median of 2 interleaved rounds" in note
     assert note in ab.render_markdown({"runs": {}, "step_time": st}, 6)

@@ -1,25 +1,12 @@
-"""benchmarks/bench_temporal.py plumbing (no timing asserts): the three models side by side, every figure
+"""benchmarks.bench_temporal plumbing (no timing asserts): the three models side by side, every figure
 present, ratios to hist0 taken per round."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-def _load():  # noqa: ANN202
-    spec = importlib.util.spec_from_file_location("bench_temporal", REPO / "benchmarks" / "bench_temporal.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bench_temporal"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+from benchmarks import bench_temporal as bt
 
 
 def test_bench_temporal_reports_every_model_runtime_and_the_training_step() -> None:
-    bt = _load()
     res = bt.run("nano", (64, 176), channels=8, threads=1, runtimes=("torch",), rounds=1, repeats=1, warmup=1,
                  train_repeats=1)
     rows = res["inference"]["torch"]
