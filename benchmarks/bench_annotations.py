@@ -1,7 +1,7 @@
 """Benchmark `occdata.nuscenes.load_annotations` and `Annotations.boxes_at` on a made-up
 sample_annotation table of N rows (40-box tracks, 5,000 samples; nuScenes trainval has ~1.17M rows).
 
-    python benchmarks/bench_annotations.py [--rows 200000] [--json out.json]
+    python -m benchmarks.bench_annotations [--rows 200000] [--json out.json]
 
 Reports the load time, the growth of the process's peak RSS while loading (the JSON rows and the
 records together), and the time per `boxes_at` call on an interpolated sweep.
@@ -17,10 +17,11 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from benchmarks.common import write_json
+from benchmarks.provenance import REPO, machine
+from occdata.nuscenes import load_annotations
 
-from occdata.nuscenes import load_annotations  # noqa: E402
+__all__ = ["measure", "write_tables"]
 
 N_SAMPLES, TRACK = 5000, 40
 
@@ -80,13 +81,16 @@ def main() -> None:
     if args.measure:
         print(json.dumps(measure(args.measure)))
         return
+    record = machine()
     with tempfile.TemporaryDirectory() as tmp:
         write_tables(Path(tmp) / "v", args.rows)
-        res = subprocess.run([sys.executable, __file__, "--measure", tmp], capture_output=True, text=True, check=True)
-    out = {"rows": args.rows, **json.loads(res.stdout)}
+        # a fresh process, so the peak RSS is the loading's alone
+        res = subprocess.run([sys.executable, "-m", "benchmarks.bench_annotations", "--measure", tmp], cwd=REPO,
+                             capture_output=True, text=True, check=True)
+    out = {"rows": args.rows, **json.loads(res.stdout), "machine": record}
     print(json.dumps(out))
     if args.json:
-        args.json.write_text(json.dumps(out, indent=1) + "\n")
+        write_json(out, args.json, indent=1)
 
 
 if __name__ == "__main__":

@@ -2,16 +2,13 @@
 (just reading the input bytes), the LiDAR projection kernel vs a peer-style numpy projection,
 store bytes vs source bytes, and the image-encoding measurement behind the store default.
 
-    python benchmarks/bench_build.py --root TREE --gts TREE/gts [--json out.json]
-    python benchmarks/bench_build.py --synth   # makes a 2 x 10 synthetic world at 1600x900 first
+    python -m benchmarks.bench_build --root TREE --gts TREE/gts [--json out.json]
+    python -m benchmarks.bench_build --synth   # makes a 2 x 10 synthetic world at 1600x900 first
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import resource
 import shutil
 import subprocess
@@ -23,15 +20,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from benchmarks.common import SHARED_DATA, emit_json
+from benchmarks.provenance import REPO, machine
+from occdata.nuscenes import load_lidar_points, load_nuscenes
+from occdata.sensors.jpeg_check import decode_jpeg_checked
+from occdata.sensors.projection import project_to_cameras
+from occdata.store.bev import bev_bits
+from occdata.store.build import BuildConfig, build_store
+from occdata.store.sample import SampleOptions, _read_jpeg, load_occ3d_labels
 
-from occdata.nuscenes import load_lidar_points, load_nuscenes  # noqa: E402
-from occdata.sensors.jpeg_check import decode_jpeg_checked  # noqa: E402
-from occdata.sensors.projection import project_to_cameras  # noqa: E402
-from occdata.store.bev import bev_bits  # noqa: E402
-from occdata.store.build import BuildConfig, build_store  # noqa: E402
-from occdata.store.sample import SampleOptions, _read_jpeg, load_occ3d_labels  # noqa: E402
+__all__ = ["peer_projection", "rss_scaling", "run", "time_it", "time_pair"]
 
 
 def _dir_bytes(path: Path) -> int:
@@ -176,7 +174,6 @@ def run(root: Path, gts: Path | None, work: Path, repeats: int) -> dict:
         "raw pixels at 0.5 (uint8)": (half and cv2.imdecode(np.frombuffer(half[0], np.uint8), 1).nbytes, 0.0),
     }
     return {
-        "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
         "tree": str(root),
         "samples": n,
         "image_size": [samples[0].cameras[0].width, samples[0].cameras[0].height],
@@ -202,10 +199,9 @@ def run(root: Path, gts: Path | None, work: Path, repeats: int) -> dict:
 def rss_scaling(work: Path, sizes: tuple[int, ...], workers: int) -> dict:
     """Peak RSS of `occdata build` (main process, and the largest worker) for stores of growing size,
     each a replayed tree of the real keyframe with labels, in a fresh process."""
-    sys.path.insert(0, str(REPO / "tests"))
-    from replicated_tree import make_replicated_tree
+    from tests.replicated_tree import make_replicated_tree
 
-    shared = REPO.parent / "shared" / "data"
+    shared = SHARED_DATA
     label = next((shared / "occ3d-label").glob("*/labels.npz"))
     out = {}
     for n in sizes:
@@ -238,6 +234,7 @@ def main() -> None:
                     help="also measure build peak RSS on replayed trees of these sizes (e.g. 100 1000)")
     ap.add_argument("--workers", type=int, default=2, help="workers for the RSS measurement")
     args = ap.parse_args()
+    record = machine()
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         root, gts = args.root, args.gts
@@ -248,13 +245,10 @@ def main() -> None:
             gts = root / "gts"
         if root is None:
             ap.error("give --root (and --gts) or --synth")
-        summary = run(root, gts, work, args.repeats)
+        summary = {"machine": record, **run(root, gts, work, args.repeats)}
         if args.rss_samples:
             summary["rss_scaling"] = rss_scaling(work, tuple(args.rss_samples), args.workers)
-    text = json.dumps(summary, indent=2)
-    print(text)
-    if args.json:
-        args.json.write_text(text)
+    emit_json(summary, args.json)
 
 
 if __name__ == "__main__":

@@ -7,16 +7,14 @@ of the building process is reported as well: on a shared, loaded machine it is t
 of throughput per core.
 
     git archive <commit> | tar -x -C /tmp/a      # the checkout before a change
-    taskset -c 0 python benchmarks/bench_build_ab.py --a /tmp/a --b . --root TREE --gts TREE/gts \\
+    taskset -c 0 python -m benchmarks.bench_build_ab --a /tmp/a --b . --root TREE --gts TREE/gts \\
         --rounds 7 --json out.json
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -25,10 +23,16 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import emit_json
+from benchmarks.provenance import finish, machine
+
+__all__ = ["one_build"]
+
+# Run with cwd = the checkout: `python -c` puts the working folder first on sys.path, so the child
+# imports that checkout's occdata (not the installed one).
 _CHILD = """
-import sys, time
+import time
 from pathlib import Path
-sys.path.insert(0, {repo!r})
 import cv2
 cv2.setNumThreads(1)
 from occdata.store.build import BuildConfig, build_store
@@ -42,7 +46,7 @@ print(time.perf_counter() - t, time.process_time() - c, report.n_samples, report
 def one_build(repo: Path, root: Path, gts: Path | None, out: Path) -> tuple[float, float, int]:
     """(wall seconds, CPU seconds of the building process, samples) of one fresh build."""
     shutil.rmtree(out, ignore_errors=True)
-    code = _CHILD.format(repo=str(repo.resolve()), root=str(root), out=str(out),
+    code = _CHILD.format(root=str(root), out=str(out),
                          gts=f"Path({str(gts)!r})" if gts else "None")
     res = subprocess.run([sys.executable, "-c", code], cwd=repo, capture_output=True, text=True, check=True)
     seconds, cpu, n, done = res.stdout.split()[-4:]
@@ -60,6 +64,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=7)
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    record = machine()
     times: dict[str, list[float]] = {"a": [], "b": []}
     cpu: dict[str, list[float]] = {"a": [], "b": []}
     n = 0
@@ -70,8 +75,7 @@ def main() -> None:
                 times[key].append(t)
                 cpu[key].append(c)
     summary = {
-        "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-                   f"load average at end {os.getloadavg()[0]:.1f}",
+        "machine": finish(record),
         "affinity": sorted(os.sched_getaffinity(0)),
         "tree": str(args.root), "samples": n, "rounds": args.rounds,
     }
@@ -87,10 +91,7 @@ def main() -> None:
     summary["b_over_a_time_median"] = float(np.median(times["b"]) / np.median(times["a"]))
     summary["b_over_a_cpu_best"] = min(cpu["b"]) / min(cpu["a"])
     summary["b_over_a_cpu_median"] = float(np.median(cpu["b"]) / np.median(cpu["a"]))
-    text = json.dumps(summary, indent=2)
-    print(text)
-    if args.json:
-        args.json.write_text(text)
+    emit_json(summary, args.json)
 
 
 if __name__ == "__main__":

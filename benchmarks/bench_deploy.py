@@ -4,24 +4,26 @@ For each preset, in one process: end-to-end latency per frame through `fastocc.P
 1600x900 images -> preprocessing -> network -> semantics) for eager PyTorch, torch.compile and ONNX
 Runtime (`run_runtime_benchmark`), and the time `fastocc export` needs (export + parity check).
 
-    PYTHONPATH=. python benchmarks/bench_deploy.py --presets nano tiny --json summary.json
+    python -m benchmarks.bench_deploy --presets nano tiny --json summary.json
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import tempfile
 import time
 from pathlib import Path
 
 import torch
 
+from benchmarks.common import write_json
+from benchmarks.provenance import machine
 from fastocc.bench import RUNTIMES, RuntimeBenchConfig, format_runtime_report, run_runtime_benchmark
 from fastocc.checkpoint import save_checkpoint
 from fastocc.deploy import ExportConfig, export_onnx
 from fastocc.model import FastOcc, preset
+
+__all__ = ["export_seconds"]
 
 
 def export_seconds(name: str) -> dict:
@@ -46,7 +48,7 @@ def main() -> None:
     parser.add_argument("--no-export-timing", action="store_true")
     parser.add_argument("--json", type=Path, default=None, help="write the summary (and raw results) here")
     args = parser.parse_args()
-    summary: dict = {"machine": platform.platform(), "cpu_threads": torch.get_num_threads(), "presets": {}}
+    summary: dict = {"machine": machine(), "cpu_threads": torch.get_num_threads(), "presets": {}}
     for name in args.presets:
         res = run_runtime_benchmark(RuntimeBenchConfig(preset=name, runtimes=tuple(args.runtimes), device=args.device,
                                                        repeats=args.repeats, warmup=args.warmup))
@@ -57,7 +59,7 @@ def main() -> None:
             print(f"  export {name}: {entry['export']['seconds']:.1f} s", flush=True)
         summary["presets"][name] = entry
     if args.json:
-        args.json.write_text(json.dumps(summary, indent=2))
+        write_json(summary, args.json)
 
 
 if __name__ == "__main__":

@@ -5,22 +5,25 @@ time, as the shuffled loader does), with the per-row checksum checks on and off 
 rounds, best of N), and times crc32 alone. Also times opening a reader and loading the small
 arrays (chunk listing included).
 
-    python benchmarks/bench_integrity.py --store data.zarr --rounds 5 --json out.json
+    python -m benchmarks.bench_integrity --store data.zarr --rounds 5 --json out.json
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 import zlib
 from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import emit_json
+from benchmarks.provenance import machine
 from fastocc.data.sample import StoreSamples
 from occdata.store import integrity
 from occdata.store.reader import open_store
+
+__all__: list[str] = []
 
 
 def _read_all(store: str, check: bool) -> tuple[float, int, int]:
@@ -47,6 +50,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
+    record = machine()
     on, off = [], []
     for _ in range(args.rounds):
         t, n, nbytes = _read_all(args.store, check=True)
@@ -67,11 +71,9 @@ def main() -> None:
         "store": args.store, "samples": n, "mb_per_sample": nbytes / n / 1e6,
         "read_ms_per_sample_checked": 1e3 * min(on) / n, "read_ms_per_sample_unchecked": 1e3 * min(off) / n,
         "check_overhead_ms_per_sample": 1e3 * (min(on) - min(off)) / n,
-        "crc32_gb_per_s": crc_gbps, "open_and_small_arrays_s": open_s,
+        "crc32_gb_per_s": crc_gbps, "open_and_small_arrays_s": open_s, "machine": record,
     }
-    print(json.dumps(out, indent=2))
-    if args.json:
-        args.json.write_text(json.dumps(out, indent=2))
+    emit_json(out, args.json)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ scores them against the world's truth: precision of the generated occupied voxel
 truth's observable surface, semantic agreement, moving instances' share of voxels inside their box,
 and `occdata eval` mIoU (camera mask) of the generated labels as predictions.
 
-    python benchmarks/bench_labels.py [--scenes 1 --samples 40 --seed 11] [--json out.json]
+    python -m benchmarks.bench_labels [--scenes 1 --samples 40 --seed 11] [--json out.json]
 """
 
 from __future__ import annotations
@@ -21,13 +21,14 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from benchmarks.common import write_json
+from benchmarks.provenance import REPO, machine
+from occdata.eval.evaluate import EvalConfig, evaluate_predictions
+from occdata.labels.score import score_tree
+from occdata.store.build import BuildConfig, build_store
+from occdata.synth import SynthConfig, synthesize
 
-from occdata.eval.evaluate import EvalConfig, evaluate_predictions  # noqa: E402
-from occdata.labels.score import score_tree  # noqa: E402
-from occdata.store.build import BuildConfig, build_store  # noqa: E402
-from occdata.synth import SynthConfig, synthesize  # noqa: E402
+__all__ = ["VARIANTS"]
 
 VARIANTS = {  # name: (extra CLI options, drop lidarseg)
     "boxes-keyframes": ([], False),
@@ -71,6 +72,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--keep", type=Path, default=None, help="work folder to keep (default: a temporary one)")
     a = ap.parse_args()
+    record = machine()
     work = a.keep or Path(tempfile.mkdtemp(prefix="bench_labels_"))
     root = work / "world"
     if not (root / "v1.0-mini").is_dir():
@@ -100,9 +102,9 @@ def main() -> None:
             row[f"eval_miou_camera_{split}"] = float(rep.miou.miou)
         rows[name] = row
         print(name, json.dumps({k: round(v, 4) for k, v in row.items()}), flush=True)
-    result = {"command": " ".join(sys.argv), "world": vars(a) | {"json": None, "keep": None}, "rows": rows}
+    result = {"machine": record, "world": vars(a) | {"json": None, "keep": None}, "rows": rows}
     if a.json:
-        a.json.write_text(json.dumps(result, indent=1, default=str))
+        write_json(result, a.json, indent=1)
 
 
 if __name__ == "__main__":

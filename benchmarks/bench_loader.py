@@ -6,16 +6,14 @@ resize / crop / flip / rotate as separate image ops, normalise in numpy, load th
 project it into every camera (matrix chain per camera), rasterise the depth map in numpy, load the
 label npz and flip it. Both run on the same samples in the same run.
 
-    taskset -c 0 python benchmarks/bench_loader.py [--samples 40] [--json out.json]
+    taskset -c 0 python -m benchmarks.bench_loader [--samples 40] [--json out.json]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import platform
 import resource
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -23,25 +21,23 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tests"))
+from benchmarks.common import SHARED_DATA, write_json
+from benchmarks.provenance import machine
+from fastocc.data import BevAugConfig, ImageAugConfig, LoaderConfig, SampleConfig, StoreDataset
+from fastocc.data.augment import sample_image_aug
+from occdata.sensors.image_ops import IMAGENET_MEAN, IMAGENET_STD
+from occdata.store.build import BuildConfig, build_store
+from occdata.store.layout import token_str
+from occdata.store.reader import open_store
 
-from fastocc.data import BevAugConfig, ImageAugConfig, LoaderConfig, SampleConfig, StoreDataset  # noqa: E402
-from fastocc.data.augment import sample_image_aug  # noqa: E402
-from occdata.sensors.image_ops import IMAGENET_MEAN, IMAGENET_STD  # noqa: E402
-from occdata.store.build import BuildConfig, build_store  # noqa: E402
-from occdata.store.layout import token_str  # noqa: E402
-from occdata.store.reader import open_store  # noqa: E402
-
-SHARED = REPO.parent / "shared" / "data"
+__all__ = ["PeerLoader", "bench_ours", "bench_peer", "make_half_scale_store", "make_store"]
 
 
 def make_store(tmp: Path, n_scenes: int, n_samples: int) -> tuple[Path, Path]:
-    from replicated_tree import make_replicated_tree
+    from tests.replicated_tree import make_replicated_tree
 
-    label = next((SHARED / "occ3d-label").glob("*/labels.npz"))
-    tree = make_replicated_tree(SHARED / "nuscenes-real", label, tmp / "ns", n_scenes, n_samples)
+    label = next((SHARED_DATA / "occ3d-label").glob("*/labels.npz"))
+    tree = make_replicated_tree(SHARED_DATA / "nuscenes-real", label, tmp / "ns", n_scenes, n_samples)
     store = tmp / "s.zarr"
     build_store(BuildConfig(root=tree, out=store, gts=tree / "gts", block_samples=8, progress=False))
     return tree, store
@@ -148,11 +144,11 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     cv2.setNumThreads(1)
+    record = machine()
     with tempfile.TemporaryDirectory() as d:
         tree, store = make_store(Path(d), 2, (args.samples + 2) // 2 + 1)
         half = make_half_scale_store(tree, Path(d))
-        result: dict = {"machine": f"{platform.processor() or platform.machine()}, {platform.python_version()}",
-                        "samples": args.samples, "sizes": {}}
+        result: dict = {"machine": record, "samples": args.samples, "sizes": {}}
         for h, w in ((256, 704), (320, 800)):
             ours = bench_ours(store, h, w, args.samples)
             ours_half = bench_ours(half, h, w, args.samples)
@@ -168,7 +164,7 @@ def main() -> None:
         result["max_rss_mb"] = round(rss_mb)
         print(f"peak RSS of this (single worker) process: {rss_mb:.0f} MB")
     if args.json:
-        args.json.write_text(json.dumps(result, indent=2))
+        write_json(result, args.json)
 
 
 if __name__ == "__main__":

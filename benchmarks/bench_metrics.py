@@ -1,6 +1,6 @@
 """Benchmark the metrics: RayIoU and mIoU samples/s per core, memory over a growing split.
 
-    taskset -c 0 python benchmarks/bench_metrics.py --json     # per-core figures (one numba thread)
+    taskset -c 0 python -m benchmarks.bench_metrics --json     # per-core figures (one numba thread)
 
 - RayIoU: the real Occ3D label (shared/data/occ3d-label) as truth, a perturbed copy as prediction
   (shifted one voxel along x, 5% of occupied voxels relabelled, 3% cleared), 8 origins spread
@@ -16,19 +16,17 @@
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-LABEL = REPO.parent / "shared" / "data" / "occ3d-label" / "29796060110c4163b07f06eff4af0753" / "labels.npz"
+from benchmarks.common import OCC3D_LABEL as LABEL
+from benchmarks.common import emit_json
+from benchmarks.provenance import finish, machine
+
+__all__ = ["bench_eval_store", "bench_miou_files", "bench_rayiou"]
 
 
 def _rss_mb() -> float:
@@ -167,20 +165,16 @@ def main() -> None:
     rng = np.random.default_rng(0)
     with np.load(LABEL, allow_pickle=False) as z:
         sem, mask = z["semantics"], z["mask_camera"]
-    res: dict = {
-        "machine": {"python": platform.python_version(), "numba": numba.__version__, "numpy": np.__version__,
-                    "cpu": platform.processor() or platform.machine(), "cpus_allowed": len(os.sched_getaffinity(0)),
-                    "numba_threads": numba.get_num_threads(), "load_avg_start": os.getloadavg()[0]},
-    }
+    res: dict = {"machine": machine(numba_threads=numba.get_num_threads())}
     res["rayiou"] = bench_rayiou(sem, args.rayiou_n, rng)
     with tempfile.TemporaryDirectory() as tmp:
         res["miou_files"] = bench_miou_files(sem, mask, args.miou_n, rng, Path(tmp))
     if args.store_samples:
         with tempfile.TemporaryDirectory() as tmp:
             res["eval_store"] = bench_eval_store(args.store_samples, Path(tmp))
-    res["machine"]["load_avg_end"] = os.getloadavg()[0]
+    finish(res["machine"])
     if args.json:
-        print(json.dumps(res, indent=2))
+        emit_json(res, None)
         return
     r, m = res["rayiou"], res["miou_files"]
     print(f"RayIoU: {r['samples_per_s']:.1f} samples/s ({r['samples_per_cpu_s']:.1f} per CPU-second), "

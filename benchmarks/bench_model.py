@@ -3,20 +3,23 @@
 Runs, in one process: (1) inference per stage for the tiny preset with all three heads (FastOcc head vs
 3D FCN vs deconv on the same image features and V_B); (2) nano forward + backward per sample.
 
-    PYTHONPATH=. python benchmarks/bench_model.py --json summary.json
+    python -m benchmarks.bench_model --json summary.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import platform
 from pathlib import Path
 
 import torch
 
+from benchmarks.common import write_json
+from benchmarks.provenance import machine
 from fastocc.bench import BenchConfig, format_report, run_benchmark
 from fastocc.model import HeadKind
+
+__all__: list[str] = []
 
 
 def main() -> None:
@@ -27,7 +30,7 @@ def main() -> None:
     parser.add_argument("--train-preset", default="nano", help="preset for the forward+backward timing")
     parser.add_argument("--json", type=Path, default=None, help="write the summary (and raw results) here")
     args = parser.parse_args()
-
+    record = machine(threads=torch.get_num_threads(), device=args.device)
     heads = run_benchmark(
         BenchConfig(preset=args.head_preset, heads=tuple(HeadKind), device=args.device, repeats=args.repeats)
     )
@@ -39,11 +42,7 @@ def main() -> None:
     )
     print(format_report(train))
     summary = {
-        "machine": {
-            "platform": platform.platform(),
-            "processor": platform.processor(),
-            "cpus": torch.get_num_threads(),
-        },
+        "machine": record,
         "head_preset": args.head_preset,
         "fastocc_head_ms": heads["heads"]["fastocc"]["ms"],
         "fcn3d_head_ms": heads["heads"]["3dfcn"]["ms"],
@@ -56,7 +55,7 @@ def main() -> None:
     }
     print(json.dumps({k: v for k, v in summary.items() if k != "raw"}, indent=2))
     if args.json is not None:
-        args.json.write_text(json.dumps(summary, indent=2))
+        write_json(summary, args.json)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """What the scene-sequential training plan costs in samples (docs/data.md).
 
-    python benchmarks/bench_plan.py
+    python -m benchmarks.bench_plan
 
 6 scenes of unequal length (40, 35, 30, 25, 20, 12 samples), 2 and 3 ranks, batch 1 and 2 per rank,
 20 epochs. Compares the equal-lanes plan (training) with cutting or padding the exactly-once plan.
@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from fastocc.data.order import Slot, sequential_batches
+
+__all__: list[str] = []
 
 LENGTHS = [40, 35, 30, 25, 20, 12]
 

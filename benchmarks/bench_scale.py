@@ -1,7 +1,7 @@
 """Scale figures for `occdata build` on Dask (issue 24), for docs/scale.md.
 
-    python benchmarks/bench_scale.py --synth-samples 40 --write-samples 256 --json docs/bench_scale.json
-    python benchmarks/bench_scale.py --root TREE --gts TREE/gts ...      # an existing nuScenes-format tree
+    python -m benchmarks.bench_scale --synth-samples 40 --write-samples 256 --json docs/bench_scale.json
+    python -m benchmarks.bench_scale --root TREE --gts TREE/gts ...      # an existing nuScenes-format tree
 
 1. build: samples/s with 1 worker (in this process) and 2 LocalCluster workers (start-up timed
    apart), peak RSS of each worker;
@@ -15,10 +15,8 @@
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import os
-import platform
 import resource
 import shutil
 import socket
@@ -31,12 +29,13 @@ from typing import Any
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from benchmarks.common import emit_json
+from benchmarks.provenance import machine
+from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks
+from occdata.store.build import BuildConfig, _create, build_store
+from occdata.store.layout import FLAT_ARRAYS, PER_SAMPLE
 
-from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks  # noqa: E402
-from occdata.store.build import BuildConfig, _create, build_store  # noqa: E402
-from occdata.store.layout import FLAT_ARRAYS, PER_SAMPLE  # noqa: E402
+__all__ = ["bench_build", "bench_labels", "bench_overhead", "bench_write"]
 
 JPEG_BYTES_PER_SAMPLE = 6 * 160_000  # ~nuScenes: 6 JPEGs of 1600x900 at ~160 kB
 UVD_ROWS_PER_SAMPLE = 20_000  # keyframe LiDAR points that land in a camera
@@ -224,8 +223,7 @@ def main() -> None:
             root = synthesize(SynthConfig(out=tmp / "world", scenes=2, samples=args.synth_samples // 2, progress=False))
             gts = root / "gts"
         result: dict[str, Any] = {
-            "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                        "note": "2-core VM shared with other developers: ratios within one run, noisy absolutes"},
+            "machine": machine(note="2-core VM shared with other developers: ratios within one run, noisy absolutes"),
             "build": bench_build(root, gts, args.block_samples, tmp),
             "write_local": bench_write(lambda p: str(tmp / f"wr{p}.zarr"), args.write_samples, 32,
                                        tuple(args.writers)),
@@ -245,10 +243,7 @@ def main() -> None:
             finally:
                 server.kill()
                 server.wait()
-        text = json.dumps(result, indent=2)
-        print(text)
-        if args.json:
-            args.json.write_text(text + "\n")
+        emit_json(result, args.json)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

@@ -3,7 +3,7 @@ is known: depth-target density at the network's stride (16) for 256x704 input, b
 core, store size, how far aggregated targets lie from the rendered depth (moving actors vs the same
 world with every actor frozen), and the free-space coverage of `occdata visibility --lidar-sweeps N`.
 
-    python benchmarks/bench_sweeps.py [--samples 5] [--width 1600 --height 900] [--json out.json]
+    python -m benchmarks.bench_sweeps [--samples 5] [--width 1600 --height 900] [--json out.json]
 
 Samples whose history holds fewer than N sweeps (the first keyframe of a scene) are left out of the
 density and distance figures.
@@ -13,9 +13,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -23,19 +21,20 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from benchmarks.common import emit_json
+from benchmarks.provenance import machine
+from fastocc.data.augment import ImageAugConfig, sample_image_aug
+from occdata.constants import FREE_LABEL
+from occdata.nuscenes import load_nuscenes
+from occdata.sensors.depth_targets import DEPTH_MAX, DEPTH_MIN, depth_target
+from occdata.store.build import BuildConfig, build_store
+from occdata.store.layout import token_str
+from occdata.store.reader import open_store
+from occdata.store.sample import SampleOptions, depth_points
+from occdata.store.visibility_cmd import compute_visibility
+from occdata.synth import SynthConfig, pipeline, synthesize
 
-from fastocc.data.augment import ImageAugConfig, sample_image_aug  # noqa: E402
-from occdata.constants import FREE_LABEL  # noqa: E402
-from occdata.nuscenes import load_nuscenes  # noqa: E402
-from occdata.sensors.depth_targets import DEPTH_MAX, DEPTH_MIN, depth_target  # noqa: E402
-from occdata.store.build import BuildConfig, build_store  # noqa: E402
-from occdata.store.layout import token_str  # noqa: E402
-from occdata.store.reader import open_store  # noqa: E402
-from occdata.store.sample import SampleOptions, depth_points  # noqa: E402
-from occdata.store.visibility_cmd import compute_visibility  # noqa: E402
-from occdata.synth import SynthConfig, pipeline, synthesize  # noqa: E402
+__all__ = ["build", "depth_figures", "free_coverage", "synth_world"]
 
 SWEEPS = (0, 4, 9)
 STRIDE, IN_H, IN_W = 16, 256, 704
@@ -165,6 +164,7 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=900)
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = ap.parse_args()
+    record = machine()
     work = Path(tempfile.mkdtemp(prefix="bench_sweeps_"))
     try:
         t0 = time.perf_counter()
@@ -172,9 +172,10 @@ def main() -> None:
         synth_s = time.perf_counter() - t0
         frozen = synth_world(work / "frozen", args.samples, args.width, args.height, frozen=True)
         build(moving, work / "warmup.zarr", 0)  # numba compile, page cache
-        result: dict = {"world": {"scenes": 1, "samples": args.samples, "width": args.width, "height": args.height,
-                                  "synth_seconds_moving_world": round(synth_s, 1)},
-                        "input": f"{IN_H}x{IN_W}, stride {STRIDE}", "by_sweeps": {}}
+        world = {"scenes": 1, "samples": args.samples, "width": args.width, "height": args.height,
+                 "synth_seconds_moving_world": round(synth_s, 1)}
+        result: dict = {"machine": record, "world": world, "input": f"{IN_H}x{IN_W}, stride {STRIDE}",
+                        "by_sweeps": {}}
         for n in SWEEPS:
             store = work / f"n{n}.zarr"
             seconds = build(moving, store, n, repeats=3)
@@ -194,9 +195,7 @@ def main() -> None:
         print(f"free space observed: {result['free_space_coverage']}")
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    if args.json:
-        args.json.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result, indent=2))
+    emit_json(result, args.json)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,8 @@
 """Benchmark `occdata synth`: a 2-scene x 10-sample world at 1600x900, cold (fresh numba cache,
 compilation included) and warm (cache populated), plus per-stage costs.
 
-    python benchmarks/bench_synth.py            # human-readable
-    python benchmarks/bench_synth.py --json     # one JSON object
+    python -m benchmarks.bench_synth            # human-readable
+    python -m benchmarks.bench_synth --json     # one JSON object
 
 Each end-to-end run is a fresh Python process (imports + numba cache loading included).
 """
@@ -12,14 +12,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+from benchmarks.provenance import REPO, machine
+
+__all__: list[str] = []
 
 CHILD = """
 import json, sys, time
@@ -87,17 +88,6 @@ def _stages(args: argparse.Namespace) -> dict[str, float]:
     return out
 
 
-def _machine() -> dict[str, object]:
-    model = ""
-    try:
-        model = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                     if line.startswith("model name"))
-    except (OSError, StopIteration):
-        model = platform.processor()
-    return {"cpu": model, "cores": os.cpu_count(), "python": platform.python_version(),
-            "load_avg_1min_at_start": os.getloadavg()[0]}
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", type=int, default=2)
@@ -106,7 +96,7 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=900)
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args()
-    result: dict[str, object] = {"machine": _machine(), "world": vars(args).copy()}
+    result: dict[str, object] = {"machine": machine(), "world": vars(args).copy()}
     result["world"].pop("json")  # type: ignore[union-attr]
     with tempfile.TemporaryDirectory() as tmp:
         cache = Path(tmp) / "numba-cache"
@@ -116,13 +106,12 @@ def main() -> None:
         result["images"] = 6 * n
         result["warm_per_sample_s"] = result["warm_s"] / n  # type: ignore[operator]
         result["bytes_written"] = sum(p.stat().st_size for p in (Path(tmp) / "warm").rglob("*") if p.is_file())
-    sys.path.insert(0, str(REPO))
     result["stages_warm"] = _stages(args)
     if args.json:
         print(json.dumps(result, indent=2))
         return
     m = result["machine"]
-    print(f"machine: {m['cpu']} ({m['cores']} cores), load avg at start {m['load_avg_1min_at_start']:.2f}")
+    print(f"machine: {m['cpu']} ({m['cores']} cores), load avg at start {m['loadavg_1min']:.2f}")
     print(f"world: {args.scenes} scenes x {args.samples} samples at {args.width}x{args.height} "
           f"({result['images']} images, {result['bytes_written'] / 1e6:.0f} MB)")
     print(f"cold (fresh numba cache): {result['cold_s']:.1f} s   warm: {result['warm_s']:.1f} s "

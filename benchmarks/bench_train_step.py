@@ -2,9 +2,9 @@
 with another commit (issue #16).
 
     # this checkout, the three configurations, real batches from a store (augmented, camera-masked losses)
-    python benchmarks/bench_train_step.py --store data.zarr --json out.json
+    python -m benchmarks.bench_train_step --store data.zarr --json out.json
     # ... and commit 875e344 in a temporary git worktree, interleaved round by round: prints the ratio
-    python benchmarks/bench_train_step.py --store data.zarr --ref 875e344 --rounds 3 --json out.json
+    python -m benchmarks.bench_train_step --store data.zarr --ref 875e344 --rounds 3 --json out.json
 
 One step = next batch (data wait) + forward (backbone+neck / view transform / 3D head incl. BEV head) +
 all seven losses + backward + gradient clipping + AdamW, as the trainer does it. Each (checkout,
@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import statistics
 import subprocess
@@ -26,6 +25,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+__all__ = ["CONFIGS", "worker"]
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = {  # name -> (preset, input_hw, batch)
@@ -164,6 +165,12 @@ def main() -> None:
     if args.worker:
         print(json.dumps(worker(args.worker, args.store, args.steps, args.warmup, args.threads)))
         return
+    # Imported here, not at the top: the workers run this file inside the other checkout, whose
+    # benchmarks/ may predate the package.
+    from benchmarks.common import write_json
+    from benchmarks.provenance import machine
+
+    record = machine()
     with tempfile.TemporaryDirectory() as tmp:
         checkouts = {"this": REPO}
         if args.ref:
@@ -174,10 +181,9 @@ def main() -> None:
             if args.ref and not Path(args.ref).is_dir():
                 subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force",
                                 str(checkouts["ref"])], check=False, capture_output=True)
-    summary = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
-               "command": " ".join(sys.argv), "ref": args.ref, "results": results}
+    summary = {"machine": record, "ref": args.ref, "results": results}
     if args.json:
-        Path(args.json).write_text(json.dumps(summary, indent=1) + "\n")
+        write_json(summary, args.json, indent=1)
 
 
 def _measure(checkouts: dict[str, Path], args: argparse.Namespace) -> dict:

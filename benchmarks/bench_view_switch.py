@@ -5,7 +5,7 @@ WebGL), presses "next" N times and reads the viewer's own figure ("drawn in X ms
 request -> reads and composes the keyframe -> sends it -> the browser applies it and renders a frame, the
 `get_render` round trip). Also times the server-side part alone (store read + layers) in this process.
 
-    python benchmarks/bench_view_switch.py --store /tmp/s40.zarr --steps 15 --json
+    python -m benchmarks.bench_view_switch --store /tmp/s40.zarr --steps 15 --json
 """
 
 from __future__ import annotations
@@ -18,13 +18,11 @@ import statistics
 import subprocess
 import sys
 import time
-from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-         "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+from benchmarks.common import CHROMIUM_FLAGS
+from benchmarks.provenance import REPO, machine
+
+__all__ = ["browser_ms", "server_side_ms"]
 
 
 def server_side_ms(store: str, steps: int, style: str) -> list[float]:
@@ -55,7 +53,7 @@ def browser_ms(store: str, steps: int, style: str) -> tuple[list[float], int]:
             url = m.group(1) if m else None
         times = []
         with sync_playwright() as p:
-            b = p.chromium.launch(executable_path="/usr/bin/chromium", args=FLAGS)
+            b = p.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_FLAGS)
             page = b.new_page(viewport={"width": 1200, "height": 800})
             page.goto(url)
             pat = r"keyframe (\d+)/(\d+) · .*? · drawn in (\d+) ms"
@@ -89,13 +87,14 @@ def main() -> None:
     ap.add_argument("--style", default="flat", choices=["flat", "cubes"])
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
+    record = machine()
     server = server_side_ms(a.store, a.steps, a.style)
     drawn, n_keyframes = browser_ms(a.store, a.steps, a.style)
     res = {"store": a.store, "style": a.style, "steps": a.steps, "keyframes_in_scene": n_keyframes,
            "server_read_compose_ms_median": round(statistics.median(server), 1),
            "request_to_drawn_ms_median": round(statistics.median(drawn), 1),
            "request_to_drawn_ms_max": round(max(drawn), 1), "request_to_drawn_ms": drawn,
-           "browser": "headless Chromium, software WebGL (SwiftShader), 1200x800"}
+           "browser": "headless Chromium, software WebGL (SwiftShader), 1200x800", "machine": record}
     print(json.dumps(res, indent=1) if a.json else
           f"switch: median {res['request_to_drawn_ms_median']} ms request -> drawn (max "
           f"{res['request_to_drawn_ms_max']}), server part {res['server_read_compose_ms_median']} ms")

@@ -7,7 +7,7 @@ limited to ONE thread (`NUMBA_NUM_THREADS=1` is set before numba loads) so the f
 Timings are the median of `--repeat` warm runs (JIT compile excluded), wall-clock and CPU time
 (`time.process_time`: what the one core spent, robust to other load on a shared machine).
 
-    ./.venv/bin/python benchmarks/bench_visibility.py [--repeat 5] [--json]
+    ./.venv/bin/python -m benchmarks.bench_visibility [--repeat 5] [--json]
 """
 
 from __future__ import annotations
@@ -15,8 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -25,18 +23,17 @@ os.environ["NUMBA_NUM_THREADS"] = "1"  # per-core figures: set before numba is i
 
 import numpy as np  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
+from benchmarks.common import OCC3D_LABEL as LABEL  # noqa: E402
+from benchmarks.common import REAL_NUSCENES as ROOT  # noqa: E402
+from benchmarks.provenance import machine  # noqa: E402
 from occdata.constants import GRID  # noqa: E402
 from occdata.geometry import transform_points  # noqa: E402
 from occdata.nuscenes.reader import load_lidar_points, load_nuscenes  # noqa: E402
 from occdata.visibility import camera_mask, lidar_mask, object_voxels  # noqa: E402
 from occdata.visibility.check import load_occ3d_label, rig_of_sample  # noqa: E402
 
-DATA = REPO.parent / "shared" / "data"
-LABEL = DATA / "occ3d-label" / "29796060110c4163b07f06eff4af0753" / "labels.npz"
-ROOT = DATA / "nuscenes-real"
+__all__: list[str] = []
+
 LOWER = np.asarray(GRID.lower, np.float64)
 
 
@@ -69,9 +66,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args()
-    out: dict[str, object] = {"machine": {"cpu": platform.processor() or platform.machine(),
-                                          "cores": os.cpu_count(), "numba_threads": 1,
-                                          "load_avg_1min_at_start": os.getloadavg()[0]}}
+    out: dict[str, object] = {"machine": machine(numba_threads=1)}
     # Real: the label's semantics with the real keyframe's rig and LiDAR sweep.
     sem = load_occ3d_label(LABEL)["semantics"]
     K, T, size = rig_of_sample(ROOT, None, None)

@@ -1,7 +1,7 @@
 """`occdata labels` on the real scene-0916 (keyframes, boxes, no lidarseg, no sweep files): the
 moving-object figure (ours vs the global-aggregation control) and pictures of the generated labels.
 
-    python benchmarks/labels_real.py [--root ../shared/data/nuscenes-real-seq] [--pictures docs] [--json out.json]
+    python -m benchmarks.labels_real [--root ../shared/data/nuscenes-real-seq] [--pictures docs] [--json out.json]
 
 The real data stays outside the repository: labels go to a temporary folder; only the pictures
 (renderings of the generated labels, without the camera images) and the figures are written.
@@ -20,15 +20,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from benchmarks.common import SHARED_DATA, write_json
+from benchmarks.provenance import REPO, machine
+from occdata.geometry import invert_rigid
+from occdata.labels.fidelity import moving_containment
+from occdata.labels.scene import box_class
+from occdata.nuscenes import load_nuscenes
+from occdata.nuscenes.annotations import load_annotations
+from occdata.view.render import prediction_picture
 
-from occdata.geometry import invert_rigid  # noqa: E402
-from occdata.labels.fidelity import moving_containment  # noqa: E402
-from occdata.labels.scene import box_class  # noqa: E402
-from occdata.nuscenes import load_nuscenes  # noqa: E402
-from occdata.nuscenes.annotations import load_annotations  # noqa: E402
-from occdata.view.render import prediction_picture  # noqa: E402
+__all__: list[str] = []
 
 
 def _generate(root: Path, out: Path, extra: list[str]) -> float:
@@ -45,7 +46,7 @@ def _load(out: Path, scene: str, tok: str) -> dict[str, np.ndarray]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--root", type=Path, default=REPO.parent / "shared" / "data" / "nuscenes-real-seq")
+    ap.add_argument("--root", type=Path, default=SHARED_DATA / "nuscenes-real-seq")
     ap.add_argument("--pictures", type=Path, default=None, help="folder for labels_real_kNN.png")
     ap.add_argument("--keyframes", default="0,20,40", help="keyframe indices to draw")
     ap.add_argument("--json", type=Path, default=None)
@@ -54,7 +55,7 @@ def main() -> None:
     ann = load_annotations(a.root, ds.version)
     class_of = {b.instance_token: box_class(b) for bs in ann.boxes_by_sample.values() for b in bs}
     work = Path(tempfile.mkdtemp(prefix="labels_real_"))
-    result: dict[str, object] = {"command": " ".join(sys.argv), "root": str(a.root)}
+    result: dict[str, object] = {"machine": machine(), "root": str(a.root)}
     for name, extra in {"ours": [], "control": ["--no-boxes"]}.items():
         seconds = _generate(a.root, work / name, extra)
         for sc in ds.scenes:
@@ -83,7 +84,7 @@ def main() -> None:
             cv2.imwrite(str(path), pic[:, :, ::-1])
             print("wrote", path)
     if a.json:
-        a.json.write_text(json.dumps(result, indent=1))
+        write_json(result, a.json, indent=1)
 
 
 if __name__ == "__main__":

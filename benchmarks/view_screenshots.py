@@ -1,6 +1,6 @@
 """Screenshots of `occdata view` in headless Chromium for docs/view.md, on any store (the demo's):
 
-    python benchmarks/view_screenshots.py --store demo/data.zarr --pred demo/pred --split val --out docs/view
+    python -m benchmarks.view_screenshots --store demo/data.zarr --pred demo/pred --split val --out docs/view
 
 One viewer per view (`--view label | side | error`, the side view with the camera mask, the LiDAR
 layer on), each started on 127.0.0.1 with `--port 0`, shot once two screenshots in a row agree (the
@@ -19,10 +19,10 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-         "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+from benchmarks.common import CHROMIUM_FLAGS
+from benchmarks.provenance import REPO
+
+__all__ = ["SHOTS"]
 SHOTS = {  # file name: extra `occdata view` options
     "demo_label": ["--view", "label"],
     "demo_side_camera_mask": ["--view", "side", "--mask", "camera"],
@@ -72,7 +72,7 @@ def main() -> None:
     a.out.mkdir(parents=True, exist_ok=True)
     base = ["--store", a.store] + (["--pred", a.pred] if a.pred else []) + (["--split", a.split] if a.split else [])
     with sync_playwright() as p, tempfile.TemporaryDirectory() as profile:
-        ctx = p.chromium.launch_persistent_context(profile, executable_path="/usr/bin/chromium", args=FLAGS,
+        ctx = p.chromium.launch_persistent_context(profile, executable_path="/usr/bin/chromium", args=CHROMIUM_FLAGS,
                                                    viewport={"width": 1200, "height": 800})
         try:
             for name, extra in SHOTS.items():

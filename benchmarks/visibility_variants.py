@@ -6,32 +6,34 @@ the car). Each variant predicts a camera mask from the label's semantics (+ mask
 so); it is scored against the label's `mask_camera` by IoU over all voxels / occupied / free, and
 precision / recall on occupied voxels. No variant uses the label's `mask_camera`.
 
-    ./.venv/bin/python benchmarks/visibility_variants.py [--json]
+    ./.venv/bin/python -m benchmarks.visibility_variants [--json]
 
-The exploratory kernels live here (benchmark code); the settled definition is
-`occdata.visibility.camera_mask` (the row marked "settled").
+The exploratory kernels live here (benchmark code) and step through the grid with the package's own
+traversal (`occdata.visibility.masks`' DDA); the settled definition is `occdata.visibility.camera_mask`
+(the row marked "settled").
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 from numba import njit, prange
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from benchmarks.common import OCC3D_LABEL as LABEL
+from benchmarks.common import REAL_NUSCENES as ROOT
+from benchmarks.provenance import machine
+from occdata.constants import FREE_LABEL, GRID
+from occdata.visibility import GROUND_CLASSES, camera_mask
+from occdata.visibility.check import load_occ3d_label, rig_of_sample
+from occdata.visibility.masks import _advance, _dda_setup
 
-from occdata.constants import FREE_LABEL, GRID  # noqa: E402
-from occdata.visibility import GROUND_CLASSES, camera_mask  # noqa: E402
-from occdata.visibility.check import load_occ3d_label, rig_of_sample  # noqa: E402
+__all__ = ["Lab", "run"]
 
-DATA = REPO.parent / "shared" / "data"
-LABEL = DATA / "occ3d-label" / "29796060110c4163b07f06eff4af0753" / "labels.npz"
-ROOT = DATA / "nuscenes-real"
+# A pixel ray's far end: |d| >= 1 (unit depth along the optical axis), so 256 m passes the grid's
+# ~115 m diagonal from any camera inside it.
+BEYOND_GRID = 256.0
 LOWER = np.asarray(GRID.lower, np.float64)
 VS = GRID.voxel_size
 CENTRE = np.zeros((1, 3))
@@ -39,66 +41,59 @@ CORNERS = np.array([[sx, sy, sz] for sx in (-0.45, 0.45) for sy in (-0.45, 0.45)
 
 
 @njit(cache=True)
-def _count_before(occ, a, b, ti, tj, tk, lower, vs, cap):  # noqa: ANN001, ANN202
-    """Occupied voxels on segment a -> b before voxel (ti, tj, tk) (cap + 1 = gave up / never reached)."""
-    X, Y, Z = occ.shape
-    d = b - a
-    t0 = 0.0
+def _start(a, b, lower, vs, shape):  # noqa: ANN001, ANN202
+    """A fresh traversal of segment a -> b with the package's DDA: (non-empty, t at b, start voxel,
+    step, next boundary t, boundary spacing t) (the last four: (3,) arrays `_advance` updates)."""
+    idx = np.empty(3, np.int64)
+    step = np.empty(3, np.int64)
+    t_next = np.empty(3)
+    t_delta = np.empty(3)
+    ok, t_end = _dda_setup(a, b, lower, vs, shape, idx, step, t_next, t_delta)
+    return ok, t_end, idx, step, t_next, t_delta
+
+
+@njit(cache=True)
+def _entry_t(step, t_next, t_delta):  # noqa: ANN001, ANN202
+    """Where the segment enters the start voxel of a fresh `_dda_setup`: the last of its slab
+    crossings, or 0 when it starts inside (the cameras do)."""
+    t = 0.0
     for q in range(3):
-        if abs(d[q]) < 1e-15:
-            continue
-        ta = (lower[q] - a[q]) / d[q]
-        tb = (lower[q] + occ.shape[q] * vs - a[q]) / d[q]
-        t0 = max(t0, min(ta, tb))
-    i = min(max(int(np.floor((a[0] + t0 * d[0] - lower[0]) / vs)), 0), X - 1)
-    j = min(max(int(np.floor((a[1] + t0 * d[1] - lower[1]) / vs)), 0), Y - 1)
-    k = min(max(int(np.floor((a[2] + t0 * d[2] - lower[2]) / vs)), 0), Z - 1)
-    si = 1 if d[0] > 0 else -1 if d[0] < 0 else 0
-    sj = 1 if d[1] > 0 else -1 if d[1] < 0 else 0
-    sk = 1 if d[2] > 0 else -1 if d[2] < 0 else 0
-    ni = (lower[0] + (i + (si > 0)) * vs - a[0]) / d[0] if si != 0 else np.inf
-    nj = (lower[1] + (j + (sj > 0)) * vs - a[1]) / d[1] if sj != 0 else np.inf
-    nk = (lower[2] + (k + (sk > 0)) * vs - a[2]) / d[2] if sk != 0 else np.inf
-    di = vs / abs(d[0]) if si != 0 else np.inf
-    dj = vs / abs(d[1]) if sj != 0 else np.inf
-    dk = vs / abs(d[2]) if sk != 0 else np.inf
-    L = np.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2)
+        if step[q] != 0:
+            t = max(t, t_next[q] - t_delta[q])
+    return t
+
+
+@njit(cache=True)
+def _count_before(occ, shape, a, b, target, lower, vs, cap):  # noqa: ANN001, ANN202
+    """Occupied voxels on segment a -> b (b inside voxel `target`) before the target, and the metres
+    from the first one's entry to b (-1 if none); (cap + 1, inf) = gave up or never reached.
+
+    The traversal is the package's own (`occdata.visibility.masks`), so the variants below step
+    exactly as the settled `camera_mask` does; only what is counted differs."""
+    ok, t_end, idx, step, t_next, t_delta = _start(a, b, lower, vs, shape)
+    if not ok:
+        return cap + 1, np.inf
+    L = np.sqrt(((b - a) ** 2).sum())
     cnt = 0
-    t = t0
+    t = _entry_t(step, t_next, t_delta)
     first = -1.0
-    for _ in range(4000):
-        if i == ti and j == tj and k == tk:
+    while t <= t_end:
+        if idx[0] == target[0] and idx[1] == target[1] and idx[2] == target[2]:
             return cnt, (L - first * L) if first >= 0 else -1.0
-        if occ[i, j, k]:
+        if occ[idx[0], idx[1], idx[2]]:
             if first < 0:
                 first = t
             cnt += 1
             if cnt > cap:
                 return cap + 1, np.inf
-        if ni <= nj and ni <= nk:
-            t = ni
-            i += si
-            ni += di
-            if i < 0 or i >= X:
-                break
-        elif nj <= nk:
-            t = nj
-            j += sj
-            nj += dj
-            if j < 0 or j >= Y:
-                break
-        else:
-            t = nk
-            k += sk
-            nk += dk
-            if k < 0 or k >= Z:
-                break
+        t = _advance(idx, step, t_next, t_delta, shape)
     return cap + 1, np.inf
 
 
 @njit(cache=True, parallel=True)
 def _count_targets(occ, targets, cam, lower, vs, offsets, cap):  # noqa: ANN001, ANN202
     """Per target: min over offsets of (occupied voxels before it, metres behind the first one)."""
+    shape = np.array(occ.shape, np.int64)
     n_out = np.empty(len(targets), np.int64)
     gap_out = np.empty(len(targets))
     for n in prange(len(targets)):
@@ -107,7 +102,7 @@ def _count_targets(occ, targets, cam, lower, vs, offsets, cap):  # noqa: ANN001,
         for o in range(offsets.shape[0]):
             for q in range(3):
                 b[q] = lower[q] + (targets[n, q] + 0.5 + offsets[o, q]) * vs
-            c, g = _count_before(occ, cam, b, targets[n, 0], targets[n, 1], targets[n, 2], lower, vs, cap)
+            c, g = _count_before(occ, shape, cam, b, targets[n], lower, vs, cap)
             best = min(best, c)
             gap = min(gap, g)
         n_out[n] = best
@@ -116,58 +111,22 @@ def _count_targets(occ, targets, cam, lower, vs, offsets, cap):  # noqa: ANN001,
 
 
 @njit(cache=True)
-def _march_mark(occ, out, a, d, t_max, lower, vs, max_hits):  # noqa: ANN001, ANN202
-    """Mark voxels along a + t d, 0 <= t <= t_max, up to and including the max_hits-th occupied one."""
-    X, Y, Z = occ.shape
-    t0, t1 = 0.0, t_max
-    for q in range(3):
-        if abs(d[q]) < 1e-15:
-            if a[q] < lower[q] or a[q] >= lower[q] + occ.shape[q] * vs:
-                return
-            continue
-        ta = (lower[q] - a[q]) / d[q]
-        tb = (lower[q] + occ.shape[q] * vs - a[q]) / d[q]
-        t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
-    if t0 > t1:
+def _march_mark(occ, out, a, b, lower, vs, max_hits):  # noqa: ANN001, ANN202
+    """Mark voxels along segment a -> b, up to and including the max_hits-th occupied one (the
+    package's traversal, as in `_count_before`)."""
+    shape = np.array(occ.shape, np.int64)
+    ok, t_end, idx, step, t_next, t_delta = _start(a, b, lower, vs, shape)
+    if not ok:
         return
-    i = min(max(int(np.floor((a[0] + t0 * d[0] - lower[0]) / vs)), 0), X - 1)
-    j = min(max(int(np.floor((a[1] + t0 * d[1] - lower[1]) / vs)), 0), Y - 1)
-    k = min(max(int(np.floor((a[2] + t0 * d[2] - lower[2]) / vs)), 0), Z - 1)
-    si = 1 if d[0] > 0 else -1 if d[0] < 0 else 0
-    sj = 1 if d[1] > 0 else -1 if d[1] < 0 else 0
-    sk = 1 if d[2] > 0 else -1 if d[2] < 0 else 0
-    ni = (lower[0] + (i + (si > 0)) * vs - a[0]) / d[0] if si != 0 else np.inf
-    nj = (lower[1] + (j + (sj > 0)) * vs - a[1]) / d[1] if sj != 0 else np.inf
-    nk = (lower[2] + (k + (sk > 0)) * vs - a[2]) / d[2] if sk != 0 else np.inf
-    di = vs / abs(d[0]) if si != 0 else np.inf
-    dj = vs / abs(d[1]) if sj != 0 else np.inf
-    dk = vs / abs(d[2]) if sk != 0 else np.inf
     hits = 0
-    t = t0
-    while t <= t1:
-        out[i, j, k] = 1
-        if occ[i, j, k]:
+    while True:
+        out[idx[0], idx[1], idx[2]] = 1
+        if occ[idx[0], idx[1], idx[2]]:
             hits += 1
             if hits >= max_hits:
                 return
-        if ni <= nj and ni <= nk:
-            t = ni
-            i += si
-            ni += di
-            if i < 0 or i >= X:
-                return
-        elif nj <= nk:
-            t = nj
-            j += sj
-            nj += dj
-            if j < 0 or j >= Y:
-                return
-        else:
-            t = nk
-            k += sk
-            nk += dk
-            if k < 0 or k >= Z:
-                return
+        if _advance(idx, step, t_next, t_delta, shape) > t_end:
+            return
 
 
 @njit(cache=True)
@@ -182,7 +141,7 @@ def _pixel_rays(occ, Kinv, R_grid_from_cam, cam, W, H, stride, lower, vs, max_hi
             r1 = Kinv[1, 1] * v + Kinv[1, 2]
             for q in range(3):
                 d[q] = R_grid_from_cam[q, 0] * r0 + R_grid_from_cam[q, 1] * r1 + R_grid_from_cam[q, 2]
-            _march_mark(occ, out, cam, d, 1e9, lower, vs, max_hits)
+            _march_mark(occ, out, cam, cam + BEYOND_GRID * d, lower, vs, max_hits)
             u += stride
         v += stride
     return out
@@ -193,11 +152,11 @@ def _rays_to_targets(occ, targets, cam, lower, vs):  # noqa: ANN001, ANN202
     """The Occ3D paper's wording: a ray from the camera centre to each target voxel centre marks the
     voxels up to and including the first occupied one."""
     out = np.zeros(occ.shape, np.uint8)
-    d = np.empty(3)
+    b = np.empty(3)
     for n in range(len(targets)):
         for q in range(3):
-            d[q] = lower[q] + (targets[n, q] + 0.5) * vs - cam[q]
-        _march_mark(occ, out, cam, d, 1.0, lower, vs, 1)
+            b[q] = lower[q] + (targets[n, q] + 0.5) * vs
+        _march_mark(occ, out, cam, b, lower, vs, 1)
     return out
 
 
@@ -359,12 +318,13 @@ def run(lab: Lab) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--json", action="store_true", help="also print all rows as one JSON list at the end")
+    ap.add_argument("--json", action="store_true", help="also print rows + machine record as one JSON object")
     args = ap.parse_args()
+    record = machine()
     lab = Lab()
     run(lab)
     if args.json:
-        print(json.dumps(lab.rows))
+        print(json.dumps({"machine": record, "rows": lab.rows}))
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Cross-check occdata.eval.metrics' RayIoU against the pure-python parts of SparseOcc's evaluation.
 
-    python scripts/crosscheck_sparseocc.py --sparseocc PATH/TO/SparseOcc --store data.zarr \
+    python -m scripts.crosscheck_sparseocc --sparseocc PATH/TO/SparseOcc --store data.zarr \
         --label ../shared/data/occ3d-label/<token>/labels.npz [--json]
 
 Needs a checkout of https://github.com/MCG-NJU/SparseOcc (not a dependency; its files are read at
@@ -22,13 +22,9 @@ import ast
 import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
-
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 
 def _reference(sparseocc: Path) -> tuple[dict, type]:
