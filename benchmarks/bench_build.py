@@ -15,7 +15,9 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -124,8 +126,36 @@ def run(root: Path, gts: Path | None, work: Path, repeats: int) -> dict:
     total = float(np.median(totals)) / n
     stage_times["write (zarr, checksums) + overhead"] = max(total - sum(stage_times.values()), 0.0)
 
-    # Projection kernel vs peer-style numpy, same output.
     s = samples[0]
+    projection, jpeg_check = _projection(s, repeats), _jpeg_check(s, repeats)
+
+    # Bytes: store vs source (images + LiDAR + labels of the same samples).
+    source = sum(c.path.stat().st_size for s in samples for c in s.cameras)
+    source += sum(s.lidar.path.stat().st_size for s in samples)
+    source += sum(label_path(s).stat().st_size for s in samples if label_path(s) and label_path(s).is_file())
+    store_bytes = _dir_bytes(work / "bench0.zarr")
+
+    return {
+        "tree": str(root),
+        "samples": n,
+        "image_size": [samples[0].cameras[0].width, samples[0].cameras[0].height],
+        "floor_read_s_per_sample": floor,
+        "build_s_per_sample_1_worker": total,
+        "build_samples_per_s_per_core": 1.0 / total,
+        "ratio_to_floor": total / floor,
+        "stages_s_per_sample": stage_times,
+        "projection": projection,
+        "visibility": _visibility(work / "bench0.zarr"),
+        "jpeg_warning_check": jpeg_check,
+        "bytes": {"source_per_sample": source / n, "store_per_sample": store_bytes / n,
+                  "store_over_source": store_bytes / source},
+        "image_encodings_bytes_and_decode_s": _encodings(s, repeats),
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+
+
+def _projection(s: Any, repeats: int) -> dict[str, Any]:
+    """The LiDAR projection kernel vs a peer-style float32 numpy chain on one sample: same output, time."""
     pts = load_lidar_points(s.lidar.path)
     T = np.stack([s.T_cam_from_lidar(i) for i in range(6)])
     K = np.stack([c.K for c in s.cameras])
@@ -137,34 +167,41 @@ def run(root: Path, gts: Path | None, work: Path, repeats: int) -> dict:
                  if counts[c] == len(peer[c]) and counts[c])
     t_kernel, t_peer = time_pair(lambda: project_to_cameras(pts, T, K, sizes, 0.0),
                                  lambda: peer_projection(pts, s), 50 * repeats)
+    return {"kernel_ms": 1e3 * t_kernel, "peer_numpy_ms": 1e3 * t_peer, "speedup": t_peer / t_kernel,
+            "same_point_counts": all(same_counts), "max_pixel_diff_vs_float32_peer": max_px}
 
-    # The corrupt-JPEG check (issue #12): the same 1/8-scale validation decode of the 6 images with
-    # and without capturing libjpeg's warnings (stderr redirected per decode), interleaved.
+
+def _jpeg_check(s: Any, repeats: int) -> dict[str, float]:
+    """The corrupt-JPEG check (issue #12): the same 1/8-scale validation decode of the 6 images with
+    and without capturing libjpeg's warnings (stderr redirected per decode), interleaved."""
     blobs = [np.frombuffer(c.path.read_bytes(), np.uint8) for c in s.cameras]
     t_plain, t_checked = time_pair(
         lambda: [cv2.imdecode(b, cv2.IMREAD_REDUCED_GRAYSCALE_8) for b in blobs],
         lambda: [decode_jpeg_checked(b, cv2.IMREAD_REDUCED_GRAYSCALE_8) for b in blobs], 20 * repeats)
-    jpeg_check = {"plain_decode_ms_per_sample": 1e3 * t_plain, "checked_decode_ms_per_sample": 1e3 * t_checked,
-                  "overhead_ms_per_sample": 1e3 * (t_checked - t_plain)}
+    return {"plain_decode_ms_per_sample": 1e3 * t_plain, "checked_decode_ms_per_sample": 1e3 * t_checked,
+            "overhead_ms_per_sample": 1e3 * (t_checked - t_plain)}
 
-    # Bytes: store vs source (images + LiDAR + labels of the same samples).
-    source = sum(c.path.stat().st_size for s in samples for c in s.cameras)
-    source += sum(s.lidar.path.stat().st_size for s in samples)
-    source += sum(label_path(s).stat().st_size for s in samples if label_path(s) and label_path(s).is_file())
-    store_bytes = _dir_bytes(work / "bench0.zarr")
 
-    # Visibility recompute (camera + LiDAR masks by ray casting), on the first store.
+def _visibility(store: Path) -> dict[str, Any]:
+    """Visibility recompute (camera + LiDAR masks by ray casting) of a built store, timed warm."""
     from occdata.store.visibility_cmd import compute_visibility
 
-    vis = compute_visibility(work / "bench0.zarr", recompute=True, progress=False)  # includes numba compile
-    vis = compute_visibility(work / "bench0.zarr", recompute=True, progress=False)
-    ious = list(vis.agreement_iou.values())
+    compute_visibility(store, recompute=True, progress=False)  # numba compile
+    vis = compute_visibility(store, recompute=True, progress=False)
+    shipped = vis.compared > 0  # IoUs pooled over the samples that ship masks to compare with
+    return {"s_per_sample": vis.seconds_per_sample, "samples": vis.computed, "compared": vis.compared,
+            "iou_vs_shipped_mask_camera": vis.camera.iou() if shipped else None,
+            "iou_vs_shipped_mask_lidar": vis.lidar.iou() if shipped else None}
 
-    # Image encoding: bytes and load-time decode cost per camera image.
-    raw = [c.path.read_bytes() for c in samples[0].cameras]
-    half = [_read_jpeg(c.path, c.width, c.height, SampleOptions(image_scale=0.5)) for c in samples[0].cameras]
-    def dec(blobs, flag):
+
+def _encodings(s: Any, repeats: int) -> dict[str, dict[str, float]]:
+    """Image encoding: bytes and load-time decode cost per camera image of one sample."""
+    raw = [c.path.read_bytes() for c in s.cameras]
+    half = [_read_jpeg(c.path, c.width, c.height, SampleOptions(image_scale=0.5)) for c in s.cameras]
+
+    def dec(blobs: list[bytes], flag: int) -> Callable[[], list[np.ndarray]]:
         return lambda: [cv2.imdecode(np.frombuffer(b, np.uint8), flag) for b in blobs]
+
     enc = {
         "original, full decode": (sum(map(len, raw)) / 6, time_it(dec(raw, cv2.IMREAD_COLOR), 5 * repeats) / 6),
         "original, 1/2 DCT-scaled decode": (sum(map(len, raw)) / 6,
@@ -173,27 +210,7 @@ def run(root: Path, gts: Path | None, work: Path, repeats: int) -> dict:
                                                  time_it(dec(half, cv2.IMREAD_COLOR), 5 * repeats) / 6),
         "raw pixels at 0.5 (uint8)": (half and cv2.imdecode(np.frombuffer(half[0], np.uint8), 1).nbytes, 0.0),
     }
-    return {
-        "tree": str(root),
-        "samples": n,
-        "image_size": [samples[0].cameras[0].width, samples[0].cameras[0].height],
-        "floor_read_s_per_sample": floor,
-        "build_s_per_sample_1_worker": total,
-        "build_samples_per_s_per_core": 1.0 / total,
-        "ratio_to_floor": total / floor,
-        "stages_s_per_sample": stage_times,
-        "projection": {"kernel_ms": 1e3 * t_kernel, "peer_numpy_ms": 1e3 * t_peer,
-                       "speedup": t_peer / t_kernel, "same_point_counts": all(same_counts),
-                       "max_pixel_diff_vs_float32_peer": max_px},
-        "visibility": {"s_per_sample": vis.seconds_per_sample, "samples": vis.computed,
-                       "mean_iou_vs_shipped_mask_camera": float(np.mean(ious)) if ious else None,
-                       "min_iou": float(np.min(ious)) if ious else None},
-        "jpeg_warning_check": jpeg_check,
-        "bytes": {"source_per_sample": source / n, "store_per_sample": store_bytes / n,
-                  "store_over_source": store_bytes / source},
-        "image_encodings_bytes_and_decode_s": {k: {"bytes": b, "decode_s": t} for k, (b, t) in enc.items()},
-        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-    }
+    return {k: {"bytes": b, "decode_s": t} for k, (b, t) in enc.items()}
 
 
 def rss_scaling(work: Path, sizes: tuple[int, ...], workers: int) -> dict:
