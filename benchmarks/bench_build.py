@@ -25,11 +25,12 @@ import numpy as np
 from benchmarks.common import SHARED_DATA, emit_json
 from benchmarks.provenance import REPO, machine
 from occdata.nuscenes import load_lidar_points, load_nuscenes
+from occdata.occ3d import read_label
 from occdata.sensors.jpeg_check import decode_jpeg_checked
 from occdata.sensors.projection import project_to_cameras
 from occdata.store.bev import bev_bits
 from occdata.store.build import BuildConfig, build_store
-from occdata.store.sample import SampleOptions, _read_jpeg, load_occ3d_labels
+from occdata.store.sample import SampleOptions, _read_jpeg
 
 __all__ = ["peer_projection", "rss_scaling", "run", "time_it", "time_pair"]
 
@@ -110,7 +111,7 @@ def run(root: Path, gts: Path | None, work: Path, repeats: int) -> dict:
                                np.stack([c.K for c in s.cameras]),
                                np.array([[c.width, c.height] for c in s.cameras]), 0.0)
             for s in samples],
-        "labels (read + check + BEV GT)": lambda: [bev_bits(load_occ3d_labels(label_path(s))["semantics"])
+        "labels (read + check + BEV GT)": lambda: [bev_bits(read_label(label_path(s))["semantics"])
                                                    for s in samples if label_path(s) and label_path(s).is_file()],
     }
     stage_times = {k: time_it(f, repeats) / n for k, f in stages.items()}

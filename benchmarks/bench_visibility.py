@@ -29,8 +29,9 @@ from benchmarks.provenance import machine  # noqa: E402
 from occdata.constants import GRID  # noqa: E402
 from occdata.geometry import transform_points  # noqa: E402
 from occdata.nuscenes.reader import load_lidar_points, load_nuscenes  # noqa: E402
+from occdata.occ3d import read_label  # noqa: E402
 from occdata.visibility import camera_mask, lidar_mask, object_voxels  # noqa: E402
-from occdata.visibility.check import load_occ3d_label, rig_of_sample  # noqa: E402
+from occdata.visibility.check import rig_of_sample  # noqa: E402
 
 __all__: list[str] = []
 
@@ -68,7 +69,7 @@ def main() -> None:
     args = ap.parse_args()
     out: dict[str, object] = {"machine": machine(numba_threads=1)}
     # Real: the label's semantics with the real keyframe's rig and LiDAR sweep.
-    sem = load_occ3d_label(LABEL)["semantics"]
+    sem = read_label(LABEL)["semantics"]
     K, T, size = rig_of_sample(ROOT, None, None)
     s = load_nuscenes(ROOT).samples[0]
     pts = transform_points(s.lidar.T_ego_from_lidar, load_lidar_points(s.lidar.path)[:, :3].astype(np.float64))

@@ -9,8 +9,8 @@ precision / recall on occupied voxels. No variant uses the label's `mask_camera`
     ./.venv/bin/python -m benchmarks.visibility_variants [--json]
 
 The exploratory kernels live here (benchmark code) and step through the grid with the package's own
-traversal (`occdata.visibility.masks`' DDA); the settled definition is `occdata.visibility.camera_mask`
-(the row marked "settled").
+traversal (`occdata.sensors.raycast`, the DDA the masks use); the settled definition is
+`occdata.visibility.camera_mask` (the row marked "settled").
 """
 
 from __future__ import annotations
@@ -25,9 +25,10 @@ from benchmarks.common import OCC3D_LABEL as LABEL
 from benchmarks.common import REAL_NUSCENES as ROOT
 from benchmarks.provenance import machine
 from occdata.constants import FREE_LABEL, GRID
+from occdata.occ3d import read_label
+from occdata.sensors.raycast import segment_advance, segment_setup
 from occdata.visibility import GROUND_CLASSES, camera_mask
-from occdata.visibility.check import load_occ3d_label, rig_of_sample
-from occdata.visibility.masks import _advance, _dda_setup
+from occdata.visibility.check import rig_of_sample
 
 __all__ = ["Lab", "run"]
 
@@ -43,18 +44,18 @@ CORNERS = np.array([[sx, sy, sz] for sx in (-0.45, 0.45) for sy in (-0.45, 0.45)
 @njit(cache=True)
 def _start(a, b, lower, vs, shape):  # noqa: ANN001, ANN202
     """A fresh traversal of segment a -> b with the package's DDA: (non-empty, t at b, start voxel,
-    step, next boundary t, boundary spacing t) (the last four: (3,) arrays `_advance` updates)."""
+    step, next boundary t, boundary spacing t) (the last four: (3,) arrays `segment_advance` updates)."""
     idx = np.empty(3, np.int64)
     step = np.empty(3, np.int64)
     t_next = np.empty(3)
     t_delta = np.empty(3)
-    ok, t_end = _dda_setup(a, b, lower, vs, shape, idx, step, t_next, t_delta)
+    ok, t_end = segment_setup(a, b, lower, vs, shape, idx, step, t_next, t_delta)
     return ok, t_end, idx, step, t_next, t_delta
 
 
 @njit(cache=True)
 def _entry_t(step, t_next, t_delta):  # noqa: ANN001, ANN202
-    """Where the segment enters the start voxel of a fresh `_dda_setup`: the last of its slab
+    """Where the segment enters the start voxel of a fresh `segment_setup`: the last of its slab
     crossings, or 0 when it starts inside (the cameras do)."""
     t = 0.0
     for q in range(3):
@@ -68,7 +69,7 @@ def _count_before(occ, shape, a, b, target, lower, vs, cap):  # noqa: ANN001, AN
     """Occupied voxels on segment a -> b (b inside voxel `target`) before the target, and the metres
     from the first one's entry to b (-1 if none); (cap + 1, inf) = gave up or never reached.
 
-    The traversal is the package's own (`occdata.visibility.masks`), so the variants below step
+    The traversal is the package's own (`occdata.sensors.raycast`), so the variants below step
     exactly as the settled `camera_mask` does; only what is counted differs."""
     ok, t_end, idx, step, t_next, t_delta = _start(a, b, lower, vs, shape)
     if not ok:
@@ -86,7 +87,7 @@ def _count_before(occ, shape, a, b, target, lower, vs, cap):  # noqa: ANN001, AN
             cnt += 1
             if cnt > cap:
                 return cap + 1, np.inf
-        t = _advance(idx, step, t_next, t_delta, shape)
+        t = segment_advance(idx, step, t_next, t_delta, shape)
     return cap + 1, np.inf
 
 
@@ -125,7 +126,7 @@ def _march_mark(occ, out, a, b, lower, vs, max_hits):  # noqa: ANN001, ANN202
             hits += 1
             if hits >= max_hits:
                 return
-        if _advance(idx, step, t_next, t_delta, shape) > t_end:
+        if segment_advance(idx, step, t_next, t_delta, shape) > t_end:
             return
 
 
@@ -164,7 +165,7 @@ class Lab:
     """The label, its derived masks and the rig; `score` turns a predicted mask into a table row."""
 
     def __init__(self) -> None:
-        lab = load_occ3d_label(LABEL)
+        lab = read_label(LABEL, require_masks=True)
         self.sem = lab["semantics"]
         self.ml = lab["mask_lidar"].astype(bool)
         self.mc = lab["mask_camera"].astype(bool)
