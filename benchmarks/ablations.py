@@ -102,6 +102,12 @@ ROWS: dict[str, Row] = {r.name: r for r in (
     Row("bev-unfold", (("interp_features", False), ("bev_height", "unfold"))),
     Row("hist0fuse", (("num_history", 0), ("scene_sequential", True), ("zero_history_fusion", True))),
     Row("hist16cached", (("num_history", 16), ("scene_sequential", True), ("temporal_fusion", "cached"))),
+    # Issue 35's controls of why the cached fusion loses: a wider reduction; the reduction trained
+    # through the history (the queued frames' full maps reduced with gradient in training).
+    Row("hist16cached64", (("num_history", 16), ("scene_sequential", True), ("temporal_fusion", "cached"),
+                           ("temporal_channels", 64))),
+    Row("hist16cachedgrad", (("num_history", 16), ("scene_sequential", True), ("temporal_fusion", "cached"),
+                             ("temporal_grad_history", True))),
     Row("nano128", (("input_hw", (128, 352)),)),
     Row("surroundocc", (("head", "deconv"), ("view_transform", "attention"))),
 )}

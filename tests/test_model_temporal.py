@@ -221,6 +221,32 @@ def test_cached_fusion_trains_every_parameter_and_detaches_the_queue() -> None:
     assert not missing  # compress learns through the current frame's slot
 
 
+def test_grad_history_gives_the_cached_values_and_trains_the_reduction_through_the_queue() -> None:
+    """temporal_grad_history: the training queue keeps full maps and reduces them with gradient; the
+    forward values are the cached queue's (reduce, then warp), so the deployed cache serves the same model."""
+    eye = torch.eye(4)
+    stream = _moving_stream(4)
+    outs, grads = {}, {}
+    for grad_history in (False, True):
+        fusion = _cached()
+        fusion.grad_history = grad_history
+        fusion.train()
+        compress_grads = []
+        for t, (bev, pose) in enumerate(stream):
+            out = fusion(bev, _frame(pose, eye, start=t == 0))
+            outs.setdefault(grad_history, []).append(out.detach())
+            fusion.zero_grad()
+            out.square().mean().backward()
+            compress_grads.append(fusion.compress.weight.grad.clone())
+        grads[grad_history] = compress_grads
+        queued = fusion._feats.shape[2]
+        assert queued == (8 if grad_history else 4)  # the full map (C) or the reduced one (C_r)
+    for a, b in zip(outs[False], outs[True], strict=True):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+    # frame 0's queue is its own map: only from frame 1 on does the history carry gradient of its own
+    assert not torch.allclose(grads[False][-1], grads[True][-1], atol=1e-7)
+
+
 def test_zero_history_fusion_is_the_history_rows_fusion_layer_without_history() -> None:
     """hist0fuse: the same 1x1 conv + BN + ReLU as the history rows, over the current map alone."""
     from fastocc.model import FastOcc, preset, synthetic_inputs
@@ -276,3 +302,7 @@ def test_train_config_selects_the_fusion() -> None:
     assert TrainConfig().model_config().temporal_fusion is TemporalFusionKind.CONCAT  # not the default yet
     with pytest.raises(ConfigError, match="temporal_fusion"):
         TrainConfig(temporal_fusion="gru")
+    assert TrainConfig(num_history=16, temporal_fusion="cached", temporal_grad_history=True).model_config(
+    ).temporal_grad_history
+    with pytest.raises(ConfigError, match="temporal_grad_history"):
+        TrainConfig(num_history=16, temporal_grad_history=True)

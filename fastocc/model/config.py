@@ -107,6 +107,10 @@ class ModelConfig:
     bev_height: BevHeight = BevHeight.REPEAT
     temporal_fusion: TemporalFusionKind = TemporalFusionKind.CONCAT
     temporal_channels: int = 16  # C_r: channels each frame is reduced to in the "cached" queue
+    # "cached" only, a training control: the training queue keeps each frame's full map (detached) and
+    # the reduction runs on the queued maps with gradient, so it learns from the history too; the
+    # forward values equal the cached queue's (reduce, then warp), and inference keeps the cache.
+    temporal_grad_history: bool = False
     # Fusion-layer control of the history ablation: build the temporal fusion layer also when num_history
     # is 0 (the current frame alone through it), so a 0-frame row differs from a history row only by history.
     zero_history_fusion: bool = False
@@ -129,6 +133,8 @@ class ModelConfig:
             bad.append(f"num_history = {self.num_history} (must be >= 0)")
         if self.temporal_channels < 1:
             bad.append(f"temporal_channels = {self.temporal_channels} (must be >= 1)")
+        if self.temporal_grad_history and self.temporal_fusion != TemporalFusionKind.CACHED:
+            bad.append("temporal_grad_history needs temporal_fusion = 'cached'")
         if self.bev_height == BevHeight.UNFOLD and (self.interp_features or self.head != HeadKind.FASTOCC):
             bad.append(f"bev_height = {self.bev_height!s} needs the fastocc head with interp_features off")
         if self.attention_heads < 1 or self.attention_points < 1 or self.context_channels % self.attention_heads:

@@ -47,7 +47,7 @@ class FastOcc(nn.Module):
             self.pooling = LSSPooling(cfg.coarse_grid, cfg.depth_bins.centres(), cfg.input_hw, cfg.stride)
         self.temporal = (
             TemporalFusion(cfg.context_channels * z, cfg.num_history, cfg.coarse_grid, cfg.temporal_fusion,
-                           cfg.temporal_channels) if cfg.has_temporal else None
+                           cfg.temporal_channels, cfg.temporal_grad_history) if cfg.has_temporal else None
         )
         self.head = build_head(cfg)
         use_bev_head = cfg.bev_head and cfg.head is HeadKind.FASTOCC

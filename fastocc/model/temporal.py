@@ -70,11 +70,14 @@ class TemporalFusion(nn.Module):
     """
 
     def __init__(self, channels: int, num_history: int, grid: OccGrid,
-                 kind: TemporalFusionKind = TemporalFusionKind.CONCAT, cached_channels: int = 16) -> None:
+                 kind: TemporalFusionKind = TemporalFusionKind.CONCAT, cached_channels: int = 16,
+                 grad_history: bool = False) -> None:
         super().__init__()
         self.num_history = num_history
         self.grid = grid
         self.kind = TemporalFusionKind(kind)
+        # "cached" in training: queue the full maps, reduce them with gradient (ModelConfig.temporal_grad_history)
+        self.grad_history = grad_history and self.kind is TemporalFusionKind.CACHED
         T, C = num_history, channels
         if self.kind is TemporalFusionKind.CACHED:
             c_r, c_m = cached_channels, 2 * cached_channels
@@ -133,7 +136,9 @@ class TemporalFusion(nn.Module):
         entry = self.queue_entry(bev)
         if self.num_history == 0:
             return self.fuse(bev, entry, None)
-        B, Cq, X, Y = entry.shape
+        full = self.grad_history and self.training
+        stored = bev if full else entry  # what the queue keeps of this frame
+        B, Cq, X, Y = stored.shape
         T = self.num_history
         pose = inputs.T_global_from_keyego
         if pose is None:
@@ -142,13 +147,13 @@ class TemporalFusion(nn.Module):
         if start is not None and self._feats is not None and self._feats.shape[0] > B:
             # Lanes that ended leave a batch from its end (fastocc.data.order keeps the live lanes first).
             self._feats, self._poses, self._bev_aug = self._feats[:B], self._poses[:B], self._bev_aug[:B]
-        fresh = self._feats is None or self._feats.shape[0] != B or self._feats.shape[2:] != entry.shape[1:]
+        fresh = self._feats is None or self._feats.shape[0] != B or self._feats.shape[2:] != stored.shape[1:]
         if start is None or fresh:
             start = torch.ones(B, dtype=torch.bool, device=bev.device)
-            self._feats = entry.new_zeros(B, T, Cq, X, Y)
+            self._feats = stored.new_zeros(B, T, Cq, X, Y)
             self._poses = pose.new_zeros(B, T, 4, 4)
             self._bev_aug = pose.new_zeros(B, T, 4, 4)
-        cur = entry.detach()
+        cur = stored.detach()
         feats, poses, augs = self._feats, self._poses, self._bev_aug
         if bool(start.any()):  # (eager only: the export wrapper always selects)
             s = start.view(B, 1)
@@ -157,7 +162,10 @@ class TemporalFusion(nn.Module):
             augs = torch.where(s.view(B, 1, 1, 1), inputs.bev_aug[:, None].expand(B, T, 4, 4), augs)
         # T_curaug_from_prevaug = M_cur inv(T_g_from_cur) T_g_from_prev inv(M_prev), per queued frame
         T_rel = T_curaug_from_prevaug(pose[:, None], inputs.bev_aug[:, None], poses, augs).reshape(B * T, 4, 4)
-        warped = warp_bev(feats.reshape(B * T, Cq, X, Y), T_rel, self.grid).view(B, T * Cq, X, Y)
+        history = feats.reshape(B * T, Cq, X, Y)
+        if full:  # reduce, then warp: the same values as the cached queue, with gradient into `compress`
+            history = self.compress(history)
+        warped = warp_bev(history, T_rel, self.grid).view(B, -1, X, Y)
         fused = self.fuse(bev, entry, warped)
         self._feats = torch.cat([cur[:, None], feats[:, :-1]], dim=1)
         self._poses = torch.cat([pose[:, None], poses[:, :-1]], dim=1)

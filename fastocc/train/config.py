@@ -95,6 +95,7 @@ class TrainConfig:
     bev_height: str = "repeat"  # with interp_features off: repeat (constant along z) | unfold (channel-to-height)
     temporal_fusion: str = "concat"  # concat | cached (each frame reduced once to temporal_channels, when current)
     temporal_channels: int = 16  # C_r of the cached queue
+    temporal_grad_history: bool = False  # cached only: train the reduction through the queued frames too
     zero_history_fusion: bool = False  # ablation: the temporal fusion layer without history (num_history 0)
     scene_sequential: bool = False  # walk scenes in order also for single-frame models (history ablation)
     pretrained: str | None = None  # torchvision ResNet state dict for the backbone
@@ -173,6 +174,8 @@ class TrainConfig:
             bad.append(f"temporal_fusion {self.temporal_fusion!r} (choose from {kinds})")
         if self.temporal_channels < 1:
             bad.append(f"temporal_channels = {self.temporal_channels} (must be >= 1)")
+        if self.temporal_grad_history and self.temporal_fusion != TemporalFusionKind.CACHED.value:
+            bad.append("temporal_grad_history needs temporal_fusion 'cached'")
         if self.view_transform not in {k.value for k in ViewTransformKind}:
             bad.append(f"view_transform {self.view_transform!r} (choose from {[k.value for k in ViewTransformKind]})")
         if self.input_hw is not None and any(v <= 0 or v % 16 for v in self.input_hw):
@@ -186,6 +189,7 @@ class TrainConfig:
                                    "bev_height": BevHeight(self.bev_height),
                                    "temporal_fusion": TemporalFusionKind(self.temporal_fusion),
                                    "temporal_channels": self.temporal_channels,
+                                   "temporal_grad_history": self.temporal_grad_history,
                                    "zero_history_fusion": self.zero_history_fusion,
                                    "view_transform": ViewTransformKind(self.view_transform)}
         if self.input_hw is not None:
