@@ -120,29 +120,24 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
     Occ3D labels and BEV multi-hot GT when labels exist, and 16-frame temporal indices.
     Kill it at any time and rerun with --resume: the result is identical.
     """
-    from occdata.store.build import BuildConfig, build_store
+    from occdata.runtime.cluster import ClusterConfig
+    from occdata.store.build import ROOT_GTS, BuildConfig, build_store
     from occdata.store.sample import SampleOptions
     from occdata.store.storage import is_remote
 
-    root_path = local_path(root, "--root")
-    gts_path = local_path(gts, "--gts") if gts is not None else None
-    if gts_path is not None:
-        click.echo(f"labels: {gts_path} (--gts)")
-    elif (root_path / "gts").is_dir():
-        gts_path = root_path / "gts"
-        click.echo(f"labels: {gts_path} (found in the dataset root)")
-    else:
-        click.echo(f"labels: none (no --gts, and {root_path / 'gts'} does not exist): the store will be unlabelled")
     out_path = out if is_remote(out) else local_path(out, "--out")
+    config = BuildConfig(
+        root=local_path(root, "--root"), out=out_path, version=version,
+        gts=local_path(gts, "--gts") if gts is not None else ROOT_GTS, splits=splits,
+        cluster=ClusterConfig(workers=workers, scheduler=scheduler), resume=resume,
+        on_error=on_error,  # type: ignore[arg-type]
+        block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality,
+                                                             lidar_sweeps=lidar_sweeps),
+        progress=not no_progress,
+    )
+    click.echo(config.labels().note)
     try:
-        report = build_store(BuildConfig(
-            root=root_path, out=out_path, version=version, gts=gts_path,
-            labels_required=gts is not None, splits=splits, workers=workers, scheduler=scheduler, resume=resume,
-            on_error=on_error,  # type: ignore[arg-type]
-            block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality,
-                                                                 lidar_sweeps=lidar_sweeps),
-            progress=not no_progress,
-        ))
+        report = build_store(config)
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (occdata.runtime.cluster.Interrupted)
         click.echo(f"\ninterrupted: every sample committed so far is kept in {out_path}; rerun the same command "
                    "with --resume to continue", err=True)
@@ -195,14 +190,14 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
     from occdata.runtime.cluster import ClusterConfig
 
     out_path = local_path(out, "--out")
-    cluster = ClusterConfig(workers=workers, scheduler=scheduler)
     try:
         report = generate_labels(LabelsConfig(
             root=local_path(root, "--root"), out=out_path, version=version, splits=splits or None,
             scenes=scenes or None, resume=resume, progress=not no_progress,
             options=LabelOptions(lidar_sweeps=lidar_sweeps, static_class=static_class, knn_radius=knn_radius,
                                  use_boxes=not no_boxes),
-        ), cluster)
+            cluster=ClusterConfig(workers=workers, scheduler=scheduler),
+        ))
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (occdata.runtime.cluster.Interrupted)
         click.echo(f"\ninterrupted: finished scenes are kept in {out_path}; rerun with --resume to continue", err=True)
         sys.exit(128 + getattr(exc, "signum", 2))
