@@ -225,10 +225,10 @@ def rss_scaling(work: Path, sizes: tuple[int, ...], workers: int) -> dict:
     for n in sizes:
         tree = make_replicated_tree(shared / "nuscenes-real", label, work / f"rss{n}", 2, n // 2)
         code = (
-            "import resource, sys; from pathlib import Path; "
+            "import resource, sys; from pathlib import Path; from occdata.runtime.cluster import ClusterConfig; "
             "from occdata.store.build import BuildConfig, build_store; "
             f"build_store(BuildConfig(root=Path('{tree}'), out=Path('{work}/rss{n}.zarr'), gts=Path('{tree}/gts'), "
-            f"workers={workers}, progress=False)); "
+            f"cluster=ClusterConfig(workers={workers}), progress=False)); "
             "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, "
             "resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)"
         )

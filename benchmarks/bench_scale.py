@@ -24,6 +24,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +33,8 @@ import numpy as np
 from benchmarks.common import emit_json
 from benchmarks.provenance import machine
 from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks
-from occdata.store.build import BuildConfig, _create, build_store
+from occdata.store.build import BuildConfig, build_store
+from occdata.store.create import create_arrays
 from occdata.store.layout import FLAT_ARRAYS, PER_SAMPLE
 
 __all__ = ["bench_build", "bench_labels", "bench_overhead", "bench_write"]
@@ -45,8 +47,14 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def _noop(x: int) -> int:
-    return x
+@dataclass(frozen=True)
+class _Noop:
+    """An empty task: what remains is the scheduler round trip."""
+
+    units: int = 1
+
+    def run(self, should_stop: Any) -> int:
+        return 0
 
 
 # --- 1. build ---------------------------------------------------------------------------------------
@@ -62,10 +70,12 @@ def bench_build(root: Path, gts: Path | None, block: int, tmp: Path) -> dict[str
     t0 = time.perf_counter()
     with cluster_client(ClusterConfig(workers=2)) as client:
         out["localcluster_2_startup_s"] = time.perf_counter() - t0
-        build_store(BuildConfig(root=root, out=tmp / "warm2.zarr", gts=gts, block_samples=block, workers=2,
+        build_store(BuildConfig(root=root, out=tmp / "warm2.zarr", gts=gts, block_samples=block,
+                                cluster=ClusterConfig(workers=2),
                                 progress=False), client=client)
         t1 = time.perf_counter()
-        r2 = build_store(BuildConfig(root=root, out=tmp / "w2.zarr", gts=gts, block_samples=block, workers=2,
+        r2 = build_store(BuildConfig(root=root, out=tmp / "w2.zarr", gts=gts, block_samples=block,
+                                cluster=ClusterConfig(workers=2),
                                      progress=False), client=client)
         dt = time.perf_counter() - t1
         out["workers_2"] = {"seconds": dt, "samples": r2.n_samples, "samples_per_s": r2.n_samples / dt}
@@ -106,7 +116,7 @@ def bench_labels(root: Path, tmp: Path) -> dict[str, Any]:
 def bench_overhead(client: Any, n: int = 200) -> dict[str, float]:
     """Per-task cost of the scheduler round trips: empty tasks through run_tasks (window of 4)."""
     t0 = time.perf_counter()
-    run_tasks(client, _noop, list(range(n)), desc="noop", progress=False, window=4)
+    run_tasks(client, [_Noop() for _ in range(n)], desc="noop", progress=False, window=4)
     return {"tasks": n, "seconds_per_task": (time.perf_counter() - t0) / n}
 
 
@@ -166,7 +176,7 @@ def _fresh_store(url: str, n: int, block: int) -> None:
     from occdata.store.build import consolidate
 
     root = zarr.open_group(url, mode="w")
-    _create(root, n, block, {"schema": "bench"}, 32)
+    create_arrays(root, n, block, {"schema": "bench"}, 32)
     for name, (row, _, chunk) in FLAT_ARRAYS.items():
         per = JPEG_BYTES_PER_SAMPLE if name == "images/jpeg" else UVD_ROWS_PER_SAMPLE
         rows = -(-(per * block) // chunk) * chunk * (-(-n // block))

@@ -128,22 +128,22 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
     Kill it at any time and rerun with --resume: the result is identical.
     """
     from occdata.runtime.storage import is_remote
-    from occdata.store.build import BuildConfig, build_store
+    from occdata.store.build import ROOT_GTS, BuildConfig, build_store
     from occdata.store.sample import SampleOptions
 
-    root_path = local_path(root, "--root")
-    gts_path = _labels_folder(root_path, local_path(gts, "--gts") if gts is not None else None)
     out_path = out if is_remote(out) else local_path(out, "--out")
+    config = BuildConfig(
+        root=local_path(root, "--root"), out=out_path, version=version,
+        gts=local_path(gts, "--gts") if gts is not None else ROOT_GTS, splits=splits, cluster=cluster,
+        resume=resume, on_error=on_error,  # type: ignore[arg-type]
+        block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality,
+                                                             lidar_sweeps=lidar_sweeps),
+        progress=progress,
+    )
+    click.echo(config.labels().note)
     with exit_on_interrupt(f"interrupted: every sample committed so far is kept in {out_path}; rerun the same "
                            "command with --resume to continue"):
-        report = build_store(BuildConfig(
-            root=root_path, out=out_path, version=version, gts=gts_path,
-            labels_required=gts is not None, splits=splits, workers=cluster.workers, scheduler=cluster.scheduler,
-            resume=resume, on_error=on_error,  # type: ignore[arg-type]
-            block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality,
-                                                                 lidar_sweeps=lidar_sweeps),
-            progress=progress,
-        ))
+        report = build_store(config)
     for note in report.warnings:
         click.echo(f"warning: {note}", err=True)
     click.echo(
@@ -152,19 +152,6 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
     )
     if report.n_errors:
         click.echo("errors are recorded in the store: see `occdata info --store ...`", err=True)
-
-
-# moves into BuildConfig (runtime branch)
-def _labels_folder(root: Path, gts: Path | None) -> Path | None:
-    """The labels folder: --gts, else <root>/gts if it exists, else none; says which on stdout."""
-    if gts is not None:
-        click.echo(f"labels: {gts} (--gts)")
-        return gts
-    if (root / "gts").is_dir():
-        click.echo(f"labels: {root / 'gts'} (found in the dataset root)")
-        return root / "gts"
-    click.echo(f"labels: none (no --gts, and {root / 'gts'} does not exist): the store will be unlabelled")
-    return None
 
 
 @main.command()
@@ -205,7 +192,8 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
             scenes=scenes or None, resume=resume, progress=progress,
             options=LabelOptions(lidar_sweeps=lidar_sweeps, static_class=static_class, knn_radius=knn_radius,
                                  use_boxes=not no_boxes),
-        ), cluster)
+            cluster=cluster,
+        ))
     seg = "lidarseg classes" if report.with_lidarseg else f"no lidarseg: static points are class {static_class}"
     click.echo(f"{out_path}: {report.scenes_done} scene(s) labelled, {report.scenes_skipped} already done, "
                f"{report.keyframes} keyframes ({seg}); manifest {report.manifest}")

@@ -19,7 +19,8 @@ from typing import BinaryIO
 
 import numpy as np
 
-__all__ = ["TMP_SUFFIX", "atomic_open", "copy_atomic", "current_umask", "npz_bytes", "remove_stale_temps",
+__all__ = ["TMP_SUFFIX", "atomic_open", "copy_atomic", "current_umask", "is_temp_name", "npz_bytes",
+           "remove_stale_temps",
            "replace_synced", "write_atomic"]
 
 TMP_SUFFIX = ".tmp"
@@ -83,12 +84,20 @@ def copy_atomic(src: str | Path, dst: str | Path) -> None:
             fo.write(chunk)
 
 
-def remove_stale_temps(folder: str | Path) -> list[Path]:
-    """Delete the temporary files `atomic_open` leaves when its process is killed (`.<name>.<random>.tmp`).
+def is_temp_name(key: str) -> bool:
+    """Whether a file name (or the last part of a store key) is one of `atomic_open`'s temporaries."""
+    name = key.rsplit("/", 1)[-1]
+    return name.startswith(".") and name.endswith(TMP_SUFFIX)
+
+
+def remove_stale_temps(folder: str | Path, recursive: bool = False) -> list[Path]:
+    """Delete the temporary files `atomic_open` leaves when its process is killed (`.<name>.<random>.tmp`),
+    in `folder` (and below it with `recursive`).
 
     Only call this while holding the folder's writer lock: another writer's temporaries are live."""
     removed = []
-    for p in Path(folder).glob(f".*{TMP_SUFFIX}"):
+    folder = Path(folder)
+    for p in folder.rglob(f".*{TMP_SUFFIX}") if recursive else folder.glob(f".*{TMP_SUFFIX}"):
         if p.is_file():
             p.unlink(missing_ok=True)
             removed.append(p)

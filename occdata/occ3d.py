@@ -20,7 +20,7 @@ from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES
 from occdata.errors import OccDataError
 from occdata.fileio import npz_bytes, write_atomic
 
-__all__ = ["LABEL_FILE", "LABEL_KEYS", "find_label_files", "label_path", "label_relpaths", "read_label",
+__all__ = ["LABEL_FILE", "LABEL_KEYS", "list_label_files", "label_path", "label_relpaths", "read_label",
            "read_prediction", "write_label"]
 
 LABEL_FILE = "labels.npz"
@@ -37,7 +37,7 @@ def label_relpaths(scene: str, token: str) -> tuple[str, str]:
     return f"{scene}/{token}/{LABEL_FILE}", f"{token}/{LABEL_FILE}"
 
 
-def find_label_files(root: str | Path) -> list[Path]:
+def list_label_files(root: str | Path) -> list[Path]:
     """Every `<root>/<scene>/<token>/labels.npz`, sorted (the token is `path.parent.name`)."""
     return sorted(Path(root).glob(f"*/*/{LABEL_FILE}"))
 

@@ -246,7 +246,7 @@ def test_two_dask_workers_write_the_same_bytes(synth_root: Path, tmp_path: Path)
 
     cfg = {"root": synth_root, "options": LabelOptions(), "progress": False}
     generate_labels(LabelsConfig(out=tmp_path / "one", **cfg))
-    report = generate_labels(LabelsConfig(out=tmp_path / "two", **cfg), ClusterConfig(workers=2))
+    report = generate_labels(LabelsConfig(out=tmp_path / "two", cluster=ClusterConfig(workers=2), **cfg))
     assert report.scenes_done == 2
     one = sorted(p.relative_to(tmp_path / "one") for p in (tmp_path / "one").rglob("*") if p.is_file())
     assert one == sorted(p.relative_to(tmp_path / "two") for p in (tmp_path / "two").rglob("*") if p.is_file())

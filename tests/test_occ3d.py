@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from occdata.errors import OccDataError
-from occdata.occ3d import find_label_files, label_path, read_label, read_prediction, write_label
+from occdata.occ3d import label_path, list_label_files, read_label, read_prediction, write_label
 
 
 def test_real_occ3d_label_reads_with_its_masks(real_occ3d_label: Path) -> None:
@@ -32,7 +32,7 @@ def test_write_read_round_trip_same_bytes(tmp_path: Path) -> None:
     back = read_label(a)
     for k, v in arrays.items():
         np.testing.assert_array_equal(back[k], v)
-    assert find_label_files(tmp_path / "a") == [a]
+    assert list_label_files(tmp_path / "a") == [a]
     np.testing.assert_array_equal(read_prediction(a), arrays["semantics"])
 
 

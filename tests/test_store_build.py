@@ -19,6 +19,7 @@ from replicated_tree import make_replicated_tree
 from test_nuscenes_reader import DEVKIT_COUNTS
 
 from cli.occdata_cli import main
+from occdata.runtime.cluster import ClusterConfig
 from occdata.store.bev import bev_bits_reference, unpack_bev
 from occdata.store.build import BuildConfig, build_store
 from occdata.store.layout import STATE_DONE
@@ -159,7 +160,8 @@ def test_existing_store_needs_resume_and_same_inputs(tree, tree_store) -> None:
 @pytest.mark.parametrize("workers", [1, 2])
 def test_parallel_build_is_identical(tree, tree_store, tmp_path, workers: int) -> None:
     out = tmp_path / "w.zarr"
-    build_store(BuildConfig(root=tree, out=out, gts=tree / "gts", block_samples=4, workers=workers, progress=False))
+    build_store(BuildConfig(root=tree, out=out, gts=tree / "gts", block_samples=4,
+                            cluster=ClusterConfig(workers=workers), progress=False))
     assert store_digest(out) == store_digest(tree_store)
 
 

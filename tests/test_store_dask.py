@@ -14,6 +14,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -68,8 +69,13 @@ def _committed(path: Path) -> int:
 
 
 # --- the task runner alone -------------------------------------------------------------------------
-def _square(x: int) -> int:
-    return x * x
+@dataclass(frozen=True)
+class _Square:
+    x: int
+    units: int = 1
+
+    def run(self, should_stop) -> int:
+        return self.x * self.x
 
 
 def test_run_tasks_follow_ups_and_keep(client) -> None:
@@ -77,11 +83,12 @@ def test_run_tasks_follow_ups_and_keep(client) -> None:
     for c in (None, client):
         seen: list[tuple[int, int]] = []
 
-        def on_result(t: int, r: int, seen=seen) -> list[int]:
-            seen.append((t, r))
-            return [t + 100] if t < 3 else []
+        def on_result(t: _Square, r: int, seen=seen) -> list[_Square]:
+            seen.append((t.x, r))
+            return [_Square(t.x + 100)] if t.x < 3 else []
 
-        run_tasks(c, _square, list(range(6)), desc="t", progress=False, on_result=on_result, keep=lambda t: t != 4)
+        run_tasks(c, [_Square(x) for x in range(6)], desc="t", progress=False, on_result=on_result,
+                  keep=lambda t: t.x != 4)
         assert sorted(seen) == sorted([(t, t * t) for t in (0, 1, 2, 3, 5, 100, 101, 102)])
 
 
@@ -306,21 +313,25 @@ def test_resume_commits_staged_blocks_without_converting_them(tree, reference, t
     _verify(out)
 
 
-@pytest.mark.parametrize("exc_name", ["CommClosedError", "CancelledError"])
+@pytest.mark.parametrize("exc_name", ["CommClosedError", "FutureCancelledError", "CancelledError", "asyncio"])
 def test_every_way_of_losing_the_scheduler_says_the_same_line(exc_name: str) -> None:
-    """Whichever call notices first (a result's gather, a cancelled future), one message with the address."""
+    """Whichever call notices first (a result's gather, a cancelled future), one message with the
+    address: the exceptions distributed really raises (a task's own error comes back as TaskFailed)."""
+    import asyncio
+    import concurrent.futures
     from types import SimpleNamespace
 
+    from distributed.client import FutureCancelledError
     from distributed.comm.core import CommClosedError
 
     from occdata.runtime.cluster import _result
 
-    exc = CommClosedError("in <TCP (closed) ConnectionPool.gather>: Stream is closed") \
-        if exc_name == "CommClosedError" else type("CancelledError", (Exception,), {})("k")
+    exc = {"CommClosedError": CommClosedError("in <TCP (closed) ConnectionPool.gather>: Stream is closed"),
+           "FutureCancelledError": FutureCancelledError("k", "scheduler-connection-lost"),
+           "CancelledError": concurrent.futures.CancelledError(), "asyncio": asyncio.CancelledError()}[exc_name]
 
     def boom() -> None:
         raise exc
 
-    client = SimpleNamespace(status="running")
     with pytest.raises(OccDataError, match=r"^lost the Dask scheduler at tcp://127.0.0.1:1 \(.*--resume$"):
-        _result(client, SimpleNamespace(result=boom), "tcp://127.0.0.1:1")
+        _result(SimpleNamespace(result=boom), "tcp://127.0.0.1:1")

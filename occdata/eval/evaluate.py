@@ -24,7 +24,7 @@ from occdata.constants import CLASS_NAMES, FREE_LABEL
 from occdata.errors import OccDataError
 from occdata.eval.metrics import MIoUAccumulator, MIoUResult, RayIoUAccumulator, RayIoUResult
 from occdata.eval.rays import scene_ray_origins
-from occdata.occ3d import LABEL_FILE, find_label_files, read_prediction
+from occdata.occ3d import LABEL_FILE, list_label_files, read_prediction
 
 __all__ = [
     "EvalConfig",
@@ -70,7 +70,7 @@ def find_predictions(pred: Path) -> dict[str, Path]:
     if not pred.is_dir():
         raise OccDataError(f"prediction folder not found: {pred}")
     found: dict[str, Path] = {}
-    nested = [(p.parent.name, p) for p in find_label_files(pred)]
+    nested = [(p.parent.name, p) for p in list_label_files(pred)]
     for token, path in nested + [(p.stem, p) for p in sorted(pred.glob("*.npz"))]:
         if token in found:
             raise OccDataError(f"two predictions for token {token}: {found[token]} and {path}")

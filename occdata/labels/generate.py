@@ -12,26 +12,27 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import json
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-import numba
 import numpy as np
 
 from occdata.constants import CLASS_NAMES
 from occdata.errors import OccDataError
-from occdata.fileio import TMP_SUFFIX, remove_stale_temps, write_atomic
+from occdata.fileio import remove_stale_temps, write_atomic
 from occdata.labels.scene import LabelOptions, SceneInputs, label_scene
 from occdata.nuscenes import NuScenesDataset, find_version, load_nuscenes, validate_sample
 from occdata.nuscenes.annotations import load_annotations
 from occdata.nuscenes.lidarseg import lidarseg_index_names, load_lidarseg_index, occ3d_lut
-from occdata.occ3d import LABEL_FILE, label_path, write_label
+from occdata.occ3d import label_path, write_label
 from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks
 from occdata.runtime.lock import store_lock
+from occdata.runtime.tasks import StopCheck, no_stop
 
 __all__ = ["ALGORITHM_VERSION", "LabelsConfig", "LabelsReport", "SceneJob", "generate_labels", "load_inputs",
            "run_scene", "scene_record_path"]
@@ -43,7 +44,8 @@ _RECORDS = ".scenes"
 
 @dataclass(frozen=True)
 class LabelsConfig:
-    """`occdata labels` options. `scenes`: scene names to label (None: all of the chosen splits)."""
+    """`occdata labels` options. `scenes`: scene names to label (None: all of the chosen splits);
+    `cluster`: where the scene tasks run (as `occdata.store.build.BuildConfig.cluster`)."""
 
     root: Path
     out: Path
@@ -53,6 +55,7 @@ class LabelsConfig:
     splits: tuple[str, ...] | None = None
     resume: bool = False
     progress: bool = True
+    cluster: ClusterConfig = ClusterConfig()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "root", Path(self.root))
@@ -159,42 +162,47 @@ def _settings(header: dict[str, Any]) -> dict[str, Any]:
 
 @dataclass(frozen=True)
 class SceneJob:
-    """One task: label scene `scene` of `cfg`'s tree (small and picklable: never the data)."""
+    """One task: label scene `scene` of `cfg`'s tree (small and picklable: never the data).
+    `inputs`: what the runner loaded, for a run in its own process; None on a Dask worker, which
+    loads them once per process (`_worker_inputs`)."""
 
     cfg: LabelsConfig
     scene: str
     settings: str  # JSON of `_settings(header)`, copied into the scene's record
     keyframes: int
-    # On a Dask worker: one numba thread per task (one task per core; numba's parallel kernels on
-    # oversubscribed cores took 3-4x the time). None: numba's default, for a run in this process.
-    numba_threads: int | None = None
+    inputs: SceneInputs | None = field(default=None, compare=False, repr=False)
+
+    @property
+    def units(self) -> int:
+        return self.keyframes
+
+    def run(self, should_stop: StopCheck = no_stop) -> dict[str, int]:
+        """Label the scene and write its files, then its record (idempotent: a rerun rewrites the same
+        bytes). Returns the scene's counts."""
+        inputs = self.inputs if self.inputs is not None else _worker_inputs(self.cfg)
+        scene = next(sc for sc in inputs.dataset.scenes if sc.name == self.scene)
+        labels, counts = label_scene(inputs, scene, self.cfg.options, should_stop)
+        record = {"settings": json.loads(self.settings), "counts": dataclasses.asdict(counts),
+                  "samples": sorted(labels)}
+        _write_scene(self.cfg.out, scene.name, labels, record)
+        return record["counts"]
 
 
-# Inputs loaded once per process (a Dask worker runs many scenes of the same tree).
-_INPUTS: dict[LabelsConfig, SceneInputs] = {}
+@functools.lru_cache(maxsize=1)
+def _worker_inputs(cfg: LabelsConfig) -> SceneInputs:
+    """A Dask worker runs many scenes of the same tree: its inputs are read once per process."""
+    return load_inputs(cfg)[0]
 
 
 def run_scene(job: SceneJob) -> dict[str, int]:
-    """Label one scene and write its files, then its record (idempotent: a rerun rewrites the same
-    bytes). Returns the scene's counts."""
-    if job.numba_threads:
-        numba.set_num_threads(job.numba_threads)  # this thread's setting: the one that runs the task
-    if job.cfg not in _INPUTS:
-        _INPUTS.clear()
-        _INPUTS[job.cfg] = load_inputs(job.cfg)[0]
-    inputs = _INPUTS[job.cfg]
-    scene = next(sc for sc in inputs.dataset.scenes if sc.name == job.scene)
-    labels, counts = label_scene(inputs, scene, job.cfg.options)
-    record = {"settings": json.loads(job.settings), "counts": dataclasses.asdict(counts), "samples": sorted(labels)}
-    _write_scene(job.cfg.out, scene.name, labels, record)
-    return record["counts"]
+    """`job.run()` without a stop check."""
+    return job.run(no_stop)
 
 
-def generate_labels(cfg: LabelsConfig, cluster: ClusterConfig = ClusterConfig(),  # noqa: B008
-                    client: Any = None) -> LabelsReport:
-    """Label every chosen scene (see the module docstring): one `run_scene` task per scene, on
-    `cluster` (occdata.runtime.cluster: here, a LocalCluster of N workers, or an existing scheduler), or on
-    `client`, a `distributed.Client` already open. Raises `occdata.runtime.cluster.Interrupted` on Ctrl-C /
+def generate_labels(cfg: LabelsConfig, client: Any = None) -> LabelsReport:
+    """Label every chosen scene (see the module docstring): one `SceneJob` task per scene, on
+    `cfg.cluster` (occdata.runtime.cluster: here, a LocalCluster of N workers, or an existing scheduler), or
+    on `client`, a `distributed.Client` already open. Raises `occdata.runtime.cluster.Interrupted` on Ctrl-C /
     SIGTERM (finished scenes are kept)."""
     inputs, version = load_inputs(cfg)
     header = _options_dict(cfg, version, bool(inputs.lidarseg))
@@ -202,17 +210,13 @@ def generate_labels(cfg: LabelsConfig, cluster: ClusterConfig = ClusterConfig(),
     with store_lock(cfg.out, "labels"):
         _check_out(cfg, header)
         # What a killed run left half-written (we hold the lock: no other writer is live).
-        for folder in {p.parent for p in cfg.out.glob(f"*/*/.{LABEL_FILE}.*{TMP_SUFFIX}")} | {cfg.out / _RECORDS}:
-            if folder.is_dir():
-                remove_stale_temps(folder)
+        remove_stale_temps(cfg.out, recursive=True)
         todo = [sc for sc in inputs.dataset.scenes if not scene_record_path(cfg.out, sc.name).is_file()]
         skipped = len(inputs.dataset.scenes) - len(todo)
         settings = json.dumps(_settings(header), sort_keys=True)
-        threads = None if client is None and cluster.in_process() else 1
-        jobs = [SceneJob(cfg, sc.name, settings, len(sc.sample_tokens), threads) for sc in todo]
-        _INPUTS.clear()
-        _INPUTS[cfg] = inputs  # in-process tasks reuse what is loaded
-        with contextlib.nullcontext(client) if client is not None else cluster_client(cluster) as run_on:
-            run_tasks(run_on, run_scene, jobs, desc="labels", progress=cfg.progress, units=lambda j: j.keyframes)
+        here = inputs if client is None and cfg.cluster.in_process() else None  # tasks here reuse what is loaded
+        jobs = [SceneJob(cfg, sc.name, settings, len(sc.sample_tokens), here) for sc in todo]
+        with contextlib.nullcontext(client) if client is not None else cluster_client(cfg.cluster) as run_on:
+            run_tasks(run_on, jobs, desc="labels", unit="sample", progress=cfg.progress)
         manifest = _commit(cfg.out, header, (sc.name for sc in inputs.dataset.scenes))
     return LabelsReport(len(todo), skipped, len(inputs.dataset.samples), bool(inputs.lidarseg), manifest)

@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,7 +29,6 @@ from occdata.labels.kernels import NO_LABEL, NearestIndex, majority, points_in_b
 from occdata.nuscenes import LidarRecord, NuScenesDataset, SampleRecord, SceneRecord, load_lidar_points
 from occdata.nuscenes.annotations import Annotations, BoxRecord, boxes_for_lidar, moving_instances
 from occdata.nuscenes.lidarseg import DROP, OCC3D_FROM_LIDARSEG, read_lidarseg
-from occdata.runtime.cluster import check_stop
 from occdata.visibility import GROUND_CLASSES, camera_mask, lidar_mask
 
 __all__ = ["LabelOptions", "SceneCounts", "SceneInputs", "label_scene"]
@@ -301,10 +301,15 @@ def _held_static(keyframe_boxes: list[tuple[BoxRecord, ...]], travel: float) -> 
     return [tuple(b) for b in out]
 
 
-def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions
-                ) -> tuple[dict[str, dict[str, np.ndarray]], SceneCounts]:
+def _no_stop() -> None:
+    pass
+
+
+def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions,
+                should_stop: Callable[[], None] = _no_stop) -> tuple[dict[str, dict[str, np.ndarray]], SceneCounts]:
     """Labels of every keyframe of `scene`: sample token -> {"semantics", "mask_lidar",
-    "mask_camera"} `(200, 200, 16) uint8` (17 = free), and the scene's point counts."""
+    "mask_camera"} `(200, 200, 16) uint8` (17 = free), and the scene's point counts.
+    `should_stop()` is called between frames (nothing is written here): it raises to stop the run."""
     ds = inputs.dataset
     indices = [ds.index_of(t) for t in scene.sample_tokens]
     counts = SceneCounts(keyframes=len(indices))
@@ -312,7 +317,7 @@ def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions
     rays: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     with_seg = False
     for i in indices:  # pass 1: keyframes, the labelled references
-        check_stop()  # Ctrl-C / SIGTERM of an in-process run: stop between frames
+        should_stop()  # Ctrl-C / SIGTERM of an in-process run: stop between frames
         s = ds.samples[i]
         points, origin, off_ego = _frame_points(s.lidar)
         cls = _keyframe_classes(inputs, s.lidar, len(points))
@@ -332,7 +337,7 @@ def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions
             object_index = {k: NearestIndex.build(*cloud.instance(k), opts.knn_radius) for k in cloud.obj_pts}
         for i in indices:
             for rec in ds.samples[i].sweeps:
-                check_stop()
+                should_stop()
                 points, _, off_ego = _frame_points(rec)
                 counts.frames += 1
                 counts.points += len(points)
@@ -346,7 +351,7 @@ def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions
     keyframe_boxes = [boxes_for_lidar(inputs.annotations, ds, i, ds.samples[i].lidar) for i in indices]
     held = _held_static(keyframe_boxes, opts.hold_static)
     for n, i in enumerate(indices):
-        check_stop()
+        should_stop()
         s = ds.samples[i]
         boxes = keyframe_boxes[n] + held[n]
         semantics = _semantics(static, cloud, boxes, invert_rigid(s.T_global_from_keyego))

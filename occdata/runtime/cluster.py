@@ -5,10 +5,11 @@
   without a scheduler runs the tasks in this process (same task functions, no cluster start-up).
 - `cluster_client(config)`: a context manager that yields a `distributed.Client` (or None for the
   in-process case) and closes everything it started, also on Ctrl-C or an error.
-- `run_tasks(client, fn, tasks, ...)`: submits `fn(task)` for each task (at most a window in flight),
-  shows a tqdm bar, hands each task's small result to `on_result` in this process. Ctrl-C or SIGTERM
-  cancels what is queued and raises `Interrupted` within seconds; a lost or unreachable scheduler is
-  one `OccDataError` line.
+- `run_tasks(client, tasks, ...)`: runs each task (`occdata.runtime.tasks.Task`: its own `run` and
+  progress `units`; at most a window in flight), shows a tqdm bar, hands each task's small result to
+  `on_result` in this process. Ctrl-C or SIGTERM cancels what is queued and raises `Interrupted`
+  within seconds. A task's own exception is re-raised here; anything else that goes wrong on the
+  cluster side (a lost or unreachable scheduler, cancelled futures) is one `OccDataError` line.
 
 A task must be idempotent: Dask reruns it when its worker dies (`distributed.scheduler.allowed-
 failures`, default 3), so it writes only what it alone owns (whole chunks, or files it publishes by
@@ -19,6 +20,7 @@ terminal's Ctrl-C reaches the whole process group; only the client acts on it).
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import os
 import signal
@@ -31,16 +33,15 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from tqdm import tqdm
 
 from occdata.errors import OccDataError
+from occdata.runtime.tasks import Task, TaskFailed, run_on_worker, worker_setup
 
 if TYPE_CHECKING:  # distributed is imported lazily: `occdata` commands that do not run tasks stay light
     from distributed import Client, Future
 
-__all__ = ["SCHEDULER_ENV", "ClusterConfig", "Interrupted", "check_stop", "cluster_client", "dask_setup",
-           "run_tasks"]
+__all__ = ["SCHEDULER_ENV", "ClusterConfig", "Interrupted", "cluster_client", "dask_setup", "run_tasks"]
 
 SCHEDULER_ENV = "DASK_SCHEDULER_ADDRESS"
-T = TypeVar("T")
-R = TypeVar("R")
+T = TypeVar("T", bound=Task[Any])
 
 
 class Interrupted(KeyboardInterrupt):
@@ -79,15 +80,10 @@ class ClusterConfig:
 
 def dask_setup(worker: Any) -> None:
     """Worker preload (runs in each LocalCluster worker process): ignore SIGINT, so a terminal's
-    Ctrl-C, which reaches the whole process group, is handled by the client alone."""
+    Ctrl-C, which reaches the whole process group, is handled by the client alone. (Thread limits:
+    `occdata.runtime.tasks.worker_setup`, applied by every task, also on `--scheduler` workers.)"""
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:  # one single-threaded task per worker process: no OpenCV thread pool on top (oversubscription)
-        import cv2
-
-        cv2.setNumThreads(1)
-    except ImportError:
-        pass
 
 
 def _quiet_dask() -> None:
@@ -148,7 +144,7 @@ def _close(client: Client, cluster: Any = None) -> None:
 
 
 def _reason(exc: BaseException) -> str:
-    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    text = str(exc).splitlines()[0] if str(exc).strip() else type(exc).__name__
     return text[:200]
 
 
@@ -165,58 +161,41 @@ class _StopSignals:
             signal.signal(signal.SIGINT, self._prev.get(signal.SIGINT, signal.default_int_handler))
 
     def __enter__(self) -> _StopSignals:
-        global _ACTIVE
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 self._prev[sig] = signal.signal(sig, self._handler)
-            _ACTIVE = self
         return self
 
     def __exit__(self, *exc: object) -> None:
-        global _ACTIVE
         for sig, prev in self._prev.items():
             signal.signal(sig, prev)
         self._prev = {}
-        if _ACTIVE is self:
-            _ACTIVE = None
 
     def check(self) -> None:
+        """The stop check handed to tasks run in this process: raises `Interrupted` once a signal came."""
         if self.signum is not None:
             raise Interrupted(self.signum)
 
 
-_ACTIVE: _StopSignals | None = None  # the signals of the `run_tasks` running in this process, if any
-
-
-def check_stop() -> None:
-    """For a long task run in this process (client None): raise `Interrupted` once Ctrl-C or SIGTERM
-    has arrived, so it stops within seconds, not at its end; a no-op elsewhere (on a Dask worker).
-    Only call it where stopping is safe (the task publishes its results atomically and last)."""
-    if _ACTIVE is not None:
-        _ACTIVE.check()
-
-
-def run_tasks(client: Client | None, fn: Callable[[T], R], tasks: Sequence[T], *, desc: str,
-              progress: bool = True, units: Callable[[T], int] | None = None,
-              on_result: Callable[[T, R], Sequence[T] | None] | None = None,
+def run_tasks(client: Client | None, tasks: Sequence[T], *, desc: str, unit: str = "task",
+              progress: bool = True, on_result: Callable[[T, Any], Sequence[T] | None] | None = None,
               keep: Callable[[T], bool] | None = None, window: int | None = None) -> None:
-    """Run `fn(task)` for every task (`client` None: here, one after the other).
+    """Run every task (`client` None: here, one after the other, each given the stop check).
 
     `on_result(task, result)` runs in this process as each task finishes (in any order) and may
     return follow-up tasks, which run before the remaining ones. `keep(task)`, asked just before a
-    task is submitted, drops it when False. `units(task)` sizes the progress bar (default 1 per
-    task). Raises `Interrupted` on Ctrl-C/SIGTERM (queued tasks are cancelled), `OccDataError` when
-    the scheduler is lost, or a task's own exception (the rest is cancelled first).
+    task is submitted, drops it when False. The bar counts `task.units` in `unit`s. Raises
+    `Interrupted` on Ctrl-C/SIGTERM (queued tasks are cancelled), a task's own exception (the rest
+    is cancelled first), or `OccDataError` for anything else the cluster raises (a lost scheduler).
     """
-    bar = tqdm(total=sum(units(t) for t in tasks) if units else len(tasks), desc=desc,
-               unit="sample" if units else "task", disable=not progress, dynamic_ncols=True)
+    bar = tqdm(total=sum(t.units for t in tasks), desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)
     queue = _Queue(list(tasks), keep)
     try:
         with _StopSignals() as stop:
             if client is None:
-                _run_here(fn, queue, stop, bar, units, on_result)
+                _run_here(queue, stop, bar, on_result)
             else:
-                _run_on(client, fn, queue, stop, bar, units, on_result, window)
+                _run_on(client, queue, stop, bar, on_result, window)
     finally:
         bar.close()
 
@@ -244,22 +223,20 @@ class _Queue:
         return None
 
 
-def _run_here(fn: Callable[[T], R], queue: _Queue, stop: _StopSignals, bar: tqdm, units: Any,
-              on_result: Any) -> None:
+def _run_here(queue: _Queue, stop: _StopSignals, bar: tqdm, on_result: Any) -> None:
     while (item := queue.pop()) is not None:
         stop.check()
         task = item[0]
-        result = fn(task)
-        bar.update(units(task) if units else 1)
+        worker_setup(None)  # after a task that changed them, e.g. numba's threads (per thread)
+        result = task.run(stop.check)
+        bar.update(task.units)
         if on_result is not None:
             queue.add(on_result(task, result))
     stop.check()
 
 
-def _run_on(client: Client, fn: Callable[[T], R], queue: _Queue, stop: _StopSignals, bar: tqdm,
-            units: Any, on_result: Any, window: int | None) -> None:
-    from distributed import wait
-
+def _run_on(client: Client, queue: _Queue, stop: _StopSignals, bar: tqdm, on_result: Any,
+            window: int | None) -> None:
     addr = _address(client)  # kept: a closed connection no longer knows it
     if window is None:
         window = max(2, 2 * sum(_nthreads(client, addr).values()))
@@ -267,29 +244,41 @@ def _run_on(client: Client, fn: Callable[[T], R], queue: _Queue, stop: _StopSign
     try:
         while True:
             while len(running) < window and (item := queue.pop()) is not None:
-                running[client.submit(fn, item[0], pure=False, priority=item[1])] = item[0]
+                running[_submit(client, item, addr)] = item[0]
             if not running:
                 break
             stop.check()
-            if client.status != "running":  # the scheduler went away (the client is reconnecting or closed)
-                raise _lost(addr, str(client.status))
-            try:
-                with client.as_current():
-                    done, _ = wait(list(running), timeout=0.25, return_when="FIRST_COMPLETED")
-            except TimeoutError:
-                done = set()
-            except Exception as exc:  # noqa: BLE001 - futures cancelled because the scheduler connection broke
-                raise _lost(addr, type(exc).__name__) from None
-            for f in done:
+            for f in _wait_some(client, list(running), addr):
                 task = running.pop(f)
-                result = _result(client, f, addr)
-                bar.update(units(task) if units else 1)
+                result = _result(f, addr)
+                bar.update(task.units)
                 if on_result is not None:
                     queue.add(on_result(task, result))
             stop.check()
     finally:
         if running:
             _cancel(client, list(running))
+
+
+def _submit(client: Client, item: tuple[Any, int], addr: str) -> Future:
+    try:
+        return client.submit(run_on_worker, item[0], pure=False, priority=item[1])
+    except _INFRASTRUCTURE as exc:  # a closed client: nothing of the task's own ran yet
+        raise _lost(addr, _reason(exc)) from None
+
+
+def _wait_some(client: Client, futures: list[Future], addr: str) -> set[Future]:
+    """The futures that finished within a quarter second (none: check the signals and wait again)."""
+    from distributed import wait
+
+    _check_running(client, addr)
+    try:
+        with client.as_current():
+            return set(wait(futures, timeout=0.25, return_when="FIRST_COMPLETED").done)
+    except TimeoutError:
+        return set()
+    except _INFRASTRUCTURE as exc:  # futures cancelled because the scheduler connection broke, ...
+        raise _lost(addr, _reason(exc)) from None
 
 
 def _address(client: Client) -> str:
@@ -305,34 +294,42 @@ def _lost(addr: str, why: str) -> OccDataError:
                         "rerun with --resume")
 
 
+def _check_running(client: Client, addr: str) -> None:
+    """Fail at once when the client already knows the scheduler is gone (it is reconnecting, or
+    closed): a call would wait for the reconnection to time out first (30 s by default)."""
+    if client.status != "running":
+        raise _lost(addr, str(client.status))
+
+
 def _nthreads(client: Client, addr: str) -> dict[str, int]:
+    _check_running(client, addr)
     try:
         return client.nthreads()
-    except Exception as exc:  # noqa: BLE001 - a scheduler gone between connect and submit
+    except _INFRASTRUCTURE as exc:  # a scheduler gone between connect and submit
         raise _lost(addr, _reason(exc)) from None
 
 
-def _result(client: Client, f: Future, addr: str) -> Any:
+# Everything a distributed call raises that is not a task's own error (those come back as a
+# `TaskFailed` value): futures cancelled while the client reconnects (`distributed.client.
+# FutureCancelledError`, a `concurrent.futures.CancelledError`), `asyncio.CancelledError` (a
+# BaseException), closed connections (`CommClosedError`, an OSError), timeouts.
+_INFRASTRUCTURE = (Exception, asyncio.CancelledError)
+
+
+def _result(f: Future, addr: str) -> Any:
+    """`f`'s result; a task's own error is re-raised, anything else is the cluster's: one line.
+    Told apart by type alone (the client's status at this instant is a race)."""
     from distributed import KilledWorker
 
     try:
-        return f.result()
+        result = f.result()
     except KilledWorker as exc:
         raise OccDataError(f"a task killed every worker that ran it ({_reason(exc)}); see the worker logs") from None
-    except (OSError, TimeoutError) as exc:
-        if client.status in ("running", "connecting") and not _comm_error(exc):
-            raise  # the task's own error (a full disk, ...)
-        raise _lost(addr, "connection closed" if _comm_error(exc) else _reason(exc)) from None
-    except Exception as exc:
-        if client.status not in ("running", "connecting") or type(exc).__name__ == "CancelledError":
-            raise _lost(addr, f"{client.status}: {_reason(exc)}") from None
-        raise
-
-
-def _comm_error(exc: BaseException) -> bool:
-    from distributed.comm.core import CommClosedError
-
-    return isinstance(exc, CommClosedError)
+    except _INFRASTRUCTURE as exc:
+        raise _lost(addr, _reason(exc)) from None
+    if isinstance(result, TaskFailed):
+        result.reraise()
+    return result
 
 
 def _cancel(client: Client, futures: list[Future]) -> None:

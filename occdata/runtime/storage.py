@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import os
 import shutil
-import uuid
 from pathlib import Path
 from typing import Any
 
+from occdata import fileio
 from occdata.errors import OccDataError
 
 __all__ = ["exists", "is_remote", "join", "read_bytes", "remove_tree", "sibling", "write_atomic"]
@@ -54,15 +54,7 @@ def exists(location: str | Path) -> bool:
 def write_atomic(location: str, data: bytes) -> None:
     """Write a whole file/object: a reader sees the old one or the new one, never a part."""
     if not is_remote(location):
-        path = Path(location)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex}.partial")
-        try:
-            with open(tmp, "wb") as f:
-                f.write(data)
-            os.replace(tmp, path)
-        finally:
-            tmp.unlink(missing_ok=True)
+        fileio.write_atomic(location, data)  # temporary file, fsync, rename
         return
     fs, path = _fs(location)
     fs.pipe_file(path, data)  # one PUT

@@ -1,11 +1,11 @@
 """The build's two task kinds, one block of samples each (the block is the store's chunk/shard unit).
 
-1. `convert_block` (any worker, any order): converts the block's samples, writes its rows of every
+1. `ConvertJob` -> `convert_block` (any worker, any order): converts the block's samples, writes its rows of every
    fixed-shape array (whole chunks/shards that only this block owns), then publishes its ragged
    payload (JPEG bytes, depth points), the per-sample checksums and the errors as one staging
    object `<store>.staging/block_<b>.npz` (written whole: a rename locally, one PUT on S3). It
    returns a `BlockSummary` (sizes and errors, a few bytes): no data travels through the client.
-2. `commit_block` (once the client has placed the block in the flat arrays): copies the staged
+2. `CommitJob` -> `commit_block` (once the client has placed the block in the flat arrays): copies the staged
    payload into the flat arrays at its chunk-aligned start, then writes offsets, checksums and,
    last, the state flags (the commit point).
 
@@ -24,12 +24,15 @@ import warnings
 import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import zarr
 
+from occdata.nuscenes import LidarRecord, SampleRecord
 from occdata.runtime.storage import join, read_bytes, write_atomic
+from occdata.runtime.tasks import StopCheck, no_stop
 from occdata.store.layout import (
     FLAT_ARRAYS,
     FLAT_OF_OFFSETS,
@@ -39,24 +42,48 @@ from occdata.store.layout import (
     STATE_PENDING,
     checksummed_names,
 )
-from occdata.store.sample import SampleResult, process_sample
+from occdata.store.sample import SampleOptions, SampleResult, process_sample
 
-__all__ = ["BlockSummary", "CommitJob", "ConvertJob", "Placer", "commit_block", "convert_block", "flat_footprint",
-           "open_flat", "open_for_task", "run_job", "staged_summary", "staging_file"]
+__all__ = ["BlockSummary", "CommitJob", "ConvertJob", "Placer", "SampleInput", "commit_block", "convert_block",
+           "flat_footprint", "open_flat", "open_for_task", "sample_checksums", "staged_summary", "staging_file"]
 
 _OFFSETS_OF_FLAT = {flat: off for off, flat in FLAT_OF_OFFSETS.items()}
 
 
 @dataclass(frozen=True)
+class SampleInput:
+    """What converting one sample reads (`process_sample`'s arguments): its store index, its record,
+    the arrays known from the tables alone (`static_arrays`), its labels file, the options and the
+    previous LiDAR sweeps for the depth targets."""
+
+    index: int
+    sample: SampleRecord
+    static: dict[str, np.ndarray]
+    label_path: Path | None
+    options: SampleOptions
+    sweeps: tuple[LidarRecord, ...] = ()
+
+    def convert(self) -> SampleResult:
+        return process_sample(self.index, self.sample, self.static, self.label_path, self.options, self.sweeps)
+
+
+@dataclass(frozen=True)
 class ConvertJob:
-    """Samples `i0..i1-1` (block `block`); `samples` holds `process_sample`'s arguments per sample."""
+    """Task 1 for samples `i0..i1-1` (block `block`), one `SampleInput` each; returns a `BlockSummary`."""
 
     store: str
     staging: str
     block: int
     i0: int
     i1: int
-    samples: tuple[tuple[Any, ...], ...]
+    samples: tuple[SampleInput, ...]
+
+    @property
+    def units(self) -> int:
+        return self.i1 - self.i0
+
+    def run(self, should_stop: StopCheck = no_stop) -> BlockSummary:
+        return convert_block(self)  # a block takes seconds: the runner's checks between tasks suffice
 
 
 @dataclass(frozen=True)
@@ -80,6 +107,13 @@ class CommitJob:
     i1: int
     starts: dict[str, int]
     commit_until: int
+
+    @property
+    def units(self) -> int:
+        return 0  # the bar counts converted samples
+
+    def run(self, should_stop: StopCheck = no_stop) -> int:
+        return commit_block(self)  # no stop inside: the commit is short, and its flags go last
 
 
 def staging_file(staging: str, block: int) -> str:
@@ -117,7 +151,7 @@ def _write_rows(writes: list[tuple[zarr.Array, int, int, np.ndarray]]) -> None:
 
 def convert_block(job: ConvertJob) -> BlockSummary:
     """Task 1: convert, write the fixed-shape rows, publish the staging object."""
-    results = [process_sample(*args) for args in job.samples]
+    results = [sample.convert() for sample in job.samples]
     root = open_for_task(job.store)
     fill = _fill_rows(root)
     block: dict[str, np.ndarray] = {}
@@ -145,6 +179,17 @@ def convert_block(job: ConvertJob) -> BlockSummary:
              **{f"{n}/rows": payload[f"{n}/rows"] for n in FLAT_ARRAYS})
     write_atomic(staging_file(job.staging, job.block), buf.getvalue())
     return BlockSummary(job.block, {n: int(payload[f"{n}/rows"].sum()) for n in FLAT_ARRAYS}, errors)
+
+
+def sample_checksums(arrays: dict[str, np.ndarray], flat: dict[str, bytes]) -> np.ndarray:
+    """`(A,) uint32` crc32 per checksummed array, in `checksummed_names()` order."""
+    out = []
+    for name in checksummed_names():
+        if name in FLAT_ARRAYS:
+            out.append(zlib.crc32(flat[name]))
+        else:
+            out.append(zlib.crc32(np.ascontiguousarray(arrays[name]).tobytes()))
+    return np.array(out, dtype=np.uint32)
 
 
 def _payload(results: list[SampleResult]) -> dict[str, Any]:
@@ -266,8 +311,3 @@ class Placer:
         self.cursor = start + need
         self.high = max(self.high, self.cursor)
         return start
-
-
-def run_job(job: ConvertJob | CommitJob) -> BlockSummary | int:
-    """The function the cluster runs: either task kind."""
-    return convert_block(job) if isinstance(job, ConvertJob) else commit_block(job)

@@ -34,6 +34,7 @@ import zarr
 from zarr.core.sync import collect_aiterator
 
 from occdata.errors import OccDataError
+from occdata.fileio import is_temp_name
 from occdata.store.layout import (
     FLAT_ARRAYS,
     FLAT_OF_OFFSETS,
@@ -85,7 +86,7 @@ class StoreIntegrity:
                 keys = collect_aiterator(arr.store.list_prefix(f"{arr.path}/c"))
             except Exception as exc:  # noqa: BLE001 - a store that cannot be listed is reported plainly
                 raise OccDataError(f"cannot list the chunks of {name}: {exc}") from None
-            self._keys[name] = {k for k in keys if not k.endswith(".partial")}
+            self._keys[name] = {k for k in keys if not is_temp_name(k)}
         return self._keys[name]
 
     def absent_chunks(self, name: str) -> np.ndarray:

@@ -1,0 +1,85 @@
+"""`BuildConfig`: every option of `occdata build`, validated once, where the labels come from."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from occdata.errors import OccDataError
+from occdata.runtime.cluster import ClusterConfig
+from occdata.store.sample import SampleOptions
+
+__all__ = ["ROOT_GTS", "BuildConfig", "GtsDefault", "LabelsSource"]
+
+
+class GtsDefault(enum.Enum):
+    """`BuildConfig.gts` when no folder is named: `<root>/gts` if it exists (Occ3D-nuScenes keeps its
+    labels there), else no labels."""
+
+    ROOT = "<root>/gts"
+
+
+ROOT_GTS = GtsDefault.ROOT
+
+
+@dataclass(frozen=True)
+class LabelsSource:
+    """The labels folder a build reads (None: none), whether a folder that no sample finds its file
+    in is an error, and the sentence that tells the user which folder it is and why."""
+
+    folder: Path | None
+    required: bool
+    note: str
+
+
+@dataclass(frozen=True)
+class BuildConfig:
+    """`occdata build` options. `out`: a folder or an fsspec URL (s3://bucket/data.zarr). `gts`: the
+    labels folder, `ROOT_GTS` (`<root>/gts` when it exists: what the command does without --gts) or
+    None (no labels). `labels_required` (a named folder only): a folder in which no sample finds its
+    file is an error (a wrong folder would give a silently unlabelled store). `cluster`: where the
+    block tasks run."""
+
+    root: Path
+    out: Path | str
+    version: str | None = None
+    gts: Path | GtsDefault | None = None
+    labels_required: bool = True
+    splits: tuple[str, ...] = ()
+    cluster: ClusterConfig = field(default_factory=ClusterConfig)
+    resume: bool = False
+    on_error: Literal["fail", "skip"] = "fail"
+    block_samples: int = 32
+    options: SampleOptions = field(default_factory=SampleOptions)
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "root", Path(self.root))
+        if self.gts is not None and not isinstance(self.gts, GtsDefault):
+            object.__setattr__(self, "gts", Path(self.gts))
+        object.__setattr__(self, "splits", tuple(self.splits))
+        if not isinstance(self.cluster, ClusterConfig):
+            raise OccDataError(f"cluster must be a ClusterConfig, got {type(self.cluster).__name__}")
+        if self.block_samples < 1:
+            raise OccDataError(f"--block-samples must be >= 1, got {self.block_samples}")
+        if self.on_error not in ("fail", "skip"):
+            raise OccDataError(f"--on-error must be fail or skip, got {self.on_error!r}")
+        if not 0.05 <= self.options.image_scale <= 1.0:
+            raise OccDataError("--image-scale must be in [0.05, 1]")
+        if not 1 <= self.options.jpeg_quality <= 100:
+            raise OccDataError(f"--jpeg-quality must be in [1, 100], got {self.options.jpeg_quality}")
+
+    def labels(self) -> LabelsSource:
+        """Where this build's labels come from (resolves `ROOT_GTS`; `build_store` checks that a named
+        folder exists, after the tables)."""
+        if isinstance(self.gts, GtsDefault):
+            found = self.root / "gts"
+            if found.is_dir():
+                return LabelsSource(found, False, f"labels: {found} (found in the dataset root)")
+            return LabelsSource(None, False, f"labels: none (no --gts, and {found} does not exist): the store "
+                                             "will be unlabelled")
+        if self.gts is None:
+            return LabelsSource(None, False, "labels: none: the store will be unlabelled")
+        return LabelsSource(self.gts, self.labels_required, f"labels: {self.gts} (--gts)")

@@ -1,0 +1,216 @@
+"""Creating a store: its arrays and root attributes, published only once complete (a rename
+locally; an attribute marks a store still being created on an object store); opening an existing
+one for --resume (same identity, readable commit flags)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import zarr
+from zarr.codecs import ZstdCodec
+
+from occdata.constants import CAMERA_ORDER, CLASS_COLORS, CLASS_NAMES, FREE_LABEL, GRID
+from occdata.errors import OccDataError
+from occdata.fileio import remove_stale_temps
+from occdata.runtime.storage import is_remote, join, read_bytes, remove_tree, sibling
+from occdata.store.identity import build_identity, identity_diff
+from occdata.store.layout import (
+    FLAT_ARRAYS,
+    PER_SAMPLE,
+    SCHEMA_NAME,
+    SCHEMA_VERSION,
+    TOKEN_ARRAYS,
+    checksummed_names,
+    token_width,
+)
+from occdata.store.reader import StoreReader, store_location
+
+if TYPE_CHECKING:
+    from occdata.nuscenes import NuScenesDataset
+    from occdata.store.config import BuildConfig
+
+__all__ = ["STAGING_SUFFIX", "consolidate", "create_arrays", "open_or_create", "resume_state", "root_attrs",
+           "store_exists"]
+
+
+def _compressor(name: str) -> Any:
+    return None if name == "images/jpeg" else ZstdCodec(level=1)
+
+
+def create_arrays(root: zarr.Group, n: int, block: int, attrs: dict[str, Any], tok_width: int) -> None:
+    """Every array of the layout for `n` samples in blocks of `block`, pending, and the root attributes."""
+    n_check = len(checksummed_names())
+    for s in PER_SAMPLE:
+        shape = (n, *s.shape)
+        if s.name == "status/checksum":
+            shape = (n, n_check)
+        if s.name in TOKEN_ARRAYS:  # tokens are stored whole, however long
+            shape = (*shape[:-1], tok_width)
+        if s.sharded:
+            chunks, shards = (1, *shape[1:]), (min(block, n), *shape[1:])
+        else:
+            chunks, shards = (min(block, n), *shape[1:]), None
+        root.create_array(
+            s.name, shape=shape, dtype=s.dtype, chunks=chunks, shards=shards,
+            fill_value=s.fill, compressors=_compressor(s.name),
+        )
+    for name, (row, dtype, chunk_rows) in FLAT_ARRAYS.items():
+        root.create_array(
+            name, shape=(0, *row), dtype=dtype, chunks=(chunk_rows, *row), fill_value=0,
+            compressors=_compressor(name),
+        )
+    # Every commit flag exists from the start (pending): with many writers, blocks commit in any
+    # order, and an absent state chunk stays a sign of damage (occdata.store.integrity).
+    root["status/state"].with_config({"write_empty_chunks": True})[:] = np.zeros(n, dtype=np.uint8)
+    root.attrs.put(attrs)
+
+
+def root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str], gts: Path | None) -> dict[str, Any]:
+    """The root attributes of a new store (`gts`: the labels folder read)."""
+    first = 0
+    scenes = []
+    for sc in ds.scenes:
+        scenes.append({
+            "name": sc.name, "token": sc.token, "split": sc.split, "location": sc.location,
+            "description": sc.description, "first_index": first, "num_samples": len(sc.sample_tokens),
+        })
+        first += len(sc.sample_tokens)
+    opts = config.options
+    return {
+        "schema": SCHEMA_NAME,
+        "schema_version": SCHEMA_VERSION,
+        "n_samples": len(ds.samples),
+        "camera_order": list(CAMERA_ORDER),
+        "class_names": list(CLASS_NAMES),
+        "class_colors": [list(c) for c in CLASS_COLORS],
+        "free_label": FREE_LABEL,
+        "grid": {"lower": list(GRID.lower), "upper": list(GRID.upper), "voxel_size": GRID.voxel_size,
+                 "shape": list(GRID.shape), "frame": "key ego (LIDAR_TOP keyframe ego pose)",
+                 "axis_order": "x, y, z"},
+        "splits": split_names,
+        "scenes": scenes,
+        "images": {"encoding": "jpeg", "scale": opts.image_scale,
+                   "reencoded": opts.image_scale != 1.0, "jpeg_quality": opts.jpeg_quality if
+                   opts.image_scale != 1.0 else None},
+        "depth": {"columns": ["u", "v", "depth"], "pixel_frame": "original image pixels",
+                  "min_depth": opts.min_depth, "lidar_sweeps": opts.lidar_sweeps,
+                  "source": "keyframe LIDAR_TOP" + (f" + up to {opts.lidar_sweeps} previous sweeps, motion-"
+                                                    "compensated to each camera's timestamp" if opts.lidar_sweeps
+                                                    else "")},
+        "bev": {"encoding": "uint32 bit field, bit c = class c present in the column",
+                "free_bit": FREE_LABEL},
+        "checksum_arrays": list(checksummed_names()),
+        "checksum": "crc32 of each array's per-sample C-order bytes (flat arrays: its 6 camera slices)",
+        "build_identity": build_identity(config, ds, gts),
+        "build_config": {"workers": config.cluster.workers, "on_error": config.on_error},
+        "errors": [],
+        "complete": False,
+    }
+
+
+STAGING_SUFFIX = ".staging"  # <store>.staging: converted blocks not yet committed
+_CREATING = "occdata_creating"  # root attribute of a store whose layout is still being written (object stores)
+
+
+def resume_state(root: zarr.Group) -> np.ndarray:
+    """The commit flags as an earlier run left them; an absent chunk is pending (it is rebuilt)."""
+    arr = root["status/state"]
+    rows = int(arr.chunks[0])
+    out = np.zeros(arr.shape, dtype=np.uint8)
+    for i0 in range(0, arr.shape[0], rows):
+        try:
+            out[i0 : i0 + rows] = arr[i0 : i0 + rows]
+        except Exception as exc:  # noqa: BLE001 - a damaged chunk: say which file and how to recover
+            key = f"status/state/{arr.metadata.encode_chunk_key((i0 // rows,))}"
+            raise OccDataError(
+                f"cannot resume: the commit flags of samples {i0}..{min(i0 + rows, arr.shape[0]) - 1} are unreadable "
+                f"({type(exc).__name__}: {exc}); delete {key} inside the store and rerun --resume to rebuild them"
+            ) from None
+    return out
+
+
+def store_exists(out: str) -> bool:
+    """A store is there once its layout is complete (locally: the folder, published by rename;
+    on an object store: a root `zarr.json` not marked as still being created)."""
+    if not is_remote(out):
+        return os.path.lexists(out)
+    raw = read_bytes(join(out, "zarr.json"))
+    if raw is None:
+        return False
+    try:
+        return not json.loads(raw).get("attributes", {}).get(_CREATING, False)
+    except ValueError:
+        return True  # not ours to overwrite: the resume checks report it
+
+
+def _open_existing(config: BuildConfig, out: str, attrs: dict[str, Any]) -> zarr.Group:
+    if not config.resume:
+        raise OccDataError(f"store exists: {out} (pass --resume to continue it, or choose another --out)")
+    try:
+        root = zarr.open_group(out, mode="r+", use_consolidated=False)  # the client sees every array as it is
+    except Exception as exc:  # noqa: BLE001 - any unreadable store is reported the same way
+        raise OccDataError(f"cannot resume {out}: not a readable zarr store ({exc})") from None
+    if root.attrs.get("schema") == SCHEMA_NAME:
+        try:
+            StoreReader(out)  # every array there with the schema's shape (edited zarr.json, ...)
+        except OccDataError as exc:
+            raise OccDataError(f"cannot resume: {exc}") from None
+    if root.attrs.get("schema") != SCHEMA_NAME:
+        raise OccDataError(f"cannot resume {out}: not an occdata store (no schema attribute)")
+    stored = root.attrs.get("build_identity")
+    if isinstance(stored, dict) and isinstance(stored.get("options"), dict):
+        stored = {**stored, "options": {"lidar_sweeps": 0, **stored["options"]}}  # stores from before sweeps
+    if stored != attrs["build_identity"]:
+        diffs = identity_diff(stored if isinstance(stored, dict) else {}, attrs["build_identity"])
+        raise OccDataError(
+            f"cannot resume {out}: it was built from other inputs or options: {'; '.join(diffs)}. "
+            "Rerun with the store's values, or use a new --out"
+        )
+    if not is_remote(out):
+        remove_stale_temps(out, recursive=True)  # atomic-write leftovers of a killed run (we hold the lock)
+    return root
+
+
+def open_or_create(config: BuildConfig, ds: NuScenesDataset, split_names: list[str],
+                   gts: Path | None) -> tuple[zarr.Group, str]:
+    """The store to write, and its location (a local path or a URL)."""
+    out = store_location(config.out)
+    attrs = root_attrs(config, ds, split_names, gts)
+    if store_exists(out):
+        return _open_existing(config, out, attrs), out
+    remove_tree(sibling(out, STAGING_SUFFIX))  # left by an earlier store of that name: not ours
+    tok_width = token_width(_all_tokens(ds))
+    if is_remote(out):  # no rename on an object store: the root is marked until the layout is complete
+        root = zarr.open_group(out, mode="w", attributes={_CREATING: True})
+        create_arrays(root, len(ds.samples), config.block_samples, attrs, tok_width)
+        consolidate(out)
+        return zarr.open_group(out, mode="r+", use_consolidated=False), out
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(out + ".creating")
+    shutil.rmtree(tmp, ignore_errors=True)
+    root = zarr.open_group(tmp, mode="w")
+    create_arrays(root, len(ds.samples), config.block_samples, attrs, tok_width)
+    consolidate(str(tmp))
+    tmp.rename(out)  # the store appears only once its layout is complete
+    return zarr.open_group(out, mode="r+", use_consolidated=False), out
+
+
+def _all_tokens(ds: NuScenesDataset) -> Iterator[str]:
+    for s in ds.samples:
+        yield s.token
+        yield s.lidar.token
+        yield from (c.token for c in s.cameras)
+
+
+def consolidate(out: str) -> None:
+    """Rewrite the consolidated metadata (one read gives every array's metadata, on S3 too)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # zarr: consolidated metadata is not (yet) in the v3 spec
+        zarr.consolidate_metadata(out)

@@ -1,0 +1,61 @@
+"""A store's build identity: what a resumed build must match, and how to say what differs."""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import asdict
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from occdata.nuscenes import NuScenesDataset
+    from occdata.store.config import BuildConfig
+
+__all__ = ["build_identity", "identity_diff"]
+
+# build_identity key -> what the user changes to change it
+_IDENTITY_OPTION = {
+    "source_root": "--root", "source_version": "--version", "gts": "--gts", "splits": "--split",
+    "block_samples": "--block-samples", "options.image_scale": "--image-scale",
+    "options.jpeg_quality": "--jpeg-quality", "options.min_depth": "min_depth",
+    "options.lidar_sweeps": "--lidar-sweeps",
+    "sample_tokens_crc32": "the sample list in the tables",
+}
+
+
+def build_identity(config: BuildConfig, ds: NuScenesDataset, gts: Path | None) -> dict[str, Any]:
+    """What a resumed build must match (workers, resume and on_error may change between runs);
+    `gts`: the labels folder the build reads (`config.labels().folder`)."""
+    return {
+        "source_root": str(ds.root),
+        "source_version": ds.version,
+        "gts": str(Path(gts).resolve()) if gts else None,
+        "splits": list(config.splits),
+        "block_samples": config.block_samples,
+        "options": asdict(config.options),
+        "sample_tokens_crc32": zlib.crc32("".join(s.token for s in ds.samples).encode()),
+    }
+
+
+def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def identity_diff(stored: dict[str, Any], now: dict[str, Any]) -> list[str]:
+    """One phrase per differing input/option: `--image-scale: store 1.0, now 0.5`."""
+    a, b = _flatten(stored), _flatten(now)
+    out = []
+    for key in sorted(set(a) | set(b), key=lambda k: list(_IDENTITY_OPTION).index(k) if k in _IDENTITY_OPTION else 99):
+        if a.get(key, "<unset>") != b.get(key, "<unset>"):
+            if key == "sample_tokens_crc32":
+                out.append("the sample list in the tables differs (tables edited?)")
+            else:
+                was, now_ = a.get(key, "<unset>"), b.get(key, "<unset>")
+                out.append(f"{_IDENTITY_OPTION.get(key, key)}: store {was!r}, now {now_!r}")
+    return out

@@ -1,0 +1,116 @@
+"""What a build reads besides the options: the selected samples, their labels files and LiDAR sweeps,
+and what each sample's record needs from the whole selection (scene, split, temporal indices)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from occdata.errors import OccDataError
+from occdata.nuscenes import LidarRecord, NuScenesDataset, load_nuscenes
+from occdata.nuscenes.reader import confined_path
+from occdata.occ3d import LABEL_FILE, label_relpaths
+from occdata.store.blocks import SampleInput
+from occdata.store.config import BuildConfig
+from occdata.store.sample import static_arrays, temporal_indices
+
+__all__ = ["BuildInputs", "check_sweep_files", "find_label_files", "read_inputs"]
+
+
+@dataclass(frozen=True, eq=False)
+class BuildInputs:
+    """The selection a build converts, `n` samples: `labels` and `histories` per sample (its labels
+    file or None, its previous LiDAR sweeps); `scene_index`, `split_code`, `prev_index` `(n,)`
+    and `prev_valid` `(n, ...)` as `temporal_indices` gives them; `gts` the labels folder read."""
+
+    ds: NuScenesDataset
+    gts: Path | None
+    labels: tuple[Path | None, ...]
+    histories: tuple[tuple[LidarRecord, ...], ...]
+    split_names: tuple[str, ...]
+    scene_index: np.ndarray
+    split_code: np.ndarray
+    prev_index: np.ndarray
+    prev_valid: np.ndarray
+
+    def sample_input(self, i: int, config: BuildConfig, tok_width: int) -> SampleInput:
+        """What converting sample `i` needs (`tok_width`: the store's token length)."""
+        s = self.ds.samples[i]
+        static = static_arrays(s, int(self.scene_index[i]), int(self.split_code[i]), self.prev_index[i],
+                               self.prev_valid[i], tok_width)
+        return SampleInput(i, s, static, self.labels[i], config.options, self.histories[i])
+
+
+def read_inputs(config: BuildConfig) -> BuildInputs:
+    """The tables, sweeps and labels files of `config`, checked before anything is written."""
+    n_sweeps = config.options.lidar_sweeps
+    ds = load_nuscenes(config.root, config.version, sweeps=n_sweeps > 0).select(config.splits or None)
+    if not ds.samples:
+        raise OccDataError(f"no samples selected under {config.root} (splits: {list(config.splits) or 'all'})")
+    histories = tuple(ds.lidar_history(i, n_sweeps) for i in range(len(ds.samples)))
+    check_sweep_files(list(histories), n_sweeps)
+    source = config.labels()
+    if source.folder is not None and not source.folder.is_dir():
+        raise OccDataError(f"labels folder not found: {source.folder}")
+    labels: list[Path | None] = [None] * len(ds.samples)
+    if source.folder is not None:
+        labels, ds = find_label_files(source.folder, ds, source.required)
+    split_names = sorted({sc.split for sc in ds.scenes})
+    scene_pos = {sc.token: i for i, sc in enumerate(ds.scenes)}
+    scene_index = np.array([scene_pos[s.scene_token] for s in ds.samples])
+    split_of = {name: i for i, name in enumerate(split_names)}
+    split_code = np.array([split_of[ds.scenes[k].split] for k in scene_index])
+    prev_index, prev_valid = temporal_indices(scene_index, np.array([s.index_in_scene for s in ds.samples]))
+    return BuildInputs(ds, source.folder, tuple(labels), histories, tuple(split_names), scene_index, split_code,
+                       prev_index, prev_valid)
+
+
+def check_sweep_files(histories: list[tuple[LidarRecord, ...]], n_sweeps: int) -> None:
+    """Raise one `OccDataError` line if any sweep file that `--lidar-sweeps` needs is not a file:
+    it names the first missing one and how many of the needed files were found."""
+    needed = list(dict.fromkeys(sw for h in histories for sw in h))  # samples share sweeps
+    missing = [sw for sw in needed if not sw.path.is_file()]
+    if missing:
+        first = missing[0]
+        raise OccDataError(
+            f"--lidar-sweeps {n_sweeps}: missing sweep file {first.path} (sample_data {first.token!r}); "
+            f"{len(needed) - len(missing)} of the {len(needed)} sweep files needed were found. A keyframe-only "
+            "download has no sweeps/ folder: add the sweeps, or use --lidar-sweeps 0"
+        )
+
+
+def find_label_files(
+    gts: Path, ds: NuScenesDataset, required: bool
+) -> tuple[list[Path | None], NuScenesDataset]:
+    """Per sample, its `labels.npz` under `gts` (nested `<scene>/<token>/` first, then flat
+    `<token>/`), or None. Scene names and tokens come from the tables: a label path that would leave
+    `gts` marks that sample with a problem (the sample fails, naming the row). With `required`, no
+    match for any sample is an error that shows the expected layout and one expected path.
+    """
+    found: list[Path | None] = []
+    samples = []
+    for s in ds.samples:
+        where = f"scene {s.scene_name!r} / sample {s.token!r} (labels path under --gts)"
+        path: Path | None = None
+        try:
+            candidates = [confined_path(gts, rel, where) for rel in label_relpaths(s.scene_name, s.token)]
+            path = next((c for c in candidates if os.path.lexists(c)), None)
+        except OccDataError as exc:
+            s = dataclasses.replace(s, problem=s.problem or str(exc))
+        found.append(path)
+        samples.append(s)
+    if required and ds.samples and not any(found):
+        s = ds.samples[0]
+        nested, flat = label_relpaths(s.scene_name, s.token)
+        raise OccDataError(
+            f"no label file under {gts} matches any of the {len(ds.samples)} samples; expected "
+            f"{gts}/<scene name>/<sample token>/{LABEL_FILE} or {gts}/<sample token>/{LABEL_FILE}, "
+            f"e.g. {gts / nested} (check --gts; leave it out for samples without labels, e.g. the test split)"
+        )
+    if any(s.problem for s in samples):
+        ds = dataclasses.replace(ds, samples=tuple(samples))
+    return found, ds
