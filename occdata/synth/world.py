@@ -285,33 +285,31 @@ def _rect(cx: float, cy: float, yaw: float, hx: float, hy: float) -> np.ndarray:
     return np.stack([cx + c * local[:, 0] - s * local[:, 1], cy + s * local[:, 0] + c * local[:, 1]], axis=1)
 
 
-def make_world(rng: np.random.Generator, origin_xy: tuple[float, float], t0_us: int, n_samples: int) -> SceneWorld:
-    """Generate one scene: roads, ground classes, buildings, vegetation, street furniture, actors.
+class _StaticBuilder:
+    """Accumulates the static primitives of a scene (rows, classes, styles) and its box-annotated objects."""
 
-    The ego starts 70 m into the path at `t0_us` and drives for `n_samples` keyframes (0.5 s each).
-    """
-    duration = 0.5 * n_samples + 1.0
-    ego_s0 = 70.0
-    path = make_path(rng, origin_xy, ego_s0 + 12.0 * duration + 130.0)
-    ego = make_ego_motion(rng, path, t0_us, duration, ego_s0)
-    ego_s_end = float(ego.s[-1])
-    ground = _make_ground(rng, path, margin=110.0)
-    fp = _Footprints(ground)
-    rows: list[list[float]] = []
-    cls: list[int] = []
-    sty: list[int] = []
-    objects: list[StaticObject] = []
+    def __init__(self) -> None:
+        self.rows: list[list[float]] = []
+        self.cls: list[int] = []
+        self.sty: list[int] = []
+        self.objects: list[StaticObject] = []
 
-    def add_static(parts: np.ndarray, cl: list[int], st: list[int], x: float, y: float, yaw: float,
-                   kind: str = "") -> None:
-        rows.extend(place_parts(parts, x, y, yaw).tolist())
-        cls.extend(cl)
-        sty.extend(st)
+    def add(self, parts: np.ndarray, cl: list[int], st: list[int], x: float, y: float, yaw: float,
+            kind: str = "") -> None:
+        self.rows.extend(place_parts(parts, x, y, yaw).tolist())
+        self.cls.extend(cl)
+        self.sty.extend(st)
         if kind:  # a box-annotated kind (nuScenes boxes every car, cone, barrier, ..., parked or not)
-            objects.append(StaticObject(kind, parts, x, y, yaw))
+            self.objects.append(StaticObject(kind, parts, x, y, yaw))
 
+    def primitives(self) -> Primitives:
+        return Primitives(np.asarray(self.rows, np.float64).reshape(-1, 9), np.asarray(self.cls, np.int32),
+                          np.asarray(self.sty, np.int32))
+
+
+def _street_furniture(rng: np.random.Generator, path: Path2D, fp: _Footprints, out: _StaticBuilder) -> None:
+    """Poles and trees close to the kerb on both sidewalks."""
     L = path.length
-    # Street furniture on both sidewalks: poles and trees close to the kerb.
     for side in (-1.0, 1.0):
         s = float(rng.uniform(0, 10))
         while s < L:
@@ -320,7 +318,7 @@ def make_world(rng: np.random.Generator, origin_xy: tuple[float, float], t0_us: 
             corners = _rect(x, y, 0.0, r, r)
             if fp.free(corners, SIDEWALK_OUT - 0.8):
                 fp.add(corners)
-                add_static(np.array([_cyl(0, 0, r, 0.0, rng.uniform(5.0, 8.0))]), [MANMADE], [STYLE_POLE], x, y, 0)
+                out.add(np.array([_cyl(0, 0, r, 0.0, rng.uniform(5.0, 8.0))]), [MANMADE], [STYLE_POLE], x, y, 0)
             s += float(rng.uniform(18.0, 35.0))
         s = float(rng.uniform(0, 8))
         while s < L:
@@ -333,9 +331,13 @@ def make_world(rng: np.random.Generator, origin_xy: tuple[float, float], t0_us: 
                 v = int(rng.integers(0, 8))
                 z_c = float(rng.uniform(1.8, 3.0))
                 parts = np.array([_cyl(0, 0, 0.2, 0.0, z_c + 0.3), _cyl(0, 0, rc, z_c, z_c + rng.uniform(2.5, 5.0))])
-                add_static(parts, [VEGETATION, VEGETATION], [v | STYLE_TRUNK, v], x, y, 0)
+                out.add(parts, [VEGETATION, VEGETATION], [v | STYLE_TRUNK, v], x, y, 0)
             s += float(rng.uniform(5.0, 12.0))
-    # Two rows of buildings and some walls along the street.
+
+
+def _buildings_and_walls(rng: np.random.Generator, path: Path2D, fp: _Footprints, out: _StaticBuilder) -> None:
+    """Two rows of buildings and some walls along both sides of the street."""
+    L = path.length
     for side in (-1.0, 1.0):
         for row_off, gap in ((13.0, (1.0, 6.0)), (38.0, (4.0, 14.0))):
             s = float(rng.uniform(0, 10))
@@ -349,7 +351,7 @@ def make_world(rng: np.random.Generator, origin_xy: tuple[float, float], t0_us: 
                     fp.add(corners)
                     v = int(rng.integers(0, 8))
                     body = np.array([_box(0, 0, 0, hx, hy, 0.0, rng.uniform(6.0, 26.0))])
-                    add_static(body, [MANMADE], [v], x, y, yaw)
+                    out.add(body, [MANMADE], [v], x, y, yaw)
                 s += 2 * hx + float(rng.uniform(*gap))
         s = float(rng.uniform(0, 30))
         while s < L:
@@ -358,10 +360,14 @@ def make_world(rng: np.random.Generator, origin_xy: tuple[float, float], t0_us: 
             corners = _rect(x, y, float(yaw), hx, 0.15)
             if rng.random() < 0.5 and fp.free(corners, SIDEWALK_OUT + 0.5):
                 fp.add(corners)
-                add_static(np.array([_box(0, 0, 0, hx, 0.15, 0.0, rng.uniform(1.5, 3.0))]), [MANMADE], [STYLE_WALL],
-                           x, y, float(yaw))
+                out.add(np.array([_box(0, 0, 0, hx, 0.15, 0.0, rng.uniform(1.5, 3.0))]), [MANMADE], [STYLE_WALL],
+                        x, y, float(yaw))
             s += 2 * hx + float(rng.uniform(10.0, 40.0))
-    # Kerb-side slots on the road: parked vehicles, barriers, cones (right side); barriers (left side).
+
+
+def _kerb_slots(rng: np.random.Generator, path: Path2D, out: _StaticBuilder) -> None:
+    """Kerb-side slots on the road: parked vehicles, barriers, cones (right side); barriers (left side)."""
+    L = path.length
     s = 20.0
     while s < L - 10:
         u = rng.random()
@@ -370,33 +376,35 @@ def make_world(rng: np.random.Generator, origin_xy: tuple[float, float], t0_us: 
             off = -4.2 if kind == "car" else -4.5
             (x, y), yaw = path.pose_at(s, off)
             parts, cl, st = _template(kind, rng)
-            add_static(parts, cl, st, float(x), float(y), float(yaw), kind)
+            out.add(parts, cl, st, float(x), float(y), float(yaw), kind)
         elif u < 0.40:
             for k in range(int(rng.integers(2, 4))):
                 (x, y), yaw = path.pose_at(s + 2.2 * k, -4.8)
                 parts, cl, st = _template("barrier", rng)
-                add_static(parts, cl, st, float(x), float(y), float(yaw), "barrier")
+                out.add(parts, cl, st, float(x), float(y), float(yaw), "barrier")
         elif u < 0.50:
             for k in range(int(rng.integers(2, 5))):
                 (x, y), yaw = path.pose_at(s + 1.6 * k, -3.9)
                 parts, cl, st = _template("cone", rng)
-                add_static(parts, cl, st, float(x), float(y), 0.0, "cone")
+                out.add(parts, cl, st, float(x), float(y), 0.0, "cone")
         elif u < 0.56:
             (x, y), yaw = path.pose_at(s, -5.8)
             parts, cl, st = _template("bicycle", rng)
-            add_static(parts, cl, st, float(x), float(y), float(yaw), "bicycle")
+            out.add(parts, cl, st, float(x), float(y), float(yaw), "bicycle")
         if rng.random() < 0.12:
             for k in range(int(rng.integers(2, 4))):
                 (x, y), yaw = path.pose_at(s + 2.2 * k, 4.9)
                 kind = "barrier" if rng.random() < 0.7 else "cone"
                 parts, cl, st = _template(kind, rng)
-                add_static(parts, cl, st, float(x), float(y), float(yaw), kind)
+                out.add(parts, cl, st, float(x), float(y), float(yaw), kind)
         s += float(rng.uniform(8.0, 12.0))
-    static = Primitives(np.asarray(rows, np.float64).reshape(-1, 9), np.asarray(cls, np.int32),
-                        np.asarray(sty, np.int32))
 
-    # Actors: an oncoming traffic stream (one shared speed, so it never collides with itself),
-    # cyclists at the left kerb, pedestrians on both sidewalks.
+
+def _actors(rng: np.random.Generator, path: Path2D, t0_us: int, duration: float, ego_s0: float,
+            ego_s_end: float) -> list[Actor]:
+    """An oncoming traffic stream (one shared speed, so it never collides with itself), cyclists at the
+    left kerb, pedestrians on both sidewalks."""
+    L = path.length
     actors: list[Actor] = []
 
     def add_actor(kind: str, s0: float, offset: float, speed: float, direction: float) -> None:
@@ -422,5 +430,25 @@ def make_world(rng: np.random.Generator, origin_xy: tuple[float, float], t0_us: 
             direction = 1.0 if rng.random() < 0.5 else -1.0
             add_actor("pedestrian", s, side * rng.uniform(6.3, 7.5), float(rng.uniform(1.0, 1.6)) * moving, direction)
             s += float(rng.uniform(5.0, 18.0))
-    return SceneWorld(path=path, ego=ego, ground=ground, static=static, actors=tuple(actors),
-                      static_objects=tuple(objects))
+    return actors
+
+
+def make_world(rng: np.random.Generator, origin_xy: tuple[float, float], t0_us: int, n_samples: int) -> SceneWorld:
+    """Generate one scene: roads, ground classes, buildings, vegetation, street furniture, actors.
+
+    The ego starts 70 m into the path at `t0_us` and drives for `n_samples` keyframes (0.5 s each).
+    The draws from `rng` follow this order (same seed, same world).
+    """
+    duration = 0.5 * n_samples + 1.0
+    ego_s0 = 70.0
+    path = make_path(rng, origin_xy, ego_s0 + 12.0 * duration + 130.0)
+    ego = make_ego_motion(rng, path, t0_us, duration, ego_s0)
+    ground = _make_ground(rng, path, margin=110.0)
+    fp = _Footprints(ground)
+    static = _StaticBuilder()
+    _street_furniture(rng, path, fp, static)
+    _buildings_and_walls(rng, path, fp, static)
+    _kerb_slots(rng, path, static)
+    actors = _actors(rng, path, t0_us, duration, ego_s0, float(ego.s[-1]))
+    return SceneWorld(path=path, ego=ego, ground=ground, static=static.primitives(), actors=tuple(actors),
+                      static_objects=tuple(static.objects))
