@@ -7,7 +7,6 @@ import json
 import stat
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -62,11 +61,9 @@ def nano_export(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, s
     d = tmp_path_factory.mktemp("export")
     ckpt = _checkpoint(d / "nano.pt")
     out = d / "nano.onnx"
-    t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "cli.fastocc_cli", "export", "--checkpoint", str(ckpt), "--out",
                            str(out)], cwd=REPO, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert time.perf_counter() - t0 < 300
     return ckpt, out, proc.stdout
 
 
@@ -343,12 +340,11 @@ def test_cli_export_bad_checkpoint_is_one_line(tmp_path: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("head", list(HeadKind))
 def test_export_parity_tiny(tmp_path: Path, head: HeadKind) -> None:
-    t0 = time.perf_counter()
     rep = export_onnx(ExportConfig(checkpoint=_checkpoint(tmp_path / "c.pt", "tiny", head=head),
                                    out=tmp_path / "m.onnx"))
     assert rep.parity.passed and rep.parity.max_abs_diff <= 1e-3 and rep.parity.min_agreement >= 0.999
     assert custom_domain_ops(rep.out) == []
-    assert time.perf_counter() - t0 < 600  # generous: the 2-minute target is measured in docs/deploy.md
+    # Its speed (the 2-minute target) is measured in docs/deploy.md, not asserted here.
 
 
 @pytest.mark.slow
