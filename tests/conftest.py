@@ -18,11 +18,13 @@ REAL_OCC3D_LABEL_DIR = SHARED_DATA / "occ3d-label"
 REAL_OCC3D_LABEL = REAL_OCC3D_LABEL_DIR / "29796060110c4163b07f06eff4af0753" / "labels.npz"
 
 
-def missing_fixture(what: str, path: Path) -> NoReturn:
-    """A real-data fixture is absent: fail under CI (`CI=true`, where it must be there), else skip
-    (a fresh clone has no ../shared). One line naming what is missing and where it goes."""
-    msg = f"{what} missing at {path} (the real-data fixtures go in ../shared/data beside the clone, or set " \
-          "OCCDATA_SHARED_DATA)"
+SHARED_HOW = "the real-data fixtures go in ../shared/data beside the clone, or set OCCDATA_SHARED_DATA"
+
+
+def missing_fixture(what: str, path: Path, how: str = SHARED_HOW) -> NoReturn:
+    """A test fixture from outside the repository is absent: fail under CI (`CI=true`, where it must be
+    there), else skip (a fresh clone has no ../shared). One line naming what is missing and where it goes."""
+    msg = f"{what} missing at {path} ({how})"
     if os.environ.get("CI", "").lower() in ("true", "1"):
         pytest.fail(msg)
     pytest.skip(msg)

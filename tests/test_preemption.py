@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 from gates import Gate
-from proc_tools import alive, descendants, loader_processes, wait_for
+from proc_tools import alive, descendants, free_port, loader_processes, wait_for
 
 from fastocc.checkpoint import load_checkpoint, save_checkpoint
 from fastocc.model import FastOcc
@@ -146,7 +146,7 @@ def test_torchrun_ranks_agree_on_the_stop_step(synth_store: Path, tmp_path: Path
     last.pt, nobody blocks; then SIGTERM to the whole group of a resumed run; the final resume matches
     an uninterrupted torchrun run bit for bit, and `done:` is printed once."""
     conf = _toml(tmp_path / "c.toml", limit_train_samples=4, batch_size=2, epochs=3, workers=1)
-    port = str(29600 + os.getpid() % 300)
+    port = str(free_port())
     run = ["-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", port, "-m", "cli.fastocc_cli"]
     base = ["train", "--store", str(synth_store), "--config", str(conf), "--no-progress"]
     ref = _start([*base, "--out", str(tmp_path / "ref")], tuple(run))

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from proc_tools import free_port
 
 from fastocc.checkpoint import CheckpointError, load_checkpoint, load_model, save_checkpoint
 from fastocc.data import BevAugConfig, ImageAugConfig, LoaderConfig, SampleConfig, make_loader
@@ -197,7 +198,7 @@ _HANG = textwrap.dedent("""
 
 
 def test_a_stuck_collective_fails_with_one_line(tmp_path: Path) -> None:
-    port = str(29300 + os.getpid() % 200)
+    port = str(free_port())
     procs = [subprocess.Popen([sys.executable, "-c", _HANG], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                               text=True, env={**os.environ, "RANK": str(r), "WORLD_SIZE": "2", "LOCAL_RANK": str(r),
                                               "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": port})
