@@ -149,6 +149,7 @@ def _resume_case(tmp_path: Path, store: Path, workers: int) -> None:
     assert res_steps == ref_steps  # records after the checkpoint were dropped, not duplicated
 
 
+@pytest.mark.slow  # 80 s; the default set resumes bit-identically after a mid-epoch stop in test_preemption.py
 def test_kill9_resume_is_bit_identical(synth_store: Path, tmp_path: Path) -> None:
     _resume_case(tmp_path, synth_store, workers=0)
 
