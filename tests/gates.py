@@ -42,10 +42,10 @@ class Gate:
         return fd
 
     def readers(self) -> list[int]:
-        """PIDs (other than this one) that hold the FIFO open."""
-        me, target, out = os.getpid(), str(self.path), []
+        """PIDs that hold the FIFO open for reading (this process too: an in-process run; never a write end)."""
+        target, out = str(self.path), []
         for entry in os.listdir("/proc"):
-            if not entry.isdigit() or int(entry) == me:
+            if not entry.isdigit():
                 continue
             try:
                 fds = os.listdir(f"/proc/{entry}/fd")
@@ -53,11 +53,14 @@ class Gate:
                 continue
             for fd in fds:
                 try:
-                    if os.readlink(f"/proc/{entry}/fd/{fd}") == target:
-                        out.append(int(entry))
-                        break
-                except OSError:
+                    if os.readlink(f"/proc/{entry}/fd/{fd}") != target:
+                        continue
+                    flags = Path(f"/proc/{entry}/fdinfo/{fd}").read_text().split("flags:")[1].split()[0]
+                except (OSError, IndexError):
                     continue
+                if int(flags, 8) & 3 != os.O_WRONLY:
+                    out.append(int(entry))
+                    break
         return out
 
     def release(self, fd: int, timeout: float = 120) -> None:

@@ -139,7 +139,9 @@ def test_predictor_onnx_matches_checkpoint(nano_export: tuple[Path, Path, str]) 
         assert (probs.argmax(0) == b).mean() >= 0.999
 
 
-@pytest.mark.parametrize(("fusion", "queue_channels"), [("concat", 16 * 8), ("cached", 16)])
+# Each fusion runs one of the two temporal deploy tests by default (about 50 s each); the other pairing is slow.
+@pytest.mark.parametrize(("fusion", "queue_channels"), [("concat", 16 * 8),
+                                                       pytest.param("cached", 16, marks=pytest.mark.slow)])
 def test_temporal_stream_parity_and_fixed_state(tmp_path: Path, fusion: str, queue_channels: int) -> None:
     """A temporal nano: exported step with the queue as inputs/outputs; the Predictor keeps it. ONNX and
     PyTorch agree over a moving stream, and the state keeps its size whatever the stream length. The
@@ -226,7 +228,7 @@ def _lanes(store: Path, model: FastOcc) -> tuple[dict[int, torch.Tensor], list[l
     return probs, lanes
 
 
-@pytest.mark.parametrize("fusion", ["concat", "cached"])
+@pytest.mark.parametrize("fusion", [pytest.param("concat", marks=pytest.mark.slow), "cached"])
 def test_scene_order_training_forward_equals_the_streaming_predictor(synth_store: Path, fusion: str) -> None:
     """What training computes on scene-ordered lanes (batch 2, each lane its own queue, float32 global poses)
     equals what the Predictor computes streaming each lane frame by frame (raw images, float64 poses),
