@@ -38,6 +38,9 @@ class Gate:
                     raise AssertionError(f"no process ever read {self.path}") from None
                 time.sleep(0.01)
         while not self.readers():  # a reader still inside open() holds no descriptor yet
+            if time.monotonic() > t_end:
+                os.close(fd)
+                raise AssertionError(f"the reader of {self.path} went away")
             time.sleep(0.01)
         return fd
 
