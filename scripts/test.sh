@@ -9,4 +9,6 @@ if [ -z "${OCCDATA_DEVKIT_PYTHON:-}" ]; then
     OCCDATA_DEVKIT_PYTHON=$(bash scripts/devkit_env.sh)
     export OCCDATA_DEVKIT_PYTHON
 fi
-exec .venv/bin/python -m pytest "$@"
+# One pytest worker per CPU (pytest-xdist); a file's tests stay on one worker (--dist loadfile), so each
+# module fixture (a built tree, a Dask cluster) is made once. OCCDATA_TEST_WORKERS=0 runs in one process.
+exec .venv/bin/python -m pytest -n "${OCCDATA_TEST_WORKERS:-$(nproc)}" --dist loadfile "$@"

@@ -17,13 +17,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import SHARED_DATA
+from conftest import REAL_SEQ, missing_fixture
 
 from occdata.errors import OccDataError
 from occdata.nuscenes import Annotations, BoxRecord, boxes_for_lidar, load_annotations, load_nuscenes
 from occdata.nuscenes.annotations import slerp_wxyz
 
-REAL_SEQ = SHARED_DATA / "nuscenes-real-seq"
 needs_devkit = pytest.mark.skipif(
     not os.environ.get("OCCDATA_DEVKIT_PYTHON"),
     reason="set OCCDATA_DEVKIT_PYTHON to a python with nuscenes-devkit (scripts/devkit_env.sh)",
@@ -59,7 +58,7 @@ np.save(sys.argv[2], out)
 @pytest.fixture(scope="module")
 def seq_root() -> Path:
     if not (REAL_SEQ / "v1.0-mini" / "sample_annotation.json").is_file():
-        pytest.fail(f"real scene fixture missing at {REAL_SEQ} (expected ../shared/data)")
+        missing_fixture("real nuScenes scene", REAL_SEQ)
     return REAL_SEQ
 
 

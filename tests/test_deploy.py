@@ -7,7 +7,6 @@ import json
 import stat
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -62,11 +61,9 @@ def nano_export(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, s
     d = tmp_path_factory.mktemp("export")
     ckpt = _checkpoint(d / "nano.pt")
     out = d / "nano.onnx"
-    t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "cli.fastocc_cli", "export", "--checkpoint", str(ckpt), "--out",
                            str(out)], cwd=REPO, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert time.perf_counter() - t0 < 300
     return ckpt, out, proc.stdout
 
 
@@ -142,7 +139,9 @@ def test_predictor_onnx_matches_checkpoint(nano_export: tuple[Path, Path, str]) 
         assert (probs.argmax(0) == b).mean() >= 0.999
 
 
-@pytest.mark.parametrize(("fusion", "queue_channels"), [("concat", 16 * 8), ("cached", 16)])
+# Each fusion runs one of the two temporal deploy tests by default (about 50 s each); the other pairing is slow.
+@pytest.mark.parametrize(("fusion", "queue_channels"), [("concat", 16 * 8),
+                                                       pytest.param("cached", 16, marks=pytest.mark.slow)])
 def test_temporal_stream_parity_and_fixed_state(tmp_path: Path, fusion: str, queue_channels: int) -> None:
     """A temporal nano: exported step with the queue as inputs/outputs; the Predictor keeps it. ONNX and
     PyTorch agree over a moving stream, and the state keeps its size whatever the stream length. The
@@ -229,7 +228,7 @@ def _lanes(store: Path, model: FastOcc) -> tuple[dict[int, torch.Tensor], list[l
     return probs, lanes
 
 
-@pytest.mark.parametrize("fusion", ["concat", "cached"])
+@pytest.mark.parametrize("fusion", [pytest.param("concat", marks=pytest.mark.slow), "cached"])
 def test_scene_order_training_forward_equals_the_streaming_predictor(synth_store: Path, fusion: str) -> None:
     """What training computes on scene-ordered lanes (batch 2, each lane its own queue, float32 global poses)
     equals what the Predictor computes streaming each lane frame by frame (raw images, float64 poses),
@@ -343,12 +342,11 @@ def test_cli_export_bad_checkpoint_is_one_line(tmp_path: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("head", list(HeadKind))
 def test_export_parity_tiny(tmp_path: Path, head: HeadKind) -> None:
-    t0 = time.perf_counter()
     rep = export_onnx(ExportConfig(checkpoint=_checkpoint(tmp_path / "c.pt", "tiny", head=head),
                                    out=tmp_path / "m.onnx"))
     assert rep.parity.passed and rep.parity.max_abs_diff <= 1e-3 and rep.parity.min_agreement >= 0.999
     assert custom_domain_ops(rep.out) == []
-    assert time.perf_counter() - t0 < 600  # generous: the 2-minute target is measured in docs/deploy.md
+    # Its speed (the 2-minute target) is measured in docs/deploy.md, not asserted here.
 
 
 @pytest.mark.slow

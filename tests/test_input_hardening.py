@@ -22,8 +22,6 @@ from cli.occdata_cli import main
 from occdata.store.layout import STATE_DONE, STATE_ERROR
 from occdata.store.reader import open_store
 
-SHARED_LABELS = Path(__file__).resolve().parents[2] / "shared" / "data" / "occ3d-label"
-
 
 def clone_world(src: Path, dst: Path, labels: bool = True) -> Path:
     """Tables copied (so they can be broken); sensor files and labels linked, never copied."""
@@ -258,16 +256,17 @@ def test_flat_labels_layout_is_accepted(world: Path, tmp_path: Path) -> None:
     assert np.array_equal(nested, ref)
 
 
-def test_real_occ3d_example_folder_is_read_as_flat_layout(real_nuscenes_root: Path, tmp_path: Path) -> None:
+def test_real_occ3d_example_folder_is_read_as_flat_layout(real_nuscenes_root: Path, real_occ3d_label_dir: Path,
+                                                          tmp_path: Path) -> None:
     """`../shared/data/occ3d-label/<token>/labels.npz` is the flat layout. Its sample's sensor data
     is not shipped, so the real keyframe is given that token; the stored semantics must be the file's."""
-    (label_dir,) = [p for p in SHARED_LABELS.iterdir() if p.is_dir()]
+    (label_dir,) = [p for p in real_occ3d_label_dir.iterdir() if p.is_dir()]
     tree = tmp_path / "ns"
     shutil.copytree(real_nuscenes_root / "v1.0-mini", tree / "v1.0-mini")
     (tree / "samples").symlink_to(real_nuscenes_root.resolve() / "samples")
     old = rows_of(tree, "sample")[0]["token"]
     _retoken(tree, lambda t: label_dir.name if t == old else t)
-    code, out = build(tree, tmp_path / "s.zarr", "--gts", str(SHARED_LABELS))
+    code, out = build(tree, tmp_path / "s.zarr", "--gts", str(real_occ3d_label_dir))
     assert code == 0, out
     assert "1 labelled" in out
     with np.load(label_dir / "labels.npz") as npz:

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import SHARED_DATA
 
 from occdata.constants import CLASS_NAMES
 from occdata.errors import OccDataError
@@ -31,7 +30,6 @@ from occdata.nuscenes import (
     read_lidarseg,
 )
 
-REAL_SEQ = SHARED_DATA / "nuscenes-real-seq"
 needs_devkit = pytest.mark.skipif(
     not os.environ.get("OCCDATA_DEVKIT_PYTHON"),
     reason="set OCCDATA_DEVKIT_PYTHON to a python with nuscenes-devkit (scripts/devkit_env.sh)",
@@ -82,9 +80,9 @@ def test_mapping_shape_and_documented_choices() -> None:
     assert OCC3D_FROM_LIDARSEG["static.other"] == OCC3D_FROM_LIDARSEG["animal"] == 0
 
 
-def test_names_match_the_real_category_indices() -> None:
+def test_names_match_the_real_category_indices(real_seq_root: Path) -> None:
     """The real scene-0916 category.json carries lidarseg `index` values for 14 of the classes."""
-    names = lidarseg_index_names(REAL_SEQ, "v1.0-mini")
+    names = lidarseg_index_names(real_seq_root, "v1.0-mini")
     assert len(names) == 14
     for index, name in names.items():
         assert LIDARSEG_NAMES[index] == name
@@ -170,13 +168,13 @@ def test_bad_category_index(tmp_path: Path, rows: list[dict], message: str) -> N
 
 
 # --- a lidarseg tree read by the devkit and by us ------------------------------------------------------
-def _lidarseg_tree(tmp_path: Path, n_keyframes: int) -> tuple[Path, list[str]]:
+def _lidarseg_tree(real_seq: Path, tmp_path: Path, n_keyframes: int) -> tuple[Path, list[str]]:
     """Real scene-0916 tables (copied) and keyframe files (symlinked), category.json extended to the
     32 lidarseg classes (the real rows keep their tokens), made-up labels for `n_keyframes` LiDARs."""
     root = tmp_path / "nusc"
-    shutil.copytree(REAL_SEQ / "v1.0-mini", root / "v1.0-mini")
+    shutil.copytree(real_seq / "v1.0-mini", root / "v1.0-mini")
     for folder in ("samples", "maps"):
-        (root / folder).symlink_to((REAL_SEQ / folder).resolve(), target_is_directory=True)
+        (root / folder).symlink_to((real_seq / folder).resolve(), target_is_directory=True)
     cat_path = root / "v1.0-mini" / "category.json"
     cats = json.loads(cat_path.read_text())
     have = {c["name"] for c in cats}
@@ -197,8 +195,8 @@ def _lidarseg_tree(tmp_path: Path, n_keyframes: int) -> tuple[Path, list[str]]:
 
 
 @needs_devkit
-def test_lidarseg_tree_matches_devkit(tmp_path: Path) -> None:
-    root, tokens = _lidarseg_tree(tmp_path, n_keyframes=3)
+def test_lidarseg_tree_matches_devkit(real_seq_root: Path, tmp_path: Path) -> None:
+    root, tokens = _lidarseg_tree(real_seq_root, tmp_path, n_keyframes=3)
     _devkit(DEVKIT_TREE, str(root), str(tmp_path / "dk.json"))
     dk = json.loads((tmp_path / "dk.json").read_text())
     names = lidarseg_index_names(root, "v1.0-mini")

@@ -55,6 +55,8 @@ def test_bench_split_reports_2d_2dto3d_3d_per_preset_with_ratios_and_the_paper()
     tiny = report["presets"]["tiny"]
     assert tiny["paper_ms"]["total"] == 62.80 and tiny["backbone_depth"] == 50
     assert report["presets"]["nano"]["torch_ratio_to_nano"]["total"] == 1.0
-    assert tiny["torch_ratio_to_nano"]["2d"] > 1.0  # ResNet-50 vs a quarter-width ResNet-18, same input
+    nano_ms = report["presets"]["nano"]["torch"]
+    for k, v in tiny["torch"].items():  # the ratio is a quotient of the measured times (no speed asserted here)
+        assert tiny["torch_ratio_to_nano"][k] == pytest.approx(v / nano_ms[k])
     bad = CliRunner().invoke(main, ["bench", "--preset", "nano", "--preset", "tiny"])
     assert bad.exit_code == 2 and "--split" in bad.output

@@ -9,17 +9,18 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 import torch
-from proc_tools import alive, descendants, loader_processes, wait_for
+from gates import Gate
+from proc_tools import alive, descendants, free_port, loader_processes, wait_for
 
 from fastocc.checkpoint import load_checkpoint, save_checkpoint
 from fastocc.model import FastOcc
 from fastocc.train import load_config
 from fastocc.train.config import config_to_toml
+from fastocc.train.loop import TEST_GATE_ENV
 from fastocc.train.preempt import EXIT_PREEMPTED
 from fastocc.train.runlock import RunFolderBusy, RunLock
 
@@ -145,7 +146,7 @@ def test_torchrun_ranks_agree_on_the_stop_step(synth_store: Path, tmp_path: Path
     last.pt, nobody blocks; then SIGTERM to the whole group of a resumed run; the final resume matches
     an uninterrupted torchrun run bit for bit, and `done:` is printed once."""
     conf = _toml(tmp_path / "c.toml", limit_train_samples=4, batch_size=2, epochs=3, workers=1)
-    port = str(29600 + os.getpid() % 300)
+    port = str(free_port())
     run = ["-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", port, "-m", "cli.fastocc_cli"]
     base = ["train", "--store", str(synth_store), "--config", str(conf), "--no-progress"]
     ref = _start([*base, "--out", str(tmp_path / "ref")], tuple(run))
@@ -265,13 +266,20 @@ def test_stale_temporaries_of_an_interrupted_save_are_removed(tmp_path: Path) ->
 
 
 def test_stop_signal_before_the_first_step_saves_step_zero(synth_store: Path, tmp_path: Path) -> None:
-    """SIGTERM during start-up: the handler is in place from the start, last.pt holds step 0, exit 143."""
+    """SIGTERM during start-up: the handler is in place from the start, last.pt holds step 0, exit 143.
+    The trainer blocks on a FIFO (FASTOCC_TEST_GATE) right after installing it, until the signal is sent."""
     conf = _toml(tmp_path / "c.toml")
     out = tmp_path / "early"
-    proc = _start(["train", "--store", str(synth_store), "--config", str(conf), "--no-progress", "--out", str(out)])
-    assert wait_for(lambda: proc.poll() is not None or (out / ".lock").exists(), 120)
-    time.sleep(0.5)
+    gate = Gate(tmp_path / "gate", b"")
+    proc = subprocess.Popen([sys.executable, "-m", "cli.fastocc_cli", "train", "--store", str(synth_store),
+                             "--config", str(conf), "--no-progress", "--out", str(out)], cwd=REPO,
+                            env={**_env(), TEST_GATE_ENV: str(gate.path)}, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    fd = gate.wait_reader()
     proc.send_signal(signal.SIGTERM)
-    log = proc.communicate(timeout=120)[0]
+    gate.release(fd)
+    log = proc.communicate(timeout=300)[0]
     assert proc.returncode == EXIT_PREEMPTED, log
-    assert load_checkpoint(out / "last.pt").meta["opt_steps"] in (0, 1)
+    assert "SIGTERM: saving" in log, log
+    assert load_checkpoint(out / "last.pt").meta["opt_steps"] == 0
+    assert not [r for r in _train_records(out) if r["kind"] == "train"]

@@ -12,19 +12,17 @@ import os
 from pathlib import Path
 
 import pytest
-from conftest import SHARED_DATA
+from conftest import REAL_SEQ, missing_fixture
 
 from occdata.errors import OccDataError
 from occdata.nuscenes import load_nuscenes, validate_sample
 from occdata.nuscenes.reader import confined_path, dataset_root
 
-REAL_SEQ = SHARED_DATA / "nuscenes-real-seq"
-
 
 @pytest.fixture(scope="module")
 def seq_real() -> Path:
     if not (REAL_SEQ / "v1.0-mini" / "sample_data.json").is_file():
-        pytest.fail(f"real scene fixture missing at {REAL_SEQ} (expected ../shared/data)")
+        missing_fixture("real nuScenes scene", REAL_SEQ)
     return REAL_SEQ.resolve()
 
 

@@ -13,13 +13,13 @@ import socket
 import subprocess
 import sys
 import threading
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 import zarr
 from click.testing import CliRunner
+from gates import Gate, gated_tree
 from proc_tools import alive, descendants, wait_for
 from replicated_tree import make_replicated_tree
 from test_store_build import store_digest
@@ -116,25 +116,30 @@ def test_two_workers_write_the_same_bytes_as_one(tree, reference, client, tmp_pa
 
 
 def test_kill9_of_one_worker_mid_build(tree, reference, client, tmp_path) -> None:
-    """A worker killed while it converts a block: Dask reruns its task elsewhere, same bytes."""
+    """A worker killed while it converts a block (it is blocked reading a gated image of block 3):
+    Dask reruns that task on a live worker, which reads the image again; same bytes."""
+    root, gate = gated_tree(tree, tmp_path / "g", 1, 2)  # store index 14: block 3 of 6
     out = tmp_path / "wk.zarr"
-    pids = client.run(os.getpid)
+    workers = set(client.run(os.getpid).values())
     result: dict[str, object] = {}
 
     def run() -> None:
         try:
-            result["report"] = build_store(_config(tree, out), client=client)
+            result["report"] = build_store(_config(root, out), client=client)
         except BaseException as exc:  # noqa: BLE001 - reported by the assertion below
             result["error"] = exc
 
     t = threading.Thread(target=run)
     t.start()
-    assert wait_for(lambda: out.exists(), 60, 0.01)
-    time.sleep(0.3)  # tasks in flight
-    victim = next(iter(pids.values()))
+    fd = gate.wait_reader()
+    (victim,) = [p for p in gate.readers() if p in workers]
     os.kill(victim, signal.SIGKILL)
+    # The retry opens the FIFO while this end is still open, so it blocks until the bytes come.
+    retried = wait_for(lambda: any(p != victim for p in gate.readers()), 120, 0.01)
+    gate.release(fd)
     t.join(180)
-    assert "error" not in result, result.get("error")
+    assert retried, "the killed worker's block was never rerun"
+    assert not t.is_alive() and "error" not in result, result.get("error")
     assert _committed(out) == N and store_digest(out) == reference
     _verify(out)
     assert wait_for(lambda: len(client.nthreads()) == 2, 30)  # the nanny started a new worker
@@ -155,47 +160,60 @@ def _resume(tree: Path, out: Path | str) -> None:
     assert r.exit_code == 0, r.output
 
 
-def _wait_started(proc: subprocess.Popen, out: Path) -> list[int]:
-    """The build's processes once it runs its tasks (client + LocalCluster workers)."""
-    assert wait_for(lambda: proc.poll() is not None or (out.exists() and len(descendants(proc.pid)) >= 2), 90, 0.05)
+def _resume_served(root: Path, out: Path | str, gate: Gate) -> None:
+    done = threading.Event()
+    gate.serve(done.is_set)
+    try:
+        _resume(root, out)
+    finally:
+        done.set()
+
+
+def _mid_build(proc: subprocess.Popen, gate: Gate) -> tuple[int, list[int]]:
+    """Once a worker of the build blocks on the gate: the gate's write end, and the build's processes
+    (client + LocalCluster)."""
+    fd = gate.wait_reader()
     assert proc.poll() is None, proc.communicate()
-    time.sleep(0.5)
-    return [proc.pid, *descendants(proc.pid)]
+    return fd, [proc.pid, *descendants(proc.pid)]
 
 
 @pytest.mark.timeout(300)
 def test_kill9_of_the_client_leaves_no_process_then_resume(tree, reference, tmp_path) -> None:
+    root, gate = gated_tree(tree, tmp_path / "g", 1, 2)
     out = tmp_path / "ck.zarr"
-    proc = _spawn(tree, out)
-    family = _wait_started(proc, out)
+    proc = _spawn(root, out)
+    fd, family = _mid_build(proc, gate)
     os.kill(proc.pid, signal.SIGKILL)
     proc.communicate()
-    assert wait_for(lambda: not any(alive(p) for p in family), 15), [p for p in family if alive(p)]
-    _resume(tree, out)
+    gone = wait_for(lambda: not any(alive(p) for p in family), 15)
+    os.close(fd)  # only now: an EOF would have given the blocked worker a truncated image
+    assert gone, [p for p in family if alive(p)]
+    _resume_served(root, out, gate)
     assert store_digest(out) == reference
     _verify(out)
 
 
 @pytest.mark.timeout(300)
 @pytest.mark.parametrize("target", ["client", "group"])
-def test_sigterm_stops_within_seconds_then_resume(tree, reference, tmp_path, target: str) -> None:
-    """SIGTERM to the client alone (`kill`), or to the whole process group (as SLURM sends it)."""
+def test_sigterm_stops_then_resume(tree, reference, tmp_path, target: str) -> None:
+    """SIGTERM to the client alone (`kill`), or to the whole process group (as SLURM sends it), while a
+    worker converts block 3: exit 143 naming --resume, no process left; the resume gives the same bytes."""
+    root, gate = gated_tree(tree, tmp_path / "g", 1, 2)
     out = tmp_path / "st.zarr"
-    proc = _spawn(tree, out)
-    family = _wait_started(proc, out)
-    t0 = time.monotonic()
+    proc = _spawn(root, out)
+    fd, family = _mid_build(proc, gate)
     if target == "client":
         os.kill(proc.pid, signal.SIGTERM)
     else:
         os.killpg(proc.pid, signal.SIGTERM)
-    _, err = proc.communicate(timeout=30)
-    assert time.monotonic() - t0 < 10, err
-    assert proc.returncode in (0, 143), err
-    assert "Traceback" not in err, err
+    gate.release(fd)  # the read in flight completes (or its worker is gone)
+    gate.serve(lambda: proc.poll() is not None)
+    _, err = proc.communicate(timeout=120)  # a hang guard, not a speed limit
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err and "--resume" in err, err
     assert wait_for(lambda: not any(alive(p) for p in family), 15)
-    if proc.returncode == 143:
-        assert "--resume" in err
-        _resume(tree, out)
+    assert _committed(out) < N
+    _resume_served(root, out, gate)
     assert store_digest(out) == reference
 
 
@@ -227,17 +245,19 @@ def test_scheduler_that_goes_away_is_one_line(tree, reference, tmp_path) -> None
     worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", f"tcp://127.0.0.1:{port}",
                                "--nthreads", "1", "--no-dashboard", "--death-timeout", "10"],
                               env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    root, gate = gated_tree(tree, tmp_path / "g", 1, 2)
     out = tmp_path / "sg.zarr"
     try:
-        proc = _spawn(tree, out, "--scheduler", f"tcp://127.0.0.1:{port}")
-        assert wait_for(lambda: proc.poll() is not None or _committed(out) >= 4, 120, 0.02)
+        proc = _spawn(root, out, "--scheduler", f"tcp://127.0.0.1:{port}")
+        fd, _ = _mid_build(proc, gate)  # the external worker converts block 3
         sched.kill()
-        _, err = proc.communicate(timeout=60)
-        if proc.returncode != 0:  # it may have finished first
-            assert proc.returncode == 1 and "Traceback" not in err, err
-            assert "lost the Dask scheduler at tcp://127.0.0.1:" in err, err
-            assert len([ln for ln in err.splitlines() if ln.strip()]) == 1, err
-            _resume(tree, out)
+        gate.release(fd)
+        gate.serve(lambda: proc.poll() is not None)
+        _, err = proc.communicate(timeout=120)
+        assert proc.returncode == 1 and "Traceback" not in err, err
+        assert "lost the Dask scheduler at tcp://127.0.0.1:" in err, err
+        assert len([ln for ln in err.splitlines() if ln.strip()]) == 1, err
+        _resume_served(root, out, gate)
         assert store_digest(out) == reference
     finally:
         for p in (sched, worker):

@@ -12,11 +12,13 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+from gates import gated_tree
 from proc_tools import alive, descendants, wait_for
 from test_store_build import store_digest
 
@@ -134,18 +136,26 @@ def test_s3_client_kill9_then_resume(s3, real_nuscenes_root, real_occ3d_label, t
     tree = make_replicated_tree(real_nuscenes_root, real_occ3d_label, tmp_path / "ns", 2, 8)
     ref = tmp_path / "ref.zarr"
     build_store(BuildConfig(root=tree, out=ref, gts=tree / "gts", block_samples=2, progress=False))
+    tree, gate = gated_tree(tree, tmp_path / "g", 1, 2)  # store index 10: block 5 of 8
     url = f"s3://{BUCKET}/kill.zarr"
     cmd = [sys.executable, "-m", "cli.occdata_cli", *_args(tree, url, "--workers", "2")]
     proc = subprocess.Popen(cmd, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
-    assert wait_for(lambda: proc.poll() is not None or s3.exists(f"{BUCKET}/kill.zarr.staging"), 120, 0.05)
+    fd = gate.wait_reader()  # a worker converts block 5: mid-build
     assert proc.poll() is None, proc.communicate()
     family = [proc.pid, *descendants(proc.pid)]
     os.kill(proc.pid, signal.SIGKILL)
     proc.communicate()
-    assert wait_for(lambda: not any(alive(p) for p in family), 15)
+    gone = wait_for(lambda: not any(alive(p) for p in family), 15)
+    os.close(fd)  # only now: an EOF would have given the blocked worker a truncated image
+    assert gone, [p for p in family if alive(p)]
     s3.invalidate_cache()
-    code, text = _cli(*_args(tree, url, "--workers", "2", "--resume"))
+    done = threading.Event()
+    gate.serve(done.is_set)
+    try:
+        code, text = _cli(*_args(tree, url, "--workers", "2", "--resume"))
+    finally:
+        done.set()
     assert code == 0, text
     assert store_digest(url) == store_digest(ref)  # type: ignore[arg-type]
     code, text = _cli("verify", "--store", url, "--no-progress")

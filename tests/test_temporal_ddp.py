@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 import zarr
+from proc_tools import free_port
 from replicated_tree import make_replicated_tree
 
 from fastocc.checkpoint import save_checkpoint
@@ -61,7 +62,7 @@ def _torchrun_train(store: Path, tmp_path: Path, ranks: int, batch_size: int, va
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(
         [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", str(ranks), "--master_port",
-         str(29600 + (os.getpid() + ranks) % 1000), "-m", "cli.fastocc_cli", "train", "--store", str(store),
+         str(free_port()), "-m", "cli.fastocc_cli", "train", "--store", str(store),
          "--config", str(conf), "--out", str(tmp_path / f"r{ranks}"), "--no-progress"],
         cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     try:
@@ -159,7 +160,7 @@ def test_torchrun_eval_of_a_temporal_checkpoint_equals_one_process(uneven_store:
     one = _eval_json([sys.executable, *args])
     assert one["n_samples"] == 9
     for ranks in (2, 3):
-        port = str(29700 + (os.getpid() + ranks) % 1000)
+        port = str(free_port())
         got = _eval_json([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", str(ranks),
                           "--master_port", port, *args])
         assert got == one, ranks  # the same confusion matrices and ray counts: the same predictions
@@ -191,7 +192,7 @@ def test_torchrun_predict_of_a_temporal_checkpoint_writes_the_files_of_one_proce
             "train", "--png", "3", "--no-progress"]
     one = _predict_files([sys.executable, *args], tmp_path / "one")
     assert sum(k.endswith("labels.npz") for k in one) == 9 and sum(k.endswith(".png") for k in one) == 3
-    port = str(29800 + os.getpid() % 1000)
+    port = str(free_port())
     two = _predict_files([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
                           port, *args], tmp_path / "two")
     assert two.keys() == one.keys()

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import REAL_SEQ as SEQ
+from conftest import missing_fixture
 
 from fastocc.data import BevAugConfig, ImageAugConfig, SampleConfig
 from fastocc.data.dataset import load_batch
@@ -24,7 +26,6 @@ from occdata.nuscenes.reader import load_lidar_points, load_nuscenes
 from occdata.store.build import BuildConfig, build_store
 from occdata.store.reader import open_store
 
-SEQ = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "nuscenes-real-seq"
 FRAMES = range(4, 41, 4)  # t; each with k = 1..4 previous frames
 EYE = torch.eye(4)
 
@@ -43,7 +44,7 @@ def _load_scene(tmp: Path) -> tuple[torch.Tensor, list[torch.Tensor], np.ndarray
     """Store poses `(41, 4, 4) float32` as the loader yields them, points per frame, float64 store poses,
     and the LiDAR keyframe ego poses of the nuScenes tables."""
     if not SEQ.is_dir():
-        pytest.fail(f"real sequence missing at {SEQ} (expected ../shared/data)")
+        missing_fixture("real nuScenes scene", SEQ)
     store = tmp / "seq.zarr"
     build_store(BuildConfig(root=SEQ, out=store, progress=False))
     reader = open_store(store)

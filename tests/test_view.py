@@ -234,7 +234,8 @@ def _cli(*args: str, prelude: str = "") -> subprocess.CompletedProcess:
 def test_missing_viser_is_one_line_naming_the_extra(synth_store: Path) -> None:
     r = _cli("view", "--store", str(synth_store), "--port", "0", prelude="import sys; sys.modules['viser'] = None; ")
     assert r.returncode == 1
-    assert r.stderr.strip().count("\n") == 0 and "pip install -e '.[view]'" in r.stderr, r.stderr
+    assert r.stderr.strip().count("\n") == 0 and "pip install 'fastocc[view]'" in r.stderr, r.stderr
+    assert "pip install -e '.[view]'" in r.stderr, r.stderr  # the form for a clone
 
 
 def test_unknown_scene_is_one_line(synth_store: Path) -> None:

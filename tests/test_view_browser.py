@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import missing_fixture
 
 from occdata.constants import CLASS_COLORS, FREE_LABEL
 from occdata.view.source import ViewSource
@@ -38,7 +39,7 @@ LOCAL = ("http://127.0.0.1", "ws://127.0.0.1", "file://", "blob:", "data:")
 @pytest.fixture(scope="module")
 def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[object]:
     if not Path(CHROMIUM).exists():
-        pytest.fail(f"{CHROMIUM} missing: apt-get install chromium (.ci/run does)")
+        missing_fixture("Chromium", Path(CHROMIUM), "apt-get install chromium; .ci/run does")
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import os
 import time
 import warnings
 from collections.abc import Iterator
@@ -415,7 +416,14 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Trai
         D.teardown(info)
 
 
+# A test hook: a FIFO read once the stop signals are handled (and, on rank 0, the run folder locked),
+# before any set-up work, so a test's signal lands before the first step on any machine.
+TEST_GATE_ENV = "FASTOCC_TEST_GATE"
+
+
 def _train(cfg: TrainConfig, info: D.DistInfo, resume: bool, progress: bool, stop: StopRequest) -> TrainResult:
+    if os.environ.get(TEST_GATE_ENV):
+        Path(os.environ[TEST_GATE_ENV]).read_bytes()  # returns when the test closes its end
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     if cfg.deterministic:

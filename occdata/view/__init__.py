@@ -1,5 +1,6 @@
 """`occdata view`: the store's scenes in 3D in a browser (labels, predictions, error view, masks, cameras,
-LiDAR points), live (viser) or as one self-contained HTML file. Optional extra: `pip install -e '.[view]'`.
+LiDAR points), live (viser) or as one self-contained HTML file. Optional extra: `pip install 'fastocc[view]'`
+(in a clone: `pip install -e '.[view]'`).
 
 Only `run` imports viser (when called); the rest is numpy and the store reader. No torch.
 """

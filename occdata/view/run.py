@@ -29,8 +29,8 @@ def import_viser() -> ModuleType:
     try:
         import viser
     except ImportError:
-        raise OccDataError("occdata view needs viser, which is not installed: pip install -e '.[view]' "
-                           "(the 'view' extra)") from None
+        raise OccDataError("occdata view needs viser, which is not installed: pip install 'fastocc[view]' "
+                           "(in a clone: pip install -e '.[view]')") from None
     return viser
 
 
