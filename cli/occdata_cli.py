@@ -492,7 +492,8 @@ def view(store: str, pred: str | None, scene: str | None, split: str | None, vie
     """The scene in 3D in a browser: labels, predictions, error view, masks, cameras, LiDAR (docs/view.md).
 
     Serves a local web viewer and prints its URL (Ctrl-C stops it); with --export, writes one scene
-    as an HTML file that opens in any browser with no server. Needs `pip install 'fastocc[view]'` (in a clone: `pip install -e '.[view]'`).
+    as an HTML file that opens in any browser with no server. Needs `pip install 'fastocc[view]'`
+    (in a clone: `pip install -e '.[view]'`).
     """
     from occdata.view import FrameOptions, ViewConfig, run_view
 
