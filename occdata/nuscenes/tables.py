@@ -36,6 +36,77 @@ _CHUNK = 1 << 20
 _WS = " \t\r\n"
 
 
+class _Scanner:
+    """A bounded window `buf[pos:]` over a text file, refilled in `_CHUNK`s; offsets for errors."""
+
+    def __init__(self, fh: Any, path: Path) -> None:
+        self.fh, self.path = fh, path
+        self.buf = fh.read(_CHUNK)
+        self.eof = len(self.buf) < _CHUNK
+        self.pos = 0
+        self.consumed = 0  # characters dropped from the front of buf
+
+    def fill(self) -> bool:
+        """Append the next chunk (dropping what was consumed); False at the end of the file."""
+        if self.eof:
+            return False
+        more = self.fh.read(_CHUNK)
+        self.eof = len(more) < _CHUNK
+        self.consumed += self.pos
+        self.buf = self.buf[self.pos:] + more
+        self.pos = 0
+        return bool(more)
+
+    def peek(self) -> str:
+        """The next non-blank character ("" at the end of the file), not consumed."""
+        while True:
+            while self.pos < len(self.buf) and self.buf[self.pos] in _WS:
+                self.pos += 1
+            if self.pos < len(self.buf) or not self.fill():
+                return self.buf[self.pos] if self.pos < len(self.buf) else ""
+
+    def decode(self, decoder: json.JSONDecoder) -> Any:
+        """The JSON value at the cursor, reading more of the file until it is complete."""
+        while True:
+            try:
+                value, self.pos = decoder.raw_decode(self.buf, self.pos)
+                return value
+            except json.JSONDecodeError as exc:
+                if not self.fill():
+                    raise self.fail(exc.msg) from None
+
+    def fail(self, why: str) -> OccDataError:
+        return OccDataError(f"malformed JSON in {self.path}: {why} at character {self.consumed + self.pos}")
+
+
+def _rows(sc: _Scanner) -> Iterator[dict[str, Any]]:
+    """The objects of the JSON array at the cursor, one at a time."""
+    decoder = json.JSONDecoder()
+    if sc.peek() != "[":
+        raise sc.fail("expected a JSON array of rows")
+    sc.pos += 1
+    first = True
+    while True:
+        ch = sc.peek()
+        if ch == "]":
+            sc.pos += 1
+            if sc.peek():
+                raise sc.fail("extra data after the array")
+            return
+        if not first:
+            if ch != ",":
+                raise sc.fail("unexpected end of file" if not ch else "expected ',' or ']' between rows")
+            sc.pos += 1
+            ch = sc.peek()
+        if not ch:
+            raise sc.fail("unexpected end of file")
+        row = sc.decode(decoder)
+        if not isinstance(row, dict):
+            raise sc.fail("a row is not a JSON object")
+        first = False
+        yield row
+
+
 def iter_table_rows(path: Path) -> Iterator[dict[str, Any]]:
     """Yield the rows (dicts) of one table file: a JSON array of objects, decoded incrementally.
 
@@ -45,75 +116,12 @@ def iter_table_rows(path: Path) -> Iterator[dict[str, Any]]:
     path = Path(path)
     if not path.is_file():
         raise OccDataError(f"missing table: {path}")
-    decoder = json.JSONDecoder()
     try:
         fh = open(path, encoding="utf-8")  # noqa: SIM115 - closed in finally
     except OSError as exc:
         raise OccDataError(f"cannot read table {path}: {exc.strerror}") from None
     try:
-        buf = fh.read(_CHUNK)
-        eof = len(buf) < _CHUNK
-        pos = 0
-        consumed = 0  # characters dropped from the front of buf, for error offsets
-
-        def fill() -> bool:
-            nonlocal buf, pos, eof, consumed
-            if eof:
-                return False
-            more = fh.read(_CHUNK)
-            eof = len(more) < _CHUNK
-            consumed += pos
-            buf = buf[pos:] + more
-            pos = 0
-            return bool(more)
-
-        def skip_ws() -> None:
-            nonlocal pos
-            while True:
-                while pos < len(buf) and buf[pos] in _WS:
-                    pos += 1
-                if pos < len(buf) or not fill():
-                    return
-
-        def fail(why: str) -> OccDataError:
-            return OccDataError(f"malformed JSON in {path}: {why} at character {consumed + pos}")
-
-        skip_ws()
-        if pos >= len(buf) or buf[pos] != "[":
-            raise fail("expected a JSON array of rows")
-        pos += 1
-        expect_row = True
-        first = True
-        while True:
-            skip_ws()
-            if pos >= len(buf):
-                raise fail("unexpected end of file")
-            ch = buf[pos]
-            if ch == "]" and (first or not expect_row):
-                pos += 1
-                skip_ws()
-                if pos < len(buf):
-                    raise fail("extra data after the array")
-                return
-            if not expect_row:
-                if ch != ",":
-                    raise fail("expected ',' or ']' between rows")
-                pos += 1
-                expect_row = True
-                continue
-            while True:
-                try:
-                    row, end = decoder.raw_decode(buf, pos)
-                    break
-                except json.JSONDecodeError as exc:
-                    if not fill():
-                        raise fail(exc.msg) from None
-            if not isinstance(row, dict):
-                raise fail("a row is not a JSON object")
-            pos = end
-            first = False
-            expect_row = False
-            yield row
+        yield from _rows(_Scanner(fh, path))
     except UnicodeDecodeError:
         raise OccDataError(f"malformed JSON in {path}: not UTF-8 text") from None
     finally:
