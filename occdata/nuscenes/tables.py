@@ -65,12 +65,11 @@ class _Scanner:
             if self.pos < len(self.buf) or not self.fill():
                 return self.buf[self.pos] if self.pos < len(self.buf) else ""
 
-    def decode(self, decoder: json.JSONDecoder) -> Any:
-        """The JSON value at the cursor, reading more of the file until it is complete."""
+    def decode(self, decoder: json.JSONDecoder) -> tuple[Any, int]:
+        """The JSON value at the cursor and where it ends, reading more of the file until it is complete."""
         while True:
             try:
-                value, self.pos = decoder.raw_decode(self.buf, self.pos)
-                return value
+                return decoder.raw_decode(self.buf, self.pos)
             except json.JSONDecodeError as exc:
                 if not self.fill():
                     raise self.fail(exc.msg) from None
@@ -100,9 +99,10 @@ def _rows(sc: _Scanner) -> Iterator[dict[str, Any]]:
             ch = sc.peek()
         if not ch:
             raise sc.fail("unexpected end of file")
-        row = sc.decode(decoder)
+        row, end = sc.decode(decoder)
         if not isinstance(row, dict):
             raise sc.fail("a row is not a JSON object")
+        sc.pos = end
         first = False
         yield row
 
