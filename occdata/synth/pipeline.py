@@ -61,6 +61,7 @@ CELL = 4.0  # m, 2D acceleration grid cell
 JPEG_QUALITY = 92
 SCENE_SPACING = 3000.0  # m between scene worlds in the global frame
 BASE_TIMESTAMP_US = 1_600_000_000_000_000
+MAP_NAME = "synth-town"
 
 
 @dataclass(frozen=True)
@@ -346,6 +347,101 @@ def _calibrated_sensor_rows(
     return rows
 
 
+@dataclass(frozen=True)
+class _Scene:
+    """What the keyframes of one scene share while they are written."""
+
+    out: Path
+    world: Any
+    name: str
+    samples: int
+    width: int
+    height: int
+    sample_toks: list[str]
+    sd_toks: dict[str, list[str]]
+    cs_tok: dict[str, str]
+    key_times: list[int]
+    lidar_chain: list[tuple[str, int, int]]
+    link: dict[str, tuple[str, str]]
+
+
+def _keyframe_sample_data(sc: _Scene, f: Any, k: int) -> dict[str, Any]:
+    """The sample_data row of keyframe `k`'s frame `f` (a camera image or the keyframe LiDAR sweep)."""
+    tok = sc.sd_toks[f.channel][k]
+    is_cam = f.channel != LIDAR_CHANNEL
+    return {
+        "token": tok, "sample_token": sc.sample_toks[k],
+        "ego_pose_token": tok,  # one ego pose per sample_data, as in nuScenes
+        "calibrated_sensor_token": sc.cs_tok[f.channel], "timestamp": f.timestamp,
+        "fileformat": "jpg" if is_cam else "pcd", "is_key_frame": True,
+        "height": sc.height if is_cam else 0, "width": sc.width if is_cam else 0, "filename": f.filename,
+        "prev": sc.link[tok][0] if not is_cam else sc.sd_toks[f.channel][k - 1] if k > 0 else "",
+        "next": sc.link[tok][1] if not is_cam else sc.sd_toks[f.channel][k + 1] if k + 1 < sc.samples else "",
+    }
+
+
+def _write_keyframe(sc: _Scene, tables: dict[str, list], k: int, scene_tok: str) -> KeyframeAnnotation:
+    """Render keyframe `k` and the sweeps before it, write their files and labels, add their rows."""
+    channels = (*CAMERA_ORDER, LIDAR_CHANNEL)
+    t_lidar, s_tok = sc.key_times[k], sc.sample_toks[k]
+    tables["sample"].append({"token": s_tok, "timestamp": t_lidar, "scene_token": scene_tok,
+                             "prev": sc.sample_toks[k - 1] if k > 0 else "",
+                             "next": sc.sample_toks[k + 1] if k + 1 < sc.samples else ""})
+    window = range(max(0, k - MASK_SWEEP_RADIUS), min(sc.samples, k + MASK_SWEEP_RADIUS + 1))
+    near = [sc.key_times[j] for j in window if j != k]
+    frames, labels, key_lidar = _render_keyframe(sc.out, sc.world, sc.name, t_lidar,
+                                                 {ch: sc.sd_toks[ch][k] for ch in channels}, sc.width, sc.height,
+                                                 tuple(near))
+    tables["lidarseg"].append(_write_lidarseg(sc.out, sc.sd_toks[LIDAR_CHANNEL][k], key_lidar))
+    annotation = _annotate(sc.world, t_lidar, key_lidar)
+    sweeps = [(tok, _write_sweep(sc.out, sc.world, sc.name, t)) for tok, t, kk in sc.lidar_chain
+              if kk == k and t != t_lidar]
+    for tok, f in sweeps:
+        tables["ego_pose"].append(_pose_row(tok, f.T_global_from_ego, f.timestamp))
+        tables["sample_data"].append(_sweep_row(tok, s_tok, sc.cs_tok[LIDAR_CHANNEL], f, sc.link[tok]))
+    for f in frames:
+        tables["ego_pose"].append(_pose_row(sc.sd_toks[f.channel][k], f.T_global_from_ego, f.timestamp))
+        tables["sample_data"].append(_keyframe_sample_data(sc, f, k))
+    write_label(label_path(sc.out / "gts", sc.name, s_tok), labels)
+    return annotation
+
+
+def _write_scene(config: SynthConfig, si: int, tables: dict[str, list], sensor_tok: dict[str, str],
+                 n_val: int, bar: tqdm) -> None:
+    """Scene `si`: its log, calibrations, scene row, then every keyframe; then its boxes."""
+    seed, channels = config.seed, (*CAMERA_ORDER, LIDAR_CHANNEL)
+    log_tok = make_token(seed, "log", si)
+    tables["log"].append({"token": log_tok, "logfile": f"synth-s{seed}-{si:04d}", "vehicle": "synth",
+                          "date_captured": "2020-09-13", "location": MAP_NAME})
+    cs_rows = _calibrated_sensor_rows(seed, si, sensor_tok, config.width, config.height)
+    tables["calibrated_sensor"] += cs_rows.values()
+    scene_tok = make_token(seed, "scene", si)
+    sample_toks = [make_token(seed, "sample", si, k) for k in range(config.samples)]
+    split = "val" if si >= config.scenes - n_val else "train"
+    tables["scene"].append({
+        "token": scene_tok, "log_token": log_tok, "nbr_samples": config.samples, "name": f"synth-{si:04d}",
+        "description": f"Synthetic town drive, seed {seed}; split={split}",
+        "first_sample_token": sample_toks[0], "last_sample_token": sample_toks[-1],
+    })
+    key_times = keyframe_times(si, config.samples)
+    chain = _lidar_chain(seed, si, config.samples, key_times)
+    sc = _Scene(
+        out=Path(config.out), world=scene_world(seed, si, config.samples), name=f"synth-{si:04d}",
+        samples=config.samples, width=config.width, height=config.height, sample_toks=sample_toks,
+        sd_toks={ch: [make_token(seed, "sample_data", si, k, ch) for k in range(config.samples)] for ch in channels},
+        cs_tok={ch: row["token"] for ch, row in cs_rows.items()}, key_times=key_times, lidar_chain=chain,
+        link={tok: (chain[n - 1][0] if n else "", chain[n + 1][0] if n + 1 < len(chain) else "")
+              for n, (tok, _, _) in enumerate(chain)},
+    )
+    keyframe_anns: list[KeyframeAnnotation] = []
+    for k in range(config.samples):
+        keyframe_anns.append(_write_keyframe(sc, tables, k, scene_tok))
+        bar.update(1)
+    instances, annotations = annotation_rows(seed, si, sample_toks, keyframe_anns)
+    tables["instance"] += instances
+    tables["sample_annotation"] += annotations
+
+
 def synthesize(config: SynthConfig) -> Path:
     """Generate the world and write the tree under `config.out`; returns the output directory.
 
@@ -359,80 +455,19 @@ def synthesize(config: SynthConfig) -> Path:
     if config.width < 16 or config.height < 16:
         raise OccDataError("--width and --height must be >= 16")
     out = Path(config.out)
-    seed = config.seed
-    W, H = config.width, config.height
-    tables = static_tables(seed)
+    tables = static_tables(config.seed)
     sensor_tok = {r["channel"]: r["token"] for r in tables["sensor"]}
     for name in ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "log", "lidarseg"):
         tables[name] = []
-    channels = (*CAMERA_ORDER, LIDAR_CHANNEL)
-    map_name = "synth-town"
     n_val = _n_val(config.scenes)
-    bar = tqdm(total=config.scenes * config.samples, desc="synth", unit="sample", disable=not config.progress)
-    for si in range(config.scenes):
-        scene_name = f"synth-{si:04d}"
-        world = scene_world(seed, si, config.samples)
-        log_tok = make_token(seed, "log", si)
-        tables["log"].append({"token": log_tok, "logfile": f"synth-s{seed}-{si:04d}", "vehicle": "synth",
-                              "date_captured": "2020-09-13", "location": map_name})
-        cs_rows = _calibrated_sensor_rows(seed, si, sensor_tok, W, H)
-        tables["calibrated_sensor"] += cs_rows.values()
-        cs_tok = {ch: row["token"] for ch, row in cs_rows.items()}
-        scene_tok = make_token(seed, "scene", si)
-        sample_toks = [make_token(seed, "sample", si, k) for k in range(config.samples)]
-        sd_toks = {ch: [make_token(seed, "sample_data", si, k, ch) for k in range(config.samples)] for ch in channels}
-        split = "val" if si >= config.scenes - n_val else "train"
-        tables["scene"].append({
-            "token": scene_tok, "log_token": log_tok, "nbr_samples": config.samples, "name": scene_name,
-            "description": f"Synthetic town drive, seed {seed}; split={split}",
-            "first_sample_token": sample_toks[0], "last_sample_token": sample_toks[-1],
-        })
-        key_times = keyframe_times(si, config.samples)
-        lidar_chain = _lidar_chain(seed, si, config.samples, key_times)
-        link = {tok: (lidar_chain[n - 1][0] if n else "", lidar_chain[n + 1][0] if n + 1 < len(lidar_chain) else "")
-                for n, (tok, _, _) in enumerate(lidar_chain)}
-        keyframe_anns: list[KeyframeAnnotation] = []
-        for k in range(config.samples):
-            t_lidar = key_times[k]
-            s_tok = sample_toks[k]
-            tables["sample"].append({"token": s_tok, "timestamp": t_lidar, "scene_token": scene_tok,
-                                     "prev": sample_toks[k - 1] if k > 0 else "",
-                                     "next": sample_toks[k + 1] if k + 1 < config.samples else ""})
-            window = range(max(0, k - MASK_SWEEP_RADIUS), min(config.samples, k + MASK_SWEEP_RADIUS + 1))
-            near = [key_times[j] for j in window if j != k]
-            frames, labels, key_lidar = _render_keyframe(out, world, scene_name, t_lidar,
-                                                         {ch: sd_toks[ch][k] for ch in channels}, W, H, tuple(near))
-            tables["lidarseg"].append(_write_lidarseg(out, sd_toks[LIDAR_CHANNEL][k], key_lidar))
-            keyframe_anns.append(_annotate(world, t_lidar, key_lidar))
-            sweeps = [(tok, _write_sweep(out, world, scene_name, t)) for tok, t, kk in lidar_chain
-                       if kk == k and t != t_lidar]
-            for tok, f in sweeps:
-                tables["ego_pose"].append(_pose_row(tok, f.T_global_from_ego, f.timestamp))
-                tables["sample_data"].append(_sweep_row(tok, s_tok, cs_tok[LIDAR_CHANNEL], f, link[tok]))
-            for f in frames:
-                tok = sd_toks[f.channel][k]
-                is_cam = f.channel != LIDAR_CHANNEL
-                tables["ego_pose"].append(_pose_row(tok, f.T_global_from_ego, f.timestamp))
-                tables["sample_data"].append({
-                    "token": tok, "sample_token": s_tok,
-                    "ego_pose_token": tok,  # one ego pose per sample_data, as in nuScenes
-                    "calibrated_sensor_token": cs_tok[f.channel], "timestamp": f.timestamp,
-                    "fileformat": "jpg" if is_cam else "pcd", "is_key_frame": True,
-                    "height": H if is_cam else 0, "width": W if is_cam else 0, "filename": f.filename,
-                    "prev": link[tok][0] if not is_cam else sd_toks[f.channel][k - 1] if k > 0 else "",
-                    "next": link[tok][1] if not is_cam else sd_toks[f.channel][k + 1] if k + 1 < config.samples else "",
-                })
-            write_label(label_path(out / "gts", scene_name, s_tok), labels)
-            bar.update(1)
-        instances, annotations = annotation_rows(seed, si, sample_toks, keyframe_anns)
-        tables["instance"] += instances
-        tables["sample_annotation"] += annotations
-    bar.close()
+    with tqdm(total=config.scenes * config.samples, desc="synth", unit="sample", disable=not config.progress) as bar:
+        for si in range(config.scenes):
+            _write_scene(config, si, tables, sensor_tok, n_val, bar)
     log_tokens = [r["token"] for r in tables["log"]]
-    tables["map"] = [{"token": make_token(seed, "map", map_name), "log_tokens": log_tokens,
-                      "category": "semantic_prior", "filename": f"maps/{map_name}.png"}]
+    tables["map"] = [{"token": make_token(config.seed, "map", MAP_NAME), "log_tokens": log_tokens,
+                      "category": "semantic_prior", "filename": f"maps/{MAP_NAME}.png"}]
     ok, png = cv2.imencode(".png", np.zeros((8, 8), np.uint8))
-    write_atomic(out / "maps" / f"{map_name}.png", png.tobytes())
+    write_atomic(out / "maps" / f"{MAP_NAME}.png", png.tobytes())
     write_tables(out / TABLE_VERSION, tables)
     return out
 
