@@ -68,6 +68,76 @@ def _with_ego(occ_labels: np.ndarray, grid: OccGrid) -> tuple[np.ndarray, np.nda
     return labels, palette
 
 
+@dataclass(frozen=True)
+class _Screen:
+    """The orthographic projection of a grid into an image: screen = (ox + scale * p.right,
+    oy - scale * p.up) in pixels, for an `(H, W)` image."""
+
+    right: np.ndarray
+    up: np.ndarray
+    into: np.ndarray
+    scale: float
+    ox: float
+    oy: float
+    H: int
+    W: int
+
+
+def _screen(grid: OccGrid, view: View, H: int, W: int, margin: int = 6) -> _Screen:
+    """Fit the grid's 8 corners into the image (independent of content)."""
+    right, up, into = view.axes()
+    corners = np.array([[x, y, z] for x in (grid.lower[0], grid.upper[0]) for y in (grid.lower[1], grid.upper[1])
+                        for z in (grid.lower[2], grid.upper[2])])
+    sx, sy = corners @ right, corners @ up
+    scale = min((W - 2 * margin) / (sx.max() - sx.min()), (H - 2 * margin) / (sy.max() - sy.min()))
+    ox = margin + ((W - 2 * margin) - scale * (sx.max() - sx.min())) / 2 - scale * sx.min()
+    oy = margin + ((H - 2 * margin) - scale * (sy.max() - sy.min())) / 2 + scale * sy.max()
+    return _Screen(right, up, into, scale, ox, oy, H, W)
+
+
+def _face_samples(lab: np.ndarray, palette: np.ndarray, grid: OccGrid, scr: _Screen
+                  ) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """Sample points of every exposed voxel face that looks towards the viewer: per face direction,
+    their pixel index, depth and shaded colour (only the samples inside the image)."""
+    occ = lab != FREE_LABEL
+    vs = grid.voxel_size
+    lower = np.asarray(grid.lower, dtype=np.float64)
+    n_sub = max(2, int(math.ceil(1.5 * scr.scale * vs)) + 1)  # samples per face edge: no holes between them
+    pad = np.pad(occ, 1, constant_values=False)
+    t = (np.arange(n_sub) + 0.5) / n_sub - 0.5  # face-local sample offsets in voxel units
+    su, sv = np.meshgrid(t, t, indexing="ij")
+    edge = ((np.abs(su) > 0.5 - 0.75 / n_sub) | (np.abs(sv) > 0.5 - 0.75 / n_sub)).ravel()
+    px_all, depth_all, color_all = [], [], []
+    for axis in range(3):
+        for sign in (-1, 1):
+            normal = np.zeros(3)
+            normal[axis] = sign
+            if normal @ scr.into >= 0:  # faces away from the viewer
+                continue
+            sl = [slice(1, -1)] * 3
+            sl[axis] = slice(1 + sign, pad.shape[axis] - 1 + sign)
+            ijk = np.argwhere(occ & ~pad[tuple(sl)])  # faces with no occupied neighbour in front
+            if not len(ijk):
+                continue
+            a1, a2 = [d for d in range(3) if d != axis]
+            centre = lower + vs * (ijk + 0.5) + 0.5 * vs * normal  # face centres (F, 3)
+            pts = np.repeat(centre[:, None, :], n_sub * n_sub, axis=1)
+            pts[..., a1] += vs * su.ravel()
+            pts[..., a2] += vs * sv.ravel()
+            shade = _SHADE["top"] if axis == 2 and sign > 0 else _SHADE["bottom"] if axis == 2 else _SHADE[
+                "x" if axis == 0 else "y"]
+            base = palette[lab[ijk[:, 0], ijk[:, 1], ijk[:, 2]]].astype(np.float32) * shade  # (F, 3)
+            col = np.repeat(base[:, None, :], n_sub * n_sub, axis=1)
+            col[:, edge] *= _EDGE
+            u = np.floor(scr.ox + scr.scale * (pts @ scr.right)).astype(np.int64).ravel()
+            v = np.floor(scr.oy - scr.scale * (pts @ scr.up)).astype(np.int64).ravel()
+            ok = (u >= 0) & (u < scr.W) & (v >= 0) & (v < scr.H)
+            px_all.append((v * scr.W + u)[ok])
+            depth_all.append((pts @ scr.into).ravel()[ok])
+            color_all.append(col.reshape(-1, 3)[ok])
+    return px_all, depth_all, color_all
+
+
 def render_voxels(
     labels: np.ndarray,
     size: tuple[int, int] = (600, 800),
@@ -90,59 +160,12 @@ def render_voxels(
     palette = _PALETTE
     if ego:
         lab, palette = _with_ego(lab, grid)
-    occ = lab != FREE_LABEL
-    right, up, into = view.axes()
-    vs = grid.voxel_size
-    lower = np.asarray(grid.lower, dtype=np.float64)
-
-    # Fit the grid's 8 corners into the image (independent of content).
-    corners = np.array([[x, y, z] for x in (grid.lower[0], grid.upper[0]) for y in (grid.lower[1], grid.upper[1])
-                        for z in (grid.lower[2], grid.upper[2])])
-    sx, sy = corners @ right, corners @ up
-    margin = 6
-    scale = min((W - 2 * margin) / (sx.max() - sx.min()), (H - 2 * margin) / (sy.max() - sy.min()))
-    ox = margin + ((W - 2 * margin) - scale * (sx.max() - sx.min())) / 2 - scale * sx.min()
-    oy = margin + ((H - 2 * margin) - scale * (sy.max() - sy.min())) / 2 + scale * sy.max()
-    n_sub = max(2, int(math.ceil(1.5 * scale * vs)) + 1)  # samples per face edge: no holes between them
-
     img = np.empty((H, W, 3), dtype=np.uint8)
     img[:] = _BACKGROUND
-    pad = np.pad(occ, 1, constant_values=False)
-    t = (np.arange(n_sub) + 0.5) / n_sub - 0.5  # face-local sample offsets in voxel units
-    su, sv = np.meshgrid(t, t, indexing="ij")
-    edge = ((np.abs(su) > 0.5 - 0.75 / n_sub) | (np.abs(sv) > 0.5 - 0.75 / n_sub)).ravel()
-    px_all, depth_all, color_all = [], [], []
-    for axis in range(3):
-        for sign in (-1, 1):
-            normal = np.zeros(3)
-            normal[axis] = sign
-            if normal @ into >= 0:  # faces away from the viewer
-                continue
-            sl = [slice(1, -1)] * 3
-            sl[axis] = slice(1 + sign, pad.shape[axis] - 1 + sign)
-            exposed = occ & ~pad[tuple(sl)]
-            ijk = np.argwhere(exposed)
-            if not len(ijk):
-                continue
-            a1, a2 = [d for d in range(3) if d != axis]
-            centre = lower + vs * (ijk + 0.5) + 0.5 * vs * normal  # face centres (F, 3)
-            pts = np.repeat(centre[:, None, :], n_sub * n_sub, axis=1)
-            pts[..., a1] += vs * su.ravel()
-            pts[..., a2] += vs * sv.ravel()
-            shade = _SHADE["top"] if axis == 2 and sign > 0 else _SHADE["bottom"] if axis == 2 else _SHADE[
-                "x" if axis == 0 else "y"]
-            base = palette[lab[ijk[:, 0], ijk[:, 1], ijk[:, 2]]].astype(np.float32) * shade  # (F, 3)
-            col = np.repeat(base[:, None, :], n_sub * n_sub, axis=1)
-            col[:, edge] *= _EDGE
-            u = np.floor(ox + scale * (pts @ right)).astype(np.int64).ravel()
-            v = np.floor(oy - scale * (pts @ up)).astype(np.int64).ravel()
-            ok = (u >= 0) & (u < W) & (v >= 0) & (v < H)
-            px_all.append((v * W + u)[ok])
-            depth_all.append((pts @ into).ravel()[ok])
-            color_all.append(col.reshape(-1, 3)[ok])
-    if px_all:
+    px_all, depth_all, color_all = _face_samples(lab, palette, grid, _screen(grid, view, H, W))
+    if px_all:  # per pixel, the nearest sample's colour
         px, depth, color = np.concatenate(px_all), np.concatenate(depth_all), np.concatenate(color_all)
-        order = np.lexsort((depth, px))  # per pixel, nearest first
+        order = np.lexsort((depth, px))
         px, color = px[order], color[order]
         first = np.ones(len(px), dtype=bool)
         first[1:] = px[1:] != px[:-1]
