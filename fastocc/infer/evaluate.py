@@ -100,6 +100,32 @@ def _mask_of(batch: Any, mask: MaskKind) -> np.ndarray | None:
     return t.numpy().astype(np.uint8)
 
 
+def _labelled_split(reader: Any, cfg: PredictConfig) -> int:
+    """The number of built samples of the split; an `OccDataError` when it has none or none labelled."""
+    indices = split_indices(reader, cfg.split)  # also checks the split name before the loader starts
+    if not len(indices):
+        raise OccDataError(f"split {cfg.split!r} of {cfg.store} has no built samples")
+    if not reader.small("labels/present")[indices].any():
+        raise OccDataError(f"split {cfg.split!r} of {cfg.store} has no labelled samples: nothing to score")
+    return len(indices)
+
+
+def _score_batch(reader: Any, batch: Any, pred: np.ndarray, mask: MaskKind, miou_acc: MIoUAccumulator,
+                 ray_acc: RayIoUAccumulator | None) -> int:
+    """Add a batch's labelled samples (`pred (B, X, Y, Z) uint8`) to the accumulators; returns how many."""
+    labelled = batch.has_labels.numpy()
+    if not labelled.any():
+        return 0
+    gt = batch.semantics.numpy()[labelled].astype(np.uint8)
+    m = _mask_of(batch, mask)
+    miou_acc.update(gt, pred[labelled], None if m is None else m[labelled])
+    if ray_acc is not None:
+        for k in np.flatnonzero(labelled):
+            origins = scene_ray_origins(reader, int(batch.sample_index[k]))
+            ray_acc.update(gt[int(np.count_nonzero(labelled[:k]))], pred[k], origins)
+    return int(labelled.sum())
+
+
 @torch.no_grad()
 def evaluate(
     model: nn.Module,
@@ -121,12 +147,7 @@ def evaluate(
         raise OccDataError(f"unknown mask {mask!r} (camera, lidar or none)")
     t0 = time.perf_counter()
     reader = open_store(cfg.store)
-    indices = split_indices(reader, cfg.split)  # also checks the split name before the loader starts
-    if not len(indices):
-        raise OccDataError(f"split {cfg.split!r} of {cfg.store} has no built samples")
-    if not reader.small("labels/present")[indices].any():
-        raise OccDataError(f"split {cfg.split!r} of {cfg.store} has no labelled samples: nothing to score")
-    total = len(indices)
+    total = _labelled_split(reader, cfg)
     miou_acc = MIoUAccumulator()
     ray_acc = RayIoUAccumulator() if rayiou else None
     dist = torch.distributed
@@ -151,16 +172,7 @@ def evaluate(
             pred = probs.argmax(1).to(torch.uint8).numpy()  # (B, X, Y, Z)
             del probs
             frames += len(batch)
-            labelled = batch.has_labels.numpy()
-            if labelled.any():
-                gt = batch.semantics.numpy()[labelled].astype(np.uint8)
-                m = _mask_of(batch, mask)
-                miou_acc.update(gt, pred[labelled], None if m is None else m[labelled])
-                if ray_acc is not None:
-                    for k in np.flatnonzero(labelled):
-                        origins = scene_ray_origins(reader, int(batch.sample_index[k]))
-                        ray_acc.update(gt[int(np.count_nonzero(labelled[:k]))], pred[k], origins)
-                samples += int(labelled.sum())
+            samples += _score_batch(reader, batch, pred, mask, miou_acc, ray_acc)
             bar.update(len(batch))
     finally:
         stream.close()
