@@ -314,6 +314,25 @@ class RuntimeBenchConfig:
     seed: int = 0
 
 
+def _time_predictor(pred: Any, frames: list, poses: list, warmup: int, repeats: int) -> tuple[Any, dict[str, float]]:
+    """The first call's output and seconds, then the medians (ms) of `repeats` timed calls after `warmup`:
+    whole frame, preprocessing and network (`Predictor.times`)."""
+    t0 = time.perf_counter()
+    first = pred(frames[0], poses[0])
+    first_call = time.perf_counter() - t0
+    for i in range(warmup):
+        pred(frames[(i + 1) % 2], poses[(i + 1) % 2])
+    totals, pre, netw = [], [], []
+    for i in range(repeats):
+        t0 = time.perf_counter()
+        pred(frames[i % 2], poses[i % 2])
+        totals.append(time.perf_counter() - t0)
+        pre.append(pred.times.preprocess)
+        netw.append(pred.times.network)
+    return first, {"ms": 1e3 * statistics.median(totals), "preprocess_ms": 1e3 * statistics.median(pre),
+                   "network_ms": 1e3 * statistics.median(netw), "first_call_s": first_call}
+
+
 def run_runtime_benchmark(cfg: RuntimeBenchConfig) -> dict[str, Any]:
     """Median end-to-end ms per frame and its split (preprocess / network) per runtime, in one process."""
     import tempfile
@@ -354,28 +373,11 @@ def run_runtime_benchmark(cfg: RuntimeBenchConfig) -> dict[str, Any]:
             else:
                 pred = Predictor.from_model(model, rig, runtime=rt, device=cfg.device)
             setup = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            first = pred(frames[0], poses[0])
-            first_call = time.perf_counter() - t0
-            for i in range(cfg.warmup):
-                pred(frames[(i + 1) % 2], poses[(i + 1) % 2])
-            totals, pre, netw = [], [], []
-            for i in range(cfg.repeats):
-                t0 = time.perf_counter()
-                pred(frames[i % 2], poses[i % 2])
-                totals.append(time.perf_counter() - t0)
-                pre.append(pred.times.preprocess)
-                netw.append(pred.times.network)
+            first, timing = _time_predictor(pred, frames, poses, cfg.warmup, cfg.repeats)
             if reference is None:
                 reference = first
-            result["runtimes"][rt] = {
-                "ms": 1e3 * statistics.median(totals),
-                "preprocess_ms": 1e3 * statistics.median(pre),
-                "network_ms": 1e3 * statistics.median(netw),
-                "setup_s": setup,
-                "first_call_s": first_call,
-                "argmax_agreement_with_first": float((first == reference).mean()),
-            }
+            result["runtimes"][rt] = {**timing, "setup_s": setup,
+                                      "argmax_agreement_with_first": float((first == reference).mean())}
             del pred
     rts = result["runtimes"]
     if "torch" in rts:
