@@ -11,7 +11,8 @@ Tables and the runs behind their rows (a run shared by two tables is trained onc
     head        surroundocc | deconv | 3dfcn | fastocc        (paper Table II)
     components  neither | bev-only | bev-unfold | interp-only | fastocc
                                                               (paper Table IV; BEV supervision off = w_bev 0)
-    history     hist0 | hist0fuse | hist4 | hist16 | hist16cached   (all trained scene-sequentially)
+    history     hist0 | hist0fuse | hist4 | hist16 | hist16cached | hist16cached64 | hist16cachedgrad   (all trained
+                scene-sequentially)
     resolution  fastocc (96x256) | nano128 (128x352)          (paper Table III, input size only)
     tta         the best row of the tables above, flip TTA off | on (evaluation only)
 
@@ -139,11 +140,17 @@ TABLES: tuple[Table, ...] = (
         TableRow("4 previous frames", "hist4"),
         TableRow("16 previous frames", "hist16"),
         TableRow("16 previous frames, cached fusion", "hist16cached"),
+        TableRow("16 previous frames, cached fusion, C_r = 64 (control)", "hist16cached64"),
+        TableRow("16 previous frames, cached fusion, reduction trained through the history (control)",
+                 "hist16cachedgrad"),
     ), "The paper's best result (40.75, base) uses 16 frames; it gives no 0/4/16 table, so no paper column. "
        "`hist0fuse` has the history rows' fusion layer (1x1 conv + BN + ReLU) over the current map alone, so it "
        "differs from `hist16` only by the history. `hist16cached` (`temporal_fusion = \"cached\"`) reduces each "
        "frame once, when current, to 16 channels and queues those; per frame only their warp and a small "
-       "residual fusion run (docs/model.md)."),
+       "residual fusion run (docs/model.md). Its two controls (issue 35): `hist16cached64` reduces to 64 channels; "
+       "`hist16cachedgrad` (`temporal_grad_history`) keeps the queued frames' full maps in training and reduces "
+       "them with gradient, so the reduction learns from the history too (the same forward values; inference "
+       "keeps the cache)."),
     Table("resolution", "Input resolution (paper Table III: backbone and input size)", (
         TableRow("nano, 96x256 (= FastOcc row of the head table)", "fastocc"),
         TableRow("nano, 128x352", "nano128"),
