@@ -127,9 +127,9 @@ def export_html(cfg: ViewConfig) -> ExportReport:
         text = _record(server, source, scene, cfg)
     finally:
         server.stop()
-    write_atomic(cfg.export, text.encode("utf-8"))
-    size = cfg.export.stat().st_size
-    return ExportReport(path=cfg.export, scene=scene.name, n_keyframes=len(scene.indices), n_bytes=size)
+    data = text.encode("utf-8")
+    write_atomic(cfg.export, data)
+    return ExportReport(path=cfg.export, scene=scene.name, n_keyframes=len(scene.indices), n_bytes=len(data))
 
 
 def run_view(cfg: ViewConfig, echo: Echo = print, warn: Echo = print) -> None:
