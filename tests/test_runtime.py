@@ -179,10 +179,29 @@ def test_a_task_error_keeps_its_type_on_a_worker_and_here(client) -> None:
         run_tasks(client, [Fails("unpicklable")], desc="t", progress=False)
 
 
-def test_the_worker_wrapper_returns_task_errors() -> None:
+@pytest.fixture
+def restored_thread_limits(monkeypatch) -> Iterator[None]:
+    """`run_on_worker` applies a worker's thread limits to this process: undo them afterwards."""
+    from occdata.runtime import tasks
+
+    for name in (*tasks._THREAD_ENV, "NUMBA_NUM_THREADS"):
+        if name in os.environ:
+            monkeypatch.setenv(name, os.environ[name])
+        else:
+            monkeypatch.delenv(name, raising=False)
+    monkeypatch.setattr(tasks, "_process_threads", None)
+    yield
+    worker_setup(None)
+
+
+def test_the_worker_wrapper_returns_task_errors(restored_thread_limits) -> None:
+    before = os.environ.get("NUMBA_NUM_THREADS")
     failed = run_on_worker(Fails())
     assert isinstance(failed, TaskFailed) and failed.kind == "ValueError" and failed.message == "bad input 7"
     assert run_on_worker(Value(3)) == 3
+    # numba re-reads this variable at every compile and fails once it differs from its pool's size,
+    # so the limits are set through numba's API and the variable is never touched (a CI failure).
+    assert os.environ.get("NUMBA_NUM_THREADS") == before
 
 
 def test_worker_setup_limits_threads_on_scheduler_workers_and_not_here(client) -> None:

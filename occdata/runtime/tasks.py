@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import os
 import pickle
-import sys
 from collections.abc import Callable
 from typing import Any, NoReturn, Protocol, TypeVar
 
@@ -76,16 +75,17 @@ def worker_setup(threads: int | None) -> None:
     3-4x the time); None: the libraries' defaults (one task at a time, in the client process).
     Idempotent and cheap: called before every task, since numba's setting is per thread."""
     global _process_threads
-    if "numba" in sys.modules:
-        import numba
+    import numba
 
-        n = numba.config.NUMBA_NUM_THREADS
-        numba.set_num_threads(n if threads is None else max(1, min(threads, n)))
+    # `set_num_threads` only, never the NUMBA_NUM_THREADS variable: numba re-reads it at every compile
+    # and refuses a value other than its pool's size, so a later change to the environment broke
+    # every compile in the process.
+    n = numba.config.NUMBA_NUM_THREADS
+    numba.set_num_threads(n if threads is None else max(1, min(threads, n)))
     if threads is None or _process_threads == threads:  # None: the process-wide defaults are left alone
         return
     for name in _THREAD_ENV:  # BLAS / OpenMP pools started from now on (the nanny sets these at spawn)
         os.environ[name] = str(threads)
-    os.environ.setdefault("NUMBA_NUM_THREADS", str(threads))  # if numba is imported later
     try:
         import cv2
 
