@@ -11,8 +11,8 @@ Tables and the runs behind their rows (a run shared by two tables is trained onc
     head        surroundocc | deconv | 3dfcn | fastocc        (paper Table II)
     components  neither | bev-only | bev-unfold | interp-only | fastocc
                                                               (paper Table IV; BEV supervision off = w_bev 0)
-    history     hist0 | hist0fuse | hist4 | hist16 | hist16cached | hist16cached64 | hist16cachedgrad   (all trained
-                scene-sequentially)
+    history     hist0 | hist0fuse | hist4 | hist16 | hist16cached | hist16cached64 | hist16cachedgrad |
+                hist16rec   (all trained scene-sequentially)
     resolution  fastocc (96x256) | nano128 (128x352)          (paper Table III, input size only)
     tta         the best row of the tables above, flip TTA off | on (evaluation only)
 
@@ -109,6 +109,10 @@ ROWS: dict[str, Row] = {r.name: r for r in (
                            ("temporal_channels", 64))),
     Row("hist16cachedgrad", (("num_history", 16), ("scene_sequential", True), ("temporal_fusion", "cached"),
                              ("temporal_grad_history", True))),
+    # Issue 35's constant-cost history: one recurrent BEV state (ConvGRU-style, C_s = 32), trained with
+    # truncated back-propagation over 4 frames.
+    Row("hist16rec", (("num_history", 16), ("scene_sequential", True), ("temporal_fusion", "recurrent"),
+                      ("temporal_channels", 32), ("temporal_unroll", 4))),
     Row("nano128", (("input_hw", (128, 352)),)),
     Row("surroundocc", (("head", "deconv"), ("view_transform", "attention"))),
 )}
@@ -143,6 +147,7 @@ TABLES: tuple[Table, ...] = (
         TableRow("16 previous frames, cached fusion, C_r = 64 (control)", "hist16cached64"),
         TableRow("16 previous frames, cached fusion, reduction trained through the history (control)",
                  "hist16cachedgrad"),
+        TableRow("history as one recurrent state (C_s = 32, unrolled over 4 frames in training)", "hist16rec"),
     ), "The paper's best result (40.75, base) uses 16 frames; it gives no 0/4/16 table, so no paper column. "
        "`hist0fuse` has the history rows' fusion layer (1x1 conv + BN + ReLU) over the current map alone, so it "
        "differs from `hist16` only by the history. `hist16cached` (`temporal_fusion = \"cached\"`) reduces each "
@@ -150,7 +155,9 @@ TABLES: tuple[Table, ...] = (
        "residual fusion run (docs/model.md). Its two controls (issue 35): `hist16cached64` reduces to 64 channels; "
        "`hist16cachedgrad` (`temporal_grad_history`) keeps the queued frames' full maps in training and reduces "
        "them with gradient, so the reduction learns from the history too (the same forward values; inference "
-       "keeps the cache)."),
+       "keeps the cache). `hist16rec` (`temporal_fusion = \"recurrent\"`) carries one 32-channel state forward "
+       "instead of a queue: per frame one warp and a gated 1x1 update, whatever the history's length; training "
+       "recomputes the last 4 frames with gradient (docs/model.md)."),
     Table("resolution", "Input resolution (paper Table III: backbone and input size)", (
         TableRow("nano, 96x256 (= FastOcc row of the head table)", "fastocc"),
         TableRow("nano, 128x352", "nano128"),

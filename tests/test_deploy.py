@@ -39,6 +39,10 @@ def _checkpoint(path: Path, name: str = "nano", seed: int = 0, **overrides: obje
     return save_checkpoint(path, cfg, FastOcc(cfg).state_dict())
 
 
+def _values(state: tuple | dict) -> list[torch.Tensor]:  # noqa: ANN001 - a queue's or a recurrent state
+    return list(state.values()) if isinstance(state, dict) else list(state)
+
+
 def _frames(rig, n: int, seed: int = 0) -> list[list[np.ndarray]]:  # noqa: ANN001
     rng = np.random.default_rng(seed)
     return [[rng.integers(0, 256, (int(h), int(w), 3), dtype=np.uint8) for w, h in rig.image_size] for _ in range(n)]
@@ -140,18 +144,21 @@ def test_predictor_onnx_matches_checkpoint(nano_export: tuple[Path, Path, str]) 
 
 
 # Each fusion runs one of the two temporal deploy tests by default (about 50 s each); the other pairing is slow.
-@pytest.mark.parametrize(("fusion", "queue_channels"), [("concat", 16 * 8),
-                                                       pytest.param("cached", 16, marks=pytest.mark.slow)])
-def test_temporal_stream_parity_and_fixed_state(tmp_path: Path, fusion: str, queue_channels: int) -> None:
+@pytest.mark.parametrize(("fusion", "queue_shape"), [("concat", (2, 16 * 8)),
+                                                    pytest.param("cached", (2, 16), marks=pytest.mark.slow),
+                                                    ("recurrent", (1, 16))])
+def test_temporal_stream_parity_and_fixed_state(tmp_path: Path, fusion: str, queue_shape: tuple[int, int]) -> None:
     """A temporal nano: exported step with the queue as inputs/outputs; the Predictor keeps it. ONNX and
     PyTorch agree over a moving stream, and the state keeps its size whatever the stream length. The
-    "cached" queue holds each frame reduced to C_r = 16 channels, the "concat" one the full C2 * 8 = 128."""
+    "cached" queue holds each frame reduced to C_r = 16 channels, the "concat" one the full C2 * 8 = 128,
+    the "recurrent" history is its one state of C_r channels."""
     ckpt = _checkpoint(tmp_path / "t.pt", num_history=2, temporal_fusion=fusion)
     rep = export_onnx(ExportConfig(checkpoint=ckpt, out=tmp_path / "t.onnx", frames=3))
     assert rep.parity.passed and rep.parity.frames == 3
     meta = json.loads(rep.sidecar.read_text())
-    assert meta["inputs"]["history"]["shape"] == [1, 2, queue_channels, 100, 100]
-    assert meta["outputs"]["history_out"]["shape"] == [1, 2, queue_channels, 100, 100]
+    assert meta["inputs"]["history"]["shape"] == [1, *queue_shape, 100, 100]
+    assert meta["outputs"]["history_out"]["shape"] == [1, *queue_shape, 100, 100]
+    assert meta["inputs"]["T_prev_from_cur"]["shape"] == [1, queue_shape[0], 4, 4]
     assert meta["temporal"]["fusion"] == fusion and meta["model_config"]["temporal_fusion"] == fusion
     assert set(meta["inputs"]) == {"images", "history", "T_prev_from_cur", "seq_start"}
     p_torch, p_onnx = Predictor(ckpt), Predictor(rep.out)
@@ -168,9 +175,9 @@ def test_temporal_stream_parity_and_fixed_state(tmp_path: Path, fusion: str, que
         assert (a == b).mean() >= 0.999, t
         assert (a == p_static(frames[t % 3], pose)).mean() >= 0.999, t
         st = p_onnx._backend.state
-        q = p_torch._backend.model.temporal._feats
-        sizes.append((st.history.shape, len(st.poses), tuple(q.shape)))
-    assert len(set(sizes)) == 1 and sizes[0][1] == 2
+        q = p_torch._backend.model.temporal.queue_state()
+        sizes.append((st.history.shape, len(st.poses), str([tuple(v.shape) for v in _values(q)])))
+    assert len(set(sizes)) == 1 and sizes[0][1] == queue_shape[0]
 
 
 def test_zero_history_fusion_exports_without_a_queue(tmp_path: Path) -> None:
@@ -228,7 +235,8 @@ def _lanes(store: Path, model: FastOcc) -> tuple[dict[int, torch.Tensor], list[l
     return probs, lanes
 
 
-@pytest.mark.parametrize("fusion", [pytest.param("concat", marks=pytest.mark.slow), "cached"])
+@pytest.mark.parametrize("fusion", [pytest.param("concat", marks=pytest.mark.slow), "cached",
+                                    pytest.param("recurrent", marks=pytest.mark.slow)])
 def test_scene_order_training_forward_equals_the_streaming_predictor(synth_store: Path, fusion: str) -> None:
     """What training computes on scene-ordered lanes (batch 2, each lane its own queue, float32 global poses)
     equals what the Predictor computes streaming each lane frame by frame (raw images, float64 poses),

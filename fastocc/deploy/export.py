@@ -147,7 +147,7 @@ def _sidecar(static: StaticFastOcc, rig: Rig, parity: ParityReport, opset: int, 
     shapes = {"images": [1, cfg.num_cams, 3, H, W]}
     outputs = {"logits": [1, cfg.num_classes, *cfg.fine_grid.shape], "semantics": [1, *cfg.fine_grid.shape]}
     if static.temporal:
-        shapes |= {"history": list(static.history_shape()), "T_prev_from_cur": [1, cfg.num_history, 4, 4],
+        shapes |= {"history": list(static.history_shape()), "T_prev_from_cur": [1, static.history_shape()[1], 4, 4],
                    "seq_start": [1]}
         outputs["history_out"] = list(static.history_shape())
     return {

@@ -28,7 +28,6 @@ from fastocc.model import FastOcc, HeadKind
 from fastocc.model.attention import AttentionGeometry, attention_geometry
 from fastocc.model.geometry import project_points_to_feature, voxel_centres
 from fastocc.model.network import collapse_z
-from fastocc.model.temporal import warp_bev_inverse
 from fastocc.model.view_transform import PoolingIndex, lss_pool
 
 from .rig import Rig
@@ -77,9 +76,10 @@ class StaticFastOcc(nn.Module):
         return self.net.temporal is not None and self.cfg.num_history > 0
 
     def history_shape(self) -> tuple[int, ...]:
-        """`(1, T, C_q, 100, 100)`: C_q = C2 * 8 for the "concat" queue, C_r for the "cached" one."""
+        """`(1, T, C_q, 100, 100)`: C_q = C2 * 8 for the "concat" queue, C_r for the "cached" one; the
+        "recurrent" fusion's history is its one state (T = 1, C_q = C_r)."""
         X, Y, _ = self.cfg.coarse_grid.shape
-        return (1, self.cfg.num_history, self.net.temporal.queue_channels, X, Y)
+        return (1, self.net.temporal.queue_length, self.net.temporal.queue_channels, X, Y)
 
     def example_inputs(self, seed: int = 0) -> tuple[Tensor, ...]:
         g = torch.Generator().manual_seed(seed)
@@ -87,7 +87,7 @@ class StaticFastOcc(nn.Module):
         images = torch.randn(1, self.cfg.num_cams, 3, H, W, generator=g)
         if not self.temporal:
             return (images,)
-        T = self.cfg.num_history
+        T = self.history_shape()[1]
         return (images, torch.zeros(self.history_shape()), torch.eye(4).expand(1, T, 4, 4).clone(),
                 torch.ones(1, dtype=torch.bool))
 
@@ -109,19 +109,8 @@ class StaticFastOcc(nn.Module):
             pooled = lss_pool(depth, context, PoolingIndex(self.point_idx, self.voxel_idx), 1, cfg.coarse_grid.shape)
         bev = collapse_z(pooled)  # (1, C2*8, 100, 100)
         new_history = None
-        if net.temporal is not None:
-            entry = net.temporal.queue_entry(bev)  # (1, C_q, X, Y): the full map, or reduced once ("cached")
-            warped = None
-            if self.temporal:
-                assert history is not None and T_prev_from_cur is not None and seq_start is not None
-                T = cfg.num_history
-                # a sequence start fills the queue with the current frame (identity poses from the runtime)
-                feats = torch.where(seq_start.view(1, 1, 1, 1, 1), entry.unsqueeze(1).expand_as(history), history)
-                Cq, X, Y = entry.shape[1:]
-                warped = warp_bev_inverse(feats.reshape(T, Cq, X, Y), T_prev_from_cur.reshape(T, 4, 4),
-                                          cfg.coarse_grid).reshape(1, T * Cq, X, Y)
-                new_history = torch.cat([entry.unsqueeze(1), feats[:, :-1]], dim=1)
-            bev = net.temporal.fuse(bev, entry, warped)
+        if net.temporal is not None:  # the queue or the recurrent state, as explicit inputs and outputs
+            bev, new_history = net.temporal.static_step(bev, history, T_prev_from_cur, seq_start)
         logits, class_dim = self._head(feat, bev)
         semantics = logits.argmax(dim=class_dim).to(torch.uint8)  # before any layout change: cache-friendly
         if class_dim == -1:  # channels-last (X, Y, Z, 18) -> (1, 18, X, Y, Z); skipped when only semantics is asked

@@ -58,6 +58,7 @@ class TemporalFusionKind(StrEnum):
 
     CONCAT = "concat"  # queue of full V_B maps (C2*8 channels); 1x1 conv over all T + 1 of them
     CACHED = "cached"  # each frame reduced once to C_r channels when current; warp + small fusion per frame
+    RECURRENT = "recurrent"  # one state of C_r channels carried forward: warp + a gated (ConvGRU) update per frame
 
 
 class ViewTransformKind(StrEnum):
@@ -106,7 +107,9 @@ class ModelConfig:
     # With interp_features off: REPEAT (constant along z) or UNFOLD (channels unfolded into the height bins).
     bev_height: BevHeight = BevHeight.REPEAT
     temporal_fusion: TemporalFusionKind = TemporalFusionKind.CONCAT
-    temporal_channels: int = 16  # C_r: channels each frame is reduced to in the "cached" queue
+    temporal_channels: int = 16  # C_r: channels of a frame in the "cached" queue, of the "recurrent" state
+    # "recurrent" only: frames the recurrence is unrolled over with gradient in training (truncated BPTT)
+    temporal_unroll: int = 4
     # "cached" only, a training control: the training queue keeps each frame's full map (detached) and
     # the reduction runs on the queued maps with gradient, so it learns from the history too; the
     # forward values equal the cached queue's (reduce, then warp), and inference keeps the cache.
@@ -135,6 +138,10 @@ class ModelConfig:
             bad.append(f"temporal_channels = {self.temporal_channels} (must be >= 1)")
         if self.temporal_grad_history and self.temporal_fusion != TemporalFusionKind.CACHED:
             bad.append("temporal_grad_history needs temporal_fusion = 'cached'")
+        if self.temporal_unroll < 1:
+            bad.append(f"temporal_unroll = {self.temporal_unroll} (must be >= 1)")
+        if self.temporal_fusion == TemporalFusionKind.RECURRENT and self.zero_history_fusion:
+            bad.append("zero_history_fusion is a control of the queue fusions, not of 'recurrent'")
         if self.bev_height == BevHeight.UNFOLD and (self.interp_features or self.head != HeadKind.FASTOCC):
             bad.append(f"bev_height = {self.bev_height!s} needs the fastocc head with interp_features off")
         if self.attention_heads < 1 or self.attention_points < 1 or self.context_channels % self.attention_heads:

@@ -8,10 +8,11 @@ import torch
 from torch import Tensor, nn
 
 from .attention import SpatialCrossAttention
-from .config import HeadKind, ModelConfig, ViewTransformKind
+from .config import HeadKind, ModelConfig, TemporalFusionKind, ViewTransformKind
 from .heads import BEVMultiHotHead, build_head
 from .inputs import ModelOutputs, SceneInputs
 from .neck import FPNNeck
+from .recurrent import RecurrentFusion
 from .resnet import load_pretrained, resnet
 from .temporal import TemporalFusion
 from .view_transform import DepthNet, LSSPooling
@@ -23,6 +24,16 @@ def collapse_z(volume: Tensor) -> Tensor:
     """`(B, C, X, Y, Z)` -> `(B, C*Z, X, Y)` with channel index c Z + k."""
     B, C, X, Y, Z = volume.shape
     return volume.permute(0, 1, 4, 2, 3).reshape(B, C * Z, X, Y)
+
+
+def _temporal(cfg: ModelConfig, channels: int) -> TemporalFusion | RecurrentFusion | None:
+    """The temporal fusion layer of `cfg` on BEV maps of `channels` (None: a single-frame model)."""
+    if not cfg.has_temporal:
+        return None
+    if cfg.temporal_fusion is TemporalFusionKind.RECURRENT:
+        return RecurrentFusion(channels, cfg.coarse_grid, cfg.temporal_channels, cfg.temporal_unroll)
+    return TemporalFusion(channels, cfg.num_history, cfg.coarse_grid, cfg.temporal_fusion, cfg.temporal_channels,
+                          cfg.temporal_grad_history)
 
 
 class FastOcc(nn.Module):
@@ -45,10 +56,7 @@ class FastOcc(nn.Module):
         else:
             self.depth_net = DepthNet(cfg.neck_channels, cfg.context_channels, cfg.depth_bins.count)
             self.pooling = LSSPooling(cfg.coarse_grid, cfg.depth_bins.centres(), cfg.input_hw, cfg.stride)
-        self.temporal = (
-            TemporalFusion(cfg.context_channels * z, cfg.num_history, cfg.coarse_grid, cfg.temporal_fusion,
-                           cfg.temporal_channels, cfg.temporal_grad_history) if cfg.has_temporal else None
-        )
+        self.temporal = _temporal(cfg, cfg.context_channels * z)
         self.head = build_head(cfg)
         use_bev_head = cfg.bev_head and cfg.head is HeadKind.FASTOCC
         self.bev_head = (

@@ -94,6 +94,7 @@ class TemporalFusion(nn.Module):
                 nn.BatchNorm2d(C),
                 nn.ReLU(inplace=True),
             )
+        self.queue_length = T  # the ONNX graph's history: T queued maps
         self._feats: Tensor | None = None  # (B, T, C_q, X, Y)
         self._poses: Tensor | None = None  # (B, T, 4, 4) T_global_from_keyego
         self._bev_aug: Tensor | None = None  # (B, T, 4, 4) M
@@ -130,6 +131,21 @@ class TemporalFusion(nn.Module):
                 mixed = mixed + self.mix_history(warped)
             return bev + self.expand(self.mix_norm(mixed))
         return self.reduce(bev if warped is None else torch.cat([bev, warped], dim=1))
+
+    def static_step(self, bev: Tensor, history: Tensor | None, T_prev_from_cur: Tensor | None,
+                    seq_start: Tensor | None) -> tuple[Tensor, Tensor | None]:
+        """The export graph's step: bev `(1, C, X, Y)`, the queue `(1, T, C_q, X, Y)`, T_prev_from_cur
+        `(1, T, 4, 4)`, seq_start `(1,)` -> fused `(1, C, X, Y)` and the next queue (None without history:
+        the zero-history control). A sequence start fills the queue with the current frame (the runtime
+        gives identity poses)."""
+        entry = self.queue_entry(bev)
+        if history is None or T_prev_from_cur is None or seq_start is None:
+            return self.fuse(bev, entry, None), None
+        T, (Cq, X, Y) = self.num_history, entry.shape[1:]
+        feats = torch.where(seq_start.view(1, 1, 1, 1, 1), entry.unsqueeze(1).expand_as(history), history)
+        warped = warp_bev_inverse(feats.reshape(T, Cq, X, Y), T_prev_from_cur.reshape(T, 4, 4),
+                                  self.grid).reshape(1, T * Cq, X, Y)
+        return self.fuse(bev, entry, warped), torch.cat([entry.unsqueeze(1), feats[:, :-1]], dim=1)
 
     def forward(self, bev: Tensor, inputs: SceneInputs) -> Tensor:
         """bev `(B, C, X, Y)` in the current augmented frame -> fused `(B, C, X, Y)`."""

@@ -93,8 +93,10 @@ class TrainConfig:
     num_history: int | None = None  # None = the preset's (temporal models train scene-sequentially)
     interp_features: bool = True  # ablation: False = FastOcc head without interpolated image features
     bev_height: str = "repeat"  # with interp_features off: repeat (constant along z) | unfold (channel-to-height)
-    temporal_fusion: str = "concat"  # concat | cached (each frame reduced once to temporal_channels, when current)
-    temporal_channels: int = 16  # C_r of the cached queue
+    # concat | cached (each frame reduced once to temporal_channels, when current) | recurrent (one state)
+    temporal_fusion: str = "concat"
+    temporal_channels: int = 16  # C_r of the cached queue / of the recurrent state
+    temporal_unroll: int = 4  # recurrent only: frames unrolled with gradient in training (truncated BPTT)
     temporal_grad_history: bool = False  # cached only: train the reduction through the queued frames too
     zero_history_fusion: bool = False  # ablation: the temporal fusion layer without history (num_history 0)
     scene_sequential: bool = False  # walk scenes in order also for single-frame models (history ablation)
@@ -176,6 +178,8 @@ class TrainConfig:
             bad.append(f"temporal_channels = {self.temporal_channels} (must be >= 1)")
         if self.temporal_grad_history and self.temporal_fusion != TemporalFusionKind.CACHED.value:
             bad.append("temporal_grad_history needs temporal_fusion 'cached'")
+        if self.temporal_unroll < 1:
+            bad.append(f"temporal_unroll = {self.temporal_unroll} (must be >= 1)")
         if self.view_transform not in {k.value for k in ViewTransformKind}:
             bad.append(f"view_transform {self.view_transform!r} (choose from {[k.value for k in ViewTransformKind]})")
         if self.input_hw is not None and any(v <= 0 or v % 16 for v in self.input_hw):
@@ -190,6 +194,7 @@ class TrainConfig:
                                    "temporal_fusion": TemporalFusionKind(self.temporal_fusion),
                                    "temporal_channels": self.temporal_channels,
                                    "temporal_grad_history": self.temporal_grad_history,
+                                   "temporal_unroll": self.temporal_unroll,
                                    "zero_history_fusion": self.zero_history_fusion,
                                    "view_transform": ViewTransformKind(self.view_transform)}
         if self.input_hw is not None:

@@ -1,0 +1,176 @@
+"""The recurrent temporal fusion: one state warped by ego motion and updated by a gated cell per frame."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from fastocc.model.config import COARSE_GRID, ModelConfig, preset
+from fastocc.model.inputs import SceneInputs
+from fastocc.model.recurrent import RecurrentFusion
+from fastocc.model.temporal import T_curaug_from_prevaug, warp_bev
+
+
+def _frames(n: int, batch: int = 1, seed: int = 0, channels: int = 8) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """(bev (B, C, 100, 100), pose (B, 4, 4)) per frame: the car moves ~1.5 m and turns a little per frame."""
+    g = torch.Generator().manual_seed(seed)
+    out, pose = [], torch.eye(4)
+    pose[:3, 3] = torch.tensor([120.0, -40.0, 0.0])
+    for _ in range(n):
+        out.append((torch.randn(batch, channels, 100, 100, generator=g), pose.expand(batch, 4, 4).clone()))
+        step = torch.eye(4)
+        step[:2, :2] = torch.tensor([[math.cos(0.04), -math.sin(0.04)], [math.sin(0.04), math.cos(0.04)]])
+        step[0, 3] = 1.5
+        pose = pose @ step
+    return out
+
+
+def _inputs(pose: torch.Tensor, start: list[bool], aug: torch.Tensor | None = None) -> SceneInputs:
+    B = pose.shape[0]
+    z = torch.zeros(B, 1)
+    aug = torch.eye(4).expand(B, 4, 4) if aug is None else aug
+    return SceneInputs(z, z, z, z, aug, pose, torch.tensor(start))
+
+
+def _fusion(unroll: int = 4, state_channels: int = 4, seed: int = 0) -> RecurrentFusion:
+    torch.manual_seed(seed)
+    fusion = RecurrentFusion(channels=8, grid=COARSE_GRID, state_channels=state_channels, unroll=unroll)
+    with torch.no_grad():  # larger weights than the default init: the gates and the state move visibly
+        for p in fusion.parameters():
+            p.mul_(3.0)
+    return fusion
+
+
+def _conv1x1(x: torch.Tensor, conv: torch.nn.Conv2d) -> torch.Tensor:
+    return torch.einsum("oi,bixy->boxy", conv.weight[:, :, 0, 0], x) + conv.bias.view(1, -1, 1, 1)
+
+
+@torch.no_grad()
+def test_recurrent_fusion_equals_the_gru_written_out() -> None:
+    """Reference: h_0 = 0; z, r = sigmoid(W_g [x, h]); n = tanh(W_n [x, r h]); h' = (1 - z) h + z n, with
+    x = W_c bev and h the previous state warped by the ego motion; out = bev + W_e h'."""
+    fusion = _fusion().eval()
+    h, prev_pose = None, None
+    for t, (bev, pose) in enumerate(_frames(5)):
+        out = fusion(bev, _inputs(pose, [t == 0]))
+        x = _conv1x1(bev, fusion.compress)
+        if h is None:
+            h = torch.zeros_like(x)
+        else:
+            h = warp_bev(h, torch.linalg.inv(pose) @ prev_pose, COARSE_GRID)
+        z, r = torch.sigmoid(_conv1x1(torch.cat([x, h], 1), fusion.gates)).split(4, dim=1)
+        n = torch.tanh(_conv1x1(torch.cat([x, r * h], 1), fusion.candidate))
+        h = (1 - z) * h + z * n
+        prev_pose = pose
+        torch.testing.assert_close(out, bev + _conv1x1(h, fusion.expand), atol=1e-5, rtol=1e-5)
+
+
+@torch.no_grad()
+def test_the_state_carries_a_cell_along_the_ego_motion_by_hand() -> None:
+    """C = C_s = 1; z = r = 1 (bias 50), n = tanh(x + h), expand = identity. Frame 0 has a hot cell at
+    (60, 50), centre (8.4, 0.4) m, so the state is tanh(1) there. The car then moves 1.6 m forward, twice,
+    with empty frames: the output is tanh(tanh(1)) at (58, 50), then tanh(tanh(tanh(1))) at (56, 50),
+    and nothing anywhere else."""
+    fusion = RecurrentFusion(channels=1, grid=COARSE_GRID, state_channels=1, unroll=1).eval()
+    for conv, w, b in ((fusion.compress, [[1.0]], [0.0]), (fusion.gates, [[0.0, 0.0], [0.0, 0.0]], [50.0, 50.0]),
+                       (fusion.candidate, [[1.0, 1.0]], [0.0]), (fusion.expand, [[1.0]], [0.0])):
+        conv.weight.copy_(torch.tensor(w).view_as(conv.weight))
+        conv.bias.copy_(torch.tensor(b))
+    bev = torch.zeros(1, 1, 100, 100)
+    bev[0, 0, 60, 50] = 1.0
+    pose = torch.eye(4)[None]
+    fusion(bev, _inputs(pose, [True]))
+    t1 = math.tanh(math.tanh(1.0))
+    for k, (cell, value) in enumerate((((58, 50), t1), ((56, 50), math.tanh(t1)))):
+        pose = pose.clone()
+        pose[0, 0, 3] = 1.6 * (k + 1)
+        out = fusion(torch.zeros(1, 1, 100, 100), _inputs(pose, [False]))
+        assert torch.nonzero(out[0, 0].abs() > 1e-4).tolist() == [list(cell)]
+        assert float(out[0, 0, cell[0], cell[1]]) == pytest.approx(value, abs=1e-4)
+
+
+def test_training_unrolls_the_window_with_gradient_and_the_same_values() -> None:
+    """Training recomputes the last `unroll` frames with gradient: with fixed weights the outputs equal
+    inference's (carried state, no window), previous frames' maps get no gradient, and the cell's
+    gradient depends on the window (unroll 4 differs from unroll 1 from the second frame on)."""
+    frames = _frames(6)
+    outs, grads = {}, {}
+    for mode, unroll in (("eval", 4), ("train1", 1), ("train4", 4)):
+        fusion = _fusion(unroll=unroll)
+        fusion.train(mode != "eval")
+        for t, (bev, pose) in enumerate(frames):
+            bev = bev.clone().requires_grad_(True)
+            out = fusion(bev, _inputs(pose, [t == 0]))
+            outs.setdefault(mode, []).append(out.detach())
+            fusion.zero_grad()
+            out.square().mean().backward()
+            grads.setdefault(mode, []).append(fusion.gates.weight.grad.clone())
+        win = fusion._s["win_bev"]
+        assert win.shape[1] == (unroll - 1 if mode != "eval" else 0) and not win.requires_grad
+    for mode in ("train1", "train4"):
+        for a, b in zip(outs["eval"], outs[mode], strict=True):
+            torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(grads["train1"][0], grads["train4"][0])  # frame 0: no history yet
+    assert not torch.allclose(grads["train1"][-1], grads["train4"][-1], atol=1e-7)
+
+
+@torch.no_grad()
+def test_seq_start_zeroes_one_lane_and_a_shrinking_batch_keeps_its_first_rows() -> None:
+    frames = _frames(4, batch=2)
+    a = _fusion(unroll=3).train()
+    for t, (bev, pose) in enumerate(frames[:3]):
+        a(bev, _inputs(pose, [t == 0, t == 0]))
+    bev, pose = frames[3]
+    out = a(bev, _inputs(pose, [False, True]))
+    fresh = _fusion(unroll=3).train()(bev[1:], _inputs(pose[1:], [True]))
+    torch.testing.assert_close(out[1:], fresh)  # lane 1 restarted: as if it had never seen a frame
+    b = _fusion(unroll=3).train()
+    for t, (bev, pose) in enumerate(frames[:3]):
+        b(bev, _inputs(pose, [t == 0, t == 0]))
+    bev, pose = frames[3]
+    torch.testing.assert_close(b(bev[:1], _inputs(pose[:1], [False])), out[:1])  # lane 0 kept its state
+    restarted = _fusion(unroll=3).train()(bev[:1], _inputs(pose[:1], [True]))
+    assert (out[:1] - restarted).abs().max() > 1e-2  # control: lane 0's history does change its output
+
+
+@torch.no_grad()
+def test_state_round_trips_and_keeps_its_size_whatever_the_stream_length() -> None:
+    frames = _frames(12)
+    fusion = _fusion(unroll=3).train()
+    sizes = set()
+    for t, (bev, pose) in enumerate(frames[:8]):
+        fusion(bev, _inputs(pose, [t == 0]))
+        sizes.add(tuple((k, tuple(v.shape)) for k, v in fusion._s.items()) if t >= 2 else None)
+    assert len(sizes - {None}) == 1  # from the window's fill on, the state never grows
+    saved = fusion.queue_state()
+    copy = _fusion(unroll=3).train()
+    copy.load_queue_state(saved)
+    for bev, pose in frames[8:]:
+        torch.testing.assert_close(copy(bev, _inputs(pose, [False])), fusion(bev, _inputs(pose, [False])))
+    with pytest.raises(ValueError, match="not a recurrent"):
+        copy.load_queue_state((torch.zeros(1), torch.zeros(1), torch.zeros(1)))  # a queue's state
+
+
+def test_the_bev_augmentation_is_undone_before_the_state_is_warped() -> None:
+    """A frame flipped by the BEV augmentation sees the previous state in its own flipped frame: the warp
+    uses M_cur inv(T_cur) T_prev inv(M_prev), as the queue does."""
+    fusion = _fusion(unroll=1).eval()
+    (b0, p0), (b1, p1) = _frames(2)
+    flip = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))[None]
+    with torch.no_grad():
+        fusion(b0, _inputs(p0, [True]))
+        h0 = fusion._s["state"]
+        out = fusion(b1, _inputs(p1, [False], aug=flip))
+        warped = warp_bev(h0, T_curaug_from_prevaug(p1, flip, p0, torch.eye(4)[None]), COARSE_GRID)
+        torch.testing.assert_close(out, fusion.output(b1, fusion.cell(b1, warped)))
+
+
+def test_config_validates_the_recurrent_fusion() -> None:
+    cfg = preset("nano", num_history=16, temporal_fusion="recurrent", temporal_channels=32, temporal_unroll=3)
+    assert cfg.temporal_fusion == "recurrent" and cfg.temporal_unroll == 3
+    with pytest.raises(ValueError, match="temporal_unroll"):
+        ModelConfig(temporal_fusion="recurrent", num_history=1, temporal_unroll=0)
+    with pytest.raises(ValueError, match="zero_history_fusion"):
+        ModelConfig(temporal_fusion="recurrent", zero_history_fusion=True)
