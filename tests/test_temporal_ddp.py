@@ -53,8 +53,10 @@ def test_uneven_store_has_unequal_train_scenes(uneven_store: Path) -> None:
 
 
 # -- training: every rank runs the same number of optimizer steps, and the run ends ------------------
-def _torchrun_train(store: Path, tmp_path: Path, ranks: int, batch_size: int, val_every: int) -> list[int]:
-    cfg = load_config(None, {"input_hw": [32, 96], "num_history": 2, "epochs": 1, "batch_size": batch_size,
+def _torchrun_train(store: Path, tmp_path: Path, ranks: int, batch_size: int, val_every: int,
+                    fusion: str = "concat") -> list[int]:
+    cfg = load_config(None, {"input_hw": [32, 96], "num_history": 2, "temporal_fusion": fusion,
+                             "temporal_unroll": 2, "epochs": 1, "batch_size": batch_size,
                              "lr_scaling": "none", "workers": 0, "threads": 1, "log_every": 1,
                              "val_every": val_every, "val_rayiou": False, "keep_epochs": 0, "ema": False})
     conf = tmp_path / f"c{ranks}.toml"
@@ -80,13 +82,15 @@ def _torchrun_train(store: Path, tmp_path: Path, ranks: int, batch_size: int, va
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("ranks", "batch_size", "steps", "val_every"), [
-    (2, 4, 2, 0),  # 2 lanes per rank: 9 samples -> 4 lanes of 2, 1 sample not seen this epoch
-    (3, 3, 3, 1),  # 1 lane per rank: 3 lanes of 3, all 9 seen; then validation (1 val scene: 2 ranks idle)
+@pytest.mark.parametrize(("ranks", "batch_size", "steps", "val_every", "fusion"), [
+    (2, 4, 2, 0, "concat"),  # 2 lanes per rank: 9 samples -> 4 lanes of 2, 1 sample not seen this epoch
+    (3, 3, 3, 1, "concat"),  # 1 lane per rank: 3 lanes of 3, all 9 seen; then validation (1 val scene: 2 ranks idle)
+    (2, 4, 2, 1, "recurrent"),  # the recurrent state and its training window per lane, then validation
 ])
 def test_torchrun_temporal_training_ends_with_equal_steps(uneven_store: Path, tmp_path: Path, ranks: int,
-                                                          batch_size: int, steps: int, val_every: int) -> None:
-    assert _torchrun_train(uneven_store, tmp_path, ranks, batch_size, val_every) == [steps] * ranks
+                                                          batch_size: int, steps: int, val_every: int,
+                                                          fusion: str) -> None:
+    assert _torchrun_train(uneven_store, tmp_path, ranks, batch_size, val_every, fusion) == [steps] * ranks
     if val_every:
         epoch = [json.loads(ln) for ln in (tmp_path / f"r{ranks}" / "metrics.jsonl").read_text().splitlines()
                  if json.loads(ln)["kind"] == "epoch"]
@@ -94,12 +98,15 @@ def test_torchrun_temporal_training_ends_with_equal_steps(uneven_store: Path, tm
 
 
 # -- evaluation: the same predictions whatever the workers and ranks -------------------------------
-def _temporal_model() -> tuple[FastOcc, ModelConfig]:
-    """A random nano with 2 history frames whose fusion weighs the history (reduce conv std 0.5)."""
-    cfg = preset("nano", input_hw=(32, 96), num_history=2)
+def _temporal_model(fusion: str = "concat") -> tuple[FastOcc, ModelConfig]:
+    """A random nano with 2 history frames (or the recurrent state) whose fusion weighs the history
+    (its convolutions' weights std 0.5)."""
+    cfg = preset("nano", input_hw=(32, 96), num_history=2, temporal_fusion=fusion)
     torch.manual_seed(0)
     model = FastOcc(cfg).eval()
-    torch.nn.init.normal_(model.temporal.reduce[0].weight, std=0.5)
+    for m in model.temporal.modules():
+        if isinstance(m, torch.nn.Conv2d):
+            torch.nn.init.normal_(m.weight, std=0.5)
     return model, cfg
 
 
@@ -121,8 +128,9 @@ def _max_diff(a: dict[int, torch.Tensor], b: dict[int, torch.Tensor]) -> float:
 
 
 @pytest.mark.slow
-def test_temporal_predictions_do_not_depend_on_workers_or_ranks(uneven_store: Path) -> None:
-    model, cfg = _temporal_model()
+@pytest.mark.parametrize("fusion", ["concat", "recurrent"])
+def test_temporal_predictions_do_not_depend_on_workers_or_ranks(uneven_store: Path, fusion: str) -> None:
+    model, cfg = _temporal_model(fusion)
     ref = _predict(model, cfg, uneven_store, ranks=1, workers=0, batch_size=1)
     assert sorted(ref) == [0, 1, 2, 4, 5, 8, 9, 10, 11]
     # The history matters: a scene's 3rd frame predicted with a fresh queue differs (so the check can fail).
