@@ -181,7 +181,8 @@ class SceneJob:
         bytes). Returns the scene's counts."""
         inputs = self.inputs if self.inputs is not None else _worker_inputs(self.cfg)
         scene = next(sc for sc in inputs.dataset.scenes if sc.name == self.scene)
-        labels, counts = label_scene(inputs, scene, self.cfg.options, should_stop)
+        labels = label_scene(inputs, scene, self.cfg.options, should_stop)
+        labels, counts = labels[0]["occ3d"], labels[1]
         record = {"settings": json.loads(self.settings), "counts": dataclasses.asdict(counts),
                   "samples": sorted(labels)}
         _write_scene(self.cfg.out, scene.name, labels, record)

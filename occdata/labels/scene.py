@@ -23,8 +23,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from occdata.constants import EGO_BOX, FREE_LABEL, GRID, NUM_CLASSES
+from occdata.constants import EGO_BOX, FREE_LABEL, NUM_CLASSES, OccGrid
 from occdata.geometry import invert_rigid, transform_points
+from occdata.grids import GRID_PRESETS, GridSpec, LabelFrame
 from occdata.labels.kernels import NO_LABEL, NearestIndex, majority, points_in_boxes, vote_voxels
 from occdata.nuscenes import LidarRecord, NuScenesDataset, SampleRecord, SceneRecord, load_lidar_points
 from occdata.nuscenes.annotations import Annotations, BoxRecord, boxes_for_lidar, moving_instances
@@ -251,35 +252,57 @@ def _keyframe_classes(inputs: SceneInputs, rec: LidarRecord, n_points: int) -> n
     return inputs.lidarseg_lut[read_lidarseg(path, n_points)]
 
 
+def T_grid_from_keyego(sample: SampleRecord, spec: GridSpec) -> np.ndarray:
+    """`(4, 4) float64`: the keyframe's key ego -> the grid's frame (itself, or the LIDAR_TOP sensor)."""
+    if spec.frame is LabelFrame.LIDAR:
+        return invert_rigid(sample.lidar.T_ego_from_lidar)  # the keyframe sweep's ego is the key ego
+    return np.eye(4)
+
+
 def _semantics(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tuple[BoxRecord, ...],
-               T_keyego_from_global: np.ndarray) -> np.ndarray:
-    """`(X, Y, Z) uint8` majority class per voxel of the static points and each box's instance
-    points placed at that box's pose; FREE_LABEL where no point falls."""
-    shape = np.array(GRID.shape, np.int64)
-    lower = np.array(GRID.lower, np.float64)
+               T_grid_from_global: np.ndarray, grid: OccGrid) -> np.ndarray:
+    """`(X, Y, Z) uint8` majority Occ3D class per voxel of `grid` of the static points and each box's
+    instance points placed at that box's pose; FREE_LABEL where no point falls."""
+    shape = np.array(grid.shape, np.int64)
+    lower = np.array(grid.lower, np.float64)
     counts = np.zeros((int(shape.prod()), NUM_CLASSES - 1), np.int32)
-    vote_voxels(counts, static[0], static[1], T_keyego_from_global, lower, GRID.voxel_size, shape)
+    vote_voxels(counts, static[0], static[1], T_grid_from_global, lower, grid.voxel_size, shape)
     for box in boxes:  # (none placed in the control: it has no instance points)
         pts, cls = cloud.instance(box.instance_token)
         if len(pts):
-            T = T_keyego_from_global @ box.T_global_from_box()
-            vote_voxels(counts, np.ascontiguousarray(pts), cls, T, lower, GRID.voxel_size, shape)
-    return majority(counts, GRID.shape, FREE_LABEL)
+            T = T_grid_from_global @ box.T_global_from_box()
+            vote_voxels(counts, np.ascontiguousarray(pts), cls, T, lower, grid.voxel_size, shape)
+    return majority(counts, grid.shape, FREE_LABEL)
 
 
-def _masks(semantics: np.ndarray, sample: SampleRecord, rays: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, ...]:
-    """`mask_lidar`, `mask_camera` `(X, Y, Z) uint8` of a keyframe: the keyframe sweep's rays
-    (origin `(3,)`, points `(N, 3)`, both global) traversed, plus every occupied voxel (their points
+def _masks(semantics: np.ndarray, sample: SampleRecord, rays: tuple[np.ndarray, np.ndarray],
+           spec: GridSpec) -> tuple[np.ndarray, ...]:
+    """`mask_lidar`, `mask_camera` `(X, Y, Z) uint8` of a keyframe on `spec`'s grid: the keyframe sweep's
+    rays (origin `(3,)`, points `(N, 3)`, both global) traversed, plus every occupied voxel (their points
     were observed, by some frame); the camera mask within it (occdata.visibility)."""
-    lower = np.array(GRID.lower, np.float64)
-    T_keyego_from_global = invert_rigid(sample.T_global_from_keyego)
-    ends = transform_points(T_keyego_from_global, rays[1])
-    origins = np.broadcast_to(transform_points(T_keyego_from_global, rays[0][None])[0], ends.shape)
-    m_lidar = lidar_mask(semantics, origins, ends, lower, GRID.voxel_size) | (semantics != FREE_LABEL)
+    lower = np.array(spec.grid.lower, np.float64)
+    T_grid_from_key = T_grid_from_keyego(sample, spec)
+    T_grid_from_global = T_grid_from_key @ invert_rigid(sample.T_global_from_keyego)
+    ends = transform_points(T_grid_from_global, rays[1])
+    origins = np.broadcast_to(transform_points(T_grid_from_global, rays[0][None])[0], ends.shape)
+    m_lidar = lidar_mask(semantics, origins, ends, lower, spec.grid.voxel_size) | (semantics != FREE_LABEL)
     m_lidar = m_lidar.astype(np.uint8)
     rig = sample.camera_rig()
-    return m_lidar, camera_mask(semantics, m_lidar, rig.K, rig.T_cam_from_keyego, rig.image_size, lower,
-                                GRID.voxel_size)
+    T_cam_from_grid = rig.T_cam_from_keyego @ invert_rigid(T_grid_from_key)
+    return m_lidar, camera_mask(semantics, m_lidar, rig.K, T_cam_from_grid, rig.image_size, lower,
+                                spec.grid.voxel_size)
+
+
+def _grid_labels(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tuple[BoxRecord, ...],
+                 sample: SampleRecord, rays: tuple[np.ndarray, np.ndarray], spec: GridSpec) -> dict[str, np.ndarray]:
+    """One keyframe on one grid: `semantics` in Occ3D classes (17 = free) and, where the grid's layout
+    has them, the masks; all `(X, Y, Z) uint8` in the grid's frame."""
+    T = T_grid_from_keyego(sample, spec) @ invert_rigid(sample.T_global_from_keyego)
+    semantics = _semantics(static, cloud, boxes, T, spec.grid)
+    if not spec.masks:
+        return {"semantics": semantics}
+    m_lidar, m_camera = _masks(semantics, sample, rays, spec)
+    return {"semantics": semantics, "mask_lidar": m_lidar, "mask_camera": m_camera}
 
 
 def _held_static(keyframe_boxes: list[tuple[BoxRecord, ...]], travel: float) -> list[tuple[BoxRecord, ...]]:
@@ -306,9 +329,11 @@ def _no_stop() -> None:
 
 
 def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions,
-                should_stop: Callable[[], None] = _no_stop) -> tuple[dict[str, dict[str, np.ndarray]], SceneCounts]:
-    """Labels of every keyframe of `scene`: sample token -> {"semantics", "mask_lidar",
-    "mask_camera"} `(200, 200, 16) uint8` (17 = free), and the scene's point counts.
+                should_stop: Callable[[], None] = _no_stop, grids: tuple[GridSpec, ...] = (GRID_PRESETS["occ3d"],),
+                ) -> tuple[dict[str, dict[str, dict[str, np.ndarray]]], SceneCounts]:
+    """Labels of every keyframe of `scene` on each of `grids` from one aggregation: grid name -> sample
+    token -> {"semantics"[, "mask_lidar", "mask_camera"]} `(X, Y, Z) uint8` in Occ3D classes (17 = free;
+    the writers map them to the grid's ids), and the scene's point counts.
     `should_stop()` is called between frames (nothing is written here): it raises to stop the run."""
     ds = inputs.dataset
     indices = [ds.index_of(t) for t in scene.sample_tokens]
@@ -347,14 +372,12 @@ def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions,
     counts.instances = len(cloud.obj_pts)
     static = cloud.static()
     static = (np.ascontiguousarray(static[0]), np.ascontiguousarray(static[1]))
-    out = {}
+    out: dict[str, dict[str, dict[str, np.ndarray]]] = {spec.name: {} for spec in grids}
     keyframe_boxes = [boxes_for_lidar(inputs.annotations, ds, i, ds.samples[i].lidar) for i in indices]
     held = _held_static(keyframe_boxes, opts.hold_static)
     for n, i in enumerate(indices):
-        should_stop()
         s = ds.samples[i]
-        boxes = keyframe_boxes[n] + held[n]
-        semantics = _semantics(static, cloud, boxes, invert_rigid(s.T_global_from_keyego))
-        m_lidar, m_camera = _masks(semantics, s, rays[s.token])
-        out[s.token] = {"semantics": semantics, "mask_lidar": m_lidar, "mask_camera": m_camera}
+        for spec in grids:
+            should_stop()
+            out[spec.name][s.token] = _grid_labels(static, cloud, keyframe_boxes[n] + held[n], s, rays[s.token], spec)
     return out, counts

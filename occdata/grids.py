@@ -1,0 +1,128 @@
+"""Label grids as values: voxel size, range, frame, class map and file layout (docs/labels.md, "Grids").
+
+Four benchmarks' grids are named presets; `custom_grid` makes any other one. A grid spec says where a
+voxel is (`grid`, in `frame`), what its class ids mean (`class_map`: the target id of each of our 18
+Occ3D classes) and how its files look (`layout`; the writers and readers are `occdata.label_formats`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+
+from occdata.constants import CLASS_NAMES, FREE_LABEL, NUM_CLASSES, OccGrid
+
+__all__ = ["GRID_PRESETS", "GridSpec", "LabelFrame", "LabelLayout", "custom_grid", "grid_preset"]
+
+
+class LabelFrame(StrEnum):
+    """The frame a grid is laid out in, at the keyframe's LIDAR_TOP timestamp."""
+
+    KEY_EGO = "key_ego"  # the ego vehicle (x forward from the rear axle, y left, z up): Occ3D, OpenOcc v2
+    LIDAR = "lidar"  # the LIDAR_TOP sensor itself (z up from the sensor, ~1.8 m above the road)
+
+
+class LabelLayout(StrEnum):
+    """How a grid's labels are stored (occdata.label_formats)."""
+
+    OCC3D = "occ3d"  # <scene>/<sample token>/labels.npz: semantics, mask_lidar, mask_camera (X, Y, Z) uint8
+    OPENOCC_V2 = "openocc-v2"  # <scene>/<sample token>/labels.npz: semantics (own class order), masks, flow
+    SURROUNDOCC = "surroundocc"  # <LiDAR file name>.npy: (N, 4) [x, y, z, class] of the occupied voxels
+    OPENOCCUPANCY = "openoccupancy"  # scene_<scene token>/occupancy/<LiDAR file stem>.npy: (N, 4) [z, y, x, class]
+
+
+# Target id of each Occ3D class (index = our id: others, barrier, ..., vegetation, free).
+_OCC3D_IDS = tuple(range(NUM_CLASSES))
+# nuScenes-lidarseg's 16 evaluation classes keep our order 1..16; "others" has no class there (noise, 0).
+_LIDARSEG16_IDS = (0, *range(1, 17), 0)
+# OpenOcc v2: car, truck, trailer, bus, construction_vehicle, bicycle, motorcycle, pedestrian, traffic_cone,
+# barrier, driveable_surface, other_flat, sidewalk, terrain, manmade, vegetation (0..15), free 16.
+_OPENOCC_NAMES = ("car", "truck", "trailer", "bus", "construction_vehicle", "bicycle", "motorcycle", "pedestrian",
+                  "traffic_cone", "barrier", "driveable_surface", "other_flat", "sidewalk", "terrain", "manmade",
+                  "vegetation", "free")
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """One label grid. `class_map[k]` is the stored id of Occ3D class k (k = 0..17, 17 = free);
+    `class_names[i]` names stored id i; `free_value` is what free space is stored as (a sparse layout
+    stores no free voxel at all). `masks`: the layout carries mask_lidar / mask_camera."""
+
+    name: str
+    grid: OccGrid
+    frame: LabelFrame
+    layout: LabelLayout
+    class_map: tuple[int, ...]
+    class_names: tuple[str, ...]
+    free_value: int
+    masks: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "frame", LabelFrame(self.frame))
+        object.__setattr__(self, "layout", LabelLayout(self.layout))
+        bad = []
+        g = self.grid
+        if not 0.05 <= g.voxel_size <= 2.0:
+            bad.append(f"voxel size {g.voxel_size} m (use 0.05-2 m)")
+        for lo, hi in zip(g.lower, g.upper, strict=True):
+            n = (hi - lo) / g.voxel_size
+            if hi <= lo or abs(n - round(n)) > 1e-6:
+                bad.append(f"range [{lo}, {hi}] is not a positive whole number of {g.voxel_size} m voxels")
+        if len(self.class_map) != NUM_CLASSES or not all(0 <= c < len(self.class_names) for c in self.class_map):
+            bad.append(f"class_map needs {NUM_CLASSES} ids within the {len(self.class_names)} class names")
+        if not 0 <= self.free_value < 256:
+            bad.append(f"free_value {self.free_value} (0..255)")
+        if not bad and math.prod(self.shape) > 64 * 2**20:
+            bad.append(f"{self.shape} is {math.prod(self.shape) / 2**20:.0f} M voxels (at most 64 M)")
+        if bad:
+            raise ValueError(f"bad grid {self.name!r}: " + "; ".join(bad))
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return self.grid.shape
+
+    def lut(self) -> np.ndarray:
+        """`(256,) uint8`: Occ3D class -> stored id (ids above 17, e.g. 255 unknown, map to free)."""
+        out = np.full(256, self.free_value, np.uint8)
+        out[:NUM_CLASSES] = self.class_map
+        return out
+
+    def describe(self) -> dict[str, object]:
+        """The manifest's words for this grid."""
+        g = self.grid
+        return {"name": self.name, "voxel_size": g.voxel_size, "lower": list(g.lower), "upper": list(g.upper),
+                "shape": list(self.shape), "frame": str(self.frame), "layout": str(self.layout),
+                "classes": {name: i for i, name in enumerate(self.class_names)}, "free_value": self.free_value,
+                "masks": self.masks,
+                "from_occ3d": {CLASS_NAMES[k]: int(v) for k, v in enumerate(self.class_map)}}
+
+
+GRID_PRESETS: dict[str, GridSpec] = {g.name: g for g in (
+    GridSpec("occ3d", OccGrid((-40.0, -40.0, -1.0), (40.0, 40.0, 5.4), 0.4), LabelFrame.KEY_EGO, LabelLayout.OCC3D,
+             _OCC3D_IDS, CLASS_NAMES, FREE_LABEL),
+    GridSpec("openocc-v2", OccGrid((-40.0, -40.0, -1.0), (40.0, 40.0, 5.4), 0.4), LabelFrame.KEY_EGO,
+             LabelLayout.OPENOCC_V2,
+             tuple(_OPENOCC_NAMES.index(n) if n in _OPENOCC_NAMES else _OPENOCC_NAMES.index("manmade")
+                   for n in CLASS_NAMES), _OPENOCC_NAMES, 16),
+    GridSpec("surroundocc", OccGrid((-50.0, -50.0, -5.0), (50.0, 50.0, 3.0), 0.5), LabelFrame.LIDAR,
+             LabelLayout.SURROUNDOCC, _LIDARSEG16_IDS, ("noise", *CLASS_NAMES[1:17]), 0, masks=False),
+    GridSpec("openoccupancy", OccGrid((-51.2, -51.2, -5.0), (51.2, 51.2, 3.0), 0.2), LabelFrame.LIDAR,
+             LabelLayout.OPENOCCUPANCY, _LIDARSEG16_IDS, ("noise", *CLASS_NAMES[1:17]), 0, masks=False),
+)}
+
+
+def grid_preset(name: str) -> GridSpec:
+    if name not in GRID_PRESETS:
+        raise ValueError(f"unknown grid {name!r}; choose from {', '.join(GRID_PRESETS)} or give a voxel size")
+    return GRID_PRESETS[name]
+
+
+def custom_grid(voxel_size: float, lower: tuple[float, float, float], upper: tuple[float, float, float],
+                base: str = "occ3d") -> GridSpec:
+    """`base`'s frame, classes and layout on another voxel size and range (named like "occ3d-0.2m")."""
+    b = grid_preset(base)
+    return GridSpec(f"{base}-{voxel_size:g}m", OccGrid(tuple(lower), tuple(upper), float(voxel_size)),  # type: ignore[arg-type]
+                    b.frame, b.layout, b.class_map, b.class_names, b.free_value, b.masks)
