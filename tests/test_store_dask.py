@@ -28,8 +28,8 @@ from test_store_build import store_digest
 from cli.occdata_cli import main
 from occdata.errors import OccDataError
 from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks
-from occdata.store.plan import block_spans, plan_regions, relocate
 from occdata.store.build import BuildConfig, build_store
+from occdata.store.plan import block_spans, plan_regions, relocate
 
 REPO = Path(__file__).resolve().parents[1]
 N = 24  # samples: 6 blocks of 4
