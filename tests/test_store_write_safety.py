@@ -289,3 +289,13 @@ def test_zero_length_state_chunk_resume_says_how_to_recover(store: Path, synth_r
     assert code == 0 and "(6 processed" in text, text
     assert store_digest(store) == store_digest(synth_store)
     assert zarr.open_group(str(store), mode="r").attrs["complete"]
+
+
+def test_a_schema_1_store_reads_but_does_not_resume(synth_root: Path, store: Path) -> None:
+    """Issue 33 bumped the schema to 2 (planned regions): a version-1 store stays readable, and
+    `--resume` of it is one line saying to build again into a new --out."""
+    zarr.open_group(str(store), mode="r+").attrs["schema_version"] = 1
+    assert open_store(store).jpeg_bytes(0)
+    code, text = _cli(*_build_args(synth_root, store, "--resume"))
+    line = _one_error_line(text)
+    assert code == 1 and "store schema 1" in line and "new --out" in line
