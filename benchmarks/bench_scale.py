@@ -9,7 +9,10 @@
    of nuScenes-like sizes, the store's real layout and codecs) to local disk and to a local S3
    server (moto, a separate process on 127.0.0.1);
 3. Dask's overhead per task: the round trip of an empty task against a block task's own time;
-4. labels: `occdata labels --lidar-sweeps`, one task per scene, 1 and 2 workers (keyframes/s).
+4. labels: `occdata labels --lidar-sweeps`, one task per scene, 1 and 2 workers (keyframes/s);
+5. bytes written per sample against bytes stored per sample, for a build in this process (the
+   process's `wchar` from /proc/self/io: every write, metadata and any staging included). Not a
+   timing: `--bytes-only` runs this alone (seconds, on a small world).
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from occdata.store.build import BuildConfig, build_store
 from occdata.store.create import create_arrays
 from occdata.store.layout import FLAT_ARRAYS, PER_SAMPLE
 
-__all__ = ["bench_build", "bench_labels", "bench_overhead", "bench_write"]
+__all__ = ["bench_build", "bench_bytes", "bench_labels", "bench_overhead", "bench_write"]
 
 JPEG_BYTES_PER_SAMPLE = 6 * 160_000  # ~nuScenes: 6 JPEGs of 1600x900 at ~160 kB
 UVD_ROWS_PER_SAMPLE = 20_000  # keyframe LiDAR points that land in a camera
@@ -86,6 +89,31 @@ def bench_build(root: Path, gts: Path | None, block: int, tmp: Path) -> dict[str
     blocks = -(-r1.n_samples // block)
     out["block_task_s_1_worker"] = out["workers_1"]["seconds"] / blocks  # convert + commit of one block
     return out
+
+
+def _bytes_written() -> int:
+    """Bytes this process has passed to write(2) so far (Linux /proc/self/io `wchar`)."""
+    with open("/proc/self/io") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("wchar:"))
+
+
+def bench_bytes(root: Path, gts: Path | None, block: int, tmp: Path, lidar_sweeps: int = 0) -> dict[str, Any]:
+    """Bytes written per sample / bytes stored per sample for one build in this process (1 worker:
+    every write of the build is this process's). Goal (issue 33): 1.0x; with staging it was ~2x."""
+    from occdata.store.sample import SampleOptions
+
+    out_store = tmp / "bytes.zarr"
+    before = _bytes_written()
+    report = build_store(BuildConfig(root=root, out=out_store, gts=gts, block_samples=block, progress=False,
+                                     options=SampleOptions(lidar_sweeps=lidar_sweeps)))
+    written = _bytes_written() - before
+    stored = sum(p.stat().st_size for p in out_store.rglob("*") if p.is_file())
+    flat = sum(p.stat().st_size for name in ("images", "depth") for p in (out_store / name).rglob("*")
+               if p.is_file())
+    n = report.n_samples
+    return {"samples": n, "lidar_sweeps": lidar_sweeps, "written_per_sample": written / n,
+            "stored_per_sample": stored / n, "ragged_stored_per_sample": flat / n,
+            "written_over_stored": written / stored}
 
 
 def bench_labels(root: Path, tmp: Path) -> dict[str, Any]:
@@ -222,6 +250,8 @@ def main() -> None:
     ap.add_argument("--write-samples", type=int, default=256)
     ap.add_argument("--writers", type=int, nargs="+", default=[1, 2, 4])
     ap.add_argument("--no-s3", action="store_true")
+    ap.add_argument("--lidar-sweeps", type=int, default=0, help="for the bytes-written figure")
+    ap.add_argument("--bytes-only", action="store_true", help="only the bytes written / stored figure")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_scale_"))
@@ -234,6 +264,12 @@ def main() -> None:
             gts = root / "gts"
         result: dict[str, Any] = {
             "machine": machine(note="2-core VM shared with other developers: ratios within one run, noisy absolutes"),
+            "bytes": bench_bytes(root, gts, args.block_samples, tmp, args.lidar_sweeps),
+        }
+        if args.bytes_only:
+            emit_json(result, args.json)
+            return
+        result |= {
             "build": bench_build(root, gts, args.block_samples, tmp),
             "write_local": bench_write(lambda p: str(tmp / f"wr{p}.zarr"), args.write_samples, 32,
                                        tuple(args.writers)),

@@ -24,7 +24,8 @@ from cli.occdata_cli import main
 from occdata.runtime.cluster import ClusterConfig
 from occdata.store.bev import bev_bits_reference, unpack_bev
 from occdata.store.build import BuildConfig, build_store
-from occdata.store.layout import STATE_DONE
+from occdata.store.integrity import StoreIntegrity
+from occdata.store.layout import FLAT_ARRAYS, STATE_DONE
 from occdata.store.reader import open_store
 
 REPO = Path(__file__).resolve().parents[1]
@@ -35,14 +36,27 @@ def _cli(*args: str) -> tuple[int, str]:
     return r.exit_code, r.output
 
 
+def _stored_chunks(g: zarr.Group, name: str) -> list[np.ndarray]:
+    """The stored chunks of a flat array, in row order (its address space is sparse: read no gap)."""
+    arr = g[name]
+    rows = int(arr.chunks[0])
+    keys = StoreIntegrity(g).stored_keys(name)
+    index = sorted(int(k.rsplit("/c/", 1)[1].split("/")[0]) for k in keys)
+    return [np.asarray(arr[k * rows : (k + 1) * rows]) for k in index] + [np.array(index)]
+
+
 def store_digest(path: Path) -> dict[str, str]:
-    """sha256 of every array's logical content, plus the attrs that must match."""
+    """sha256 of every array's logical content (flat arrays: their stored chunks and where they lie),
+    plus the attrs that must match."""
     g = zarr.open_group(str(path), mode="r")
     out = {}
     for name, arr in sorted(g.members(max_depth=None)):
         if isinstance(arr, zarr.Array):
-            data = arr[:]
-            out[name] = hashlib.sha256(str((data.shape, data.dtype)).encode() + data.tobytes()).hexdigest()
+            parts = _stored_chunks(g, name) if name in FLAT_ARRAYS else [arr[:]]
+            h = hashlib.sha256(str((arr.shape, arr.dtype)).encode())
+            for data in parts:
+                h.update(np.ascontiguousarray(data).tobytes())
+            out[name] = h.hexdigest()
     attrs = dict(g.attrs)
     attrs.pop("build_config", None)
     if isinstance(attrs.get("build_identity"), dict):  # where the input lies is not content (gated copies)

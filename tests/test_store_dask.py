@@ -16,6 +16,7 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pytest
 import zarr
 from click.testing import CliRunner
@@ -27,8 +28,8 @@ from test_store_build import store_digest
 from cli.occdata_cli import main
 from occdata.errors import OccDataError
 from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks
-from occdata.store.blocks import Placer
 from occdata.store.build import BuildConfig, build_store
+from occdata.store.plan import block_spans, plan_regions, relocate
 
 REPO = Path(__file__).resolve().parents[1]
 N = 24  # samples: 6 blocks of 4
@@ -92,17 +93,19 @@ def test_run_tasks_follow_ups_and_keep(client) -> None:
         assert sorted(seen) == sorted([(t, t * t) for t in (0, 1, 2, 3, 5, 100, 101, 102)])
 
 
-def test_placer_packs_then_reproduces_around_committed_blocks() -> None:
-    """Hand-computed: chunks of 10 rows; blocks of 25, 0, 7, 31 rows."""
-    fresh = Placer(10, [])
-    assert [fresh.place(r) for r in (25, 0, 7, 31)] == [0, 30, 30, 40]
-    resumed = Placer(10, [(30, 40)])  # block 2 committed; blocks 0, 1, 3 redone with the same sizes
-    starts = [resumed.place(25), resumed.place(0)]
-    resumed.skip((30, 40))
-    starts.append(resumed.place(31))
-    assert starts == [0, 30, 40]
-    grown = Placer(10, [(30, 40)])  # block 0 grew (a fixed input): it must not overwrite block 2
-    assert grown.place(35) == 40 and grown.place(5) == 80
+def test_plan_regions_then_relocate_blocks_that_outgrew_them() -> None:
+    """Hand-computed: chunk sizes from the layout (1 MiB of JPEG, 65536 depth rows); 3 blocks of 2
+    samples. Regions follow each other chunk-aligned; a relocated block goes after the end, in block
+    order, and keeps its other array's region."""
+    mib, rows = 1 << 20, 1 << 16
+    bounds = np.array([[10, 5], [mib, 0], [0, 0], [0, 0], [mib + 1, rows + 1], [1, 1]], dtype=np.int64)
+    regions = plan_regions(bounds, block_spans(6, 2))
+    assert regions[:, 0].tolist() == [[0, 2 * mib], [2 * mib, 2 * mib], [2 * mib, 4 * mib]]
+    assert regions[:, 1].tolist() == [[0, rows], [rows, rows], [rows, 3 * rows]]
+    moved = relocate(regions, {2: (5 * mib, 1), 0: (mib, 2 * rows)})
+    assert moved[0].tolist() == [[0, 2 * mib], [3 * rows, 5 * rows]]  # JPEG still fits; depth moves
+    assert moved[2].tolist() == [[4 * mib, 9 * mib], [rows, 3 * rows]]
+    assert moved[1].tolist() == regions[1].tolist()
 
 
 # --- many writers ------------------------------------------------------------------------------------
@@ -273,8 +276,10 @@ def test_scheduler_option_is_validated() -> None:
 
 
 def test_on_error_fail_commits_everything_before_the_bad_sample(tree, client, tmp_path) -> None:
-    """A truncated JPEG in sample 9 (block 2): samples 0..8 commit, the rest stays pending, and the
-    message names sample 9; after the fix, --resume completes."""
+    """A truncated JPEG in sample 9 (block 2): samples 0..8 commit, 9..11 (the rest of its block) stay
+    pending, and the message names sample 9; blocks after it commit only if they finished before the
+    failure came back (tasks commit in any order), and are never half done; after the fix, --resume
+    completes."""
     import json
     import shutil
 
@@ -294,41 +299,41 @@ def test_on_error_fail_commits_everything_before_the_bad_sample(tree, client, tm
     with pytest.raises(OccDataError, match=f"sample 9 \\({token9}\\) failed"):
         build_store(_config(bad_tree, out), client=client)
     state = zarr.open_group(str(out), mode="r")["status/state"][:]
-    assert (state[:9] == 1).all() and (state[9:] == 0).all()
+    assert (state[:9] == 1).all() and (state[9:12] == 0).all()
+    assert all(len(set(state[i0 : i0 + 4])) == 1 for i0 in range(12, N, 4))
     (bad_tree / "samples" / "broken.jpg").write_bytes(good)
     report = build_store(_config(bad_tree, out, resume=True), client=client)
     assert report.n_done == N
     _verify(out)
 
 
-def test_resume_commits_staged_blocks_without_converting_them(tree, reference, tmp_path, monkeypatch) -> None:
-    """A run stopped after block 2 was converted (staged) but before it was committed: --resume
-    commits it from the staging object and converts only blocks 3..5; same bytes."""
+def test_resume_converts_only_the_blocks_not_committed(tree, reference, tmp_path, monkeypatch) -> None:
+    """A run stopped by a failing task in block 2 (one worker: blocks in order): blocks 0 and 1 are
+    committed with their payload in place; --resume converts blocks 2..5 only; same bytes."""
     import occdata.store.blocks as blocks
 
     out = tmp_path / "rs.zarr"
-    real_commit, real_convert = blocks.commit_block, blocks.convert_block
+    real_convert = blocks.convert_block
 
-    def commit_until_block_2(job):
+    def stop_at_block_2(job):
         if job.block == 2:
-            raise RuntimeError("stopped before committing block 2")
-        return real_commit(job)
+            raise RuntimeError("stopped in block 2")
+        return real_convert(job)
 
-    monkeypatch.setattr(blocks, "commit_block", commit_until_block_2)
+    monkeypatch.setattr(blocks, "convert_block", stop_at_block_2)
     with pytest.raises(RuntimeError, match="block 2"):
         build_store(_config(tree, out))
-    assert (Path(str(out) + ".staging") / "block_0000002.npz").is_file()
     assert _committed(out) == 8
+    assert not Path(str(out) + ".staging").exists()
     converted: list[int] = []
 
     def counting_convert(job):
         converted.append(job.block)
         return real_convert(job)
 
-    monkeypatch.setattr(blocks, "commit_block", real_commit)
     monkeypatch.setattr(blocks, "convert_block", counting_convert)
     build_store(_config(tree, out, resume=True))
-    assert converted == [3, 4, 5]
+    assert converted == [2, 3, 4, 5]
     assert store_digest(out) == reference
     _verify(out)
 

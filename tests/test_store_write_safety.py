@@ -122,13 +122,39 @@ def test_resume_retries_samples_that_failed_under_skip(world: Path, synth_store:
     assert code == 0 and "0 errors" in text and "(1 processed" in text, text
     reader = open_store(out)
     assert (reader.state == STATE_DONE).all() and reader.attrs["errors"] == [] and reader.attrs["complete"]
-    ref = open_store(synth_store)
-    for name, a in reader.sample_arrays(int(bad)).items():
-        if not name.endswith("/offsets") and name != "status/checksum":  # payload appended at the end
-            np.testing.assert_array_equal(a, ref.sample_arrays(int(bad))[name], err_msg=name)
-    assert reader.jpeg_bytes(int(bad)) == ref.jpeg_bytes(int(bad))
-    for a, b in zip(reader.depth_points(int(bad)), ref.depth_points(int(bad)), strict=True):
-        np.testing.assert_array_equal(a, b)
+    # The retried sample's block stays where the plan put it: the store is the uninterrupted build's, byte
+    # for byte (offsets included), not a block moved to the end with its old bytes left behind.
+    assert store_digest(out) == store_digest(synth_store)
+    code, text = _cli("verify", "--store", str(out), "--no-progress")
+    assert code == 0, text
+
+
+def test_a_block_whose_lidar_file_grew_moves_to_the_end(world: Path, synth_store: Path, tmp_path: Path) -> None:
+    """The one case where a block moves: its payload outgrows its region. A keyframe LiDAR file cut to
+    one point and a byte (its sample fails; the plan counts 1 point) is replaced by a denser one (its
+    points 8 times), so block 1 (one sample a block) no longer fits; --resume gives it a region after
+    the last one (recorded in plan/regions), the other blocks stay, and `verify` passes."""
+    rows = json.loads((world / "v1.0-mini" / "sample_data.json").read_text())
+    row = next(r for r in rows if r["filename"].endswith(".pcd.bin") and r["is_key_frame"])
+    lidar = world / row["filename"]
+    good = lidar.read_bytes()
+    lidar.write_bytes(good[:21])
+    out = tmp_path / "g.zarr"
+    code, text = _cli(*_build_args(world, out, "--on-error", "skip", "--block-samples", "1"))
+    assert code == 0 and "1 errors" in text, text
+    (bad,) = np.flatnonzero(open_store(out).state == STATE_ERROR)
+    before = zarr.open_group(str(out), mode="r")["plan/regions"][:]
+    lidar.write_bytes(good * 8)
+    code, text = _cli(*_build_args(world, out, "--block-samples", "1", "--resume"))
+    assert code == 0 and "0 errors" in text, text
+    after = zarr.open_group(str(out), mode="r")["plan/regions"][:]
+    b = int(bad)
+    assert after[b, 1, 0] == before[:, 1, 1].max() and after[b, 0].tolist() == before[b, 0].tolist()
+    assert (np.delete(after, b, axis=0) == np.delete(before, b, axis=0)).all()
+    reader = open_store(out)
+    assert int(reader.small("depth/offsets")[b, 0, 0]) == after[b, 1, 0]
+    for got, ref in zip(reader.depth_points(b), open_store(synth_store).depth_points(b), strict=True):
+        np.testing.assert_array_equal(got, np.tile(ref, (8, 1)))  # the same points, 8 times
     code, text = _cli("verify", "--store", str(out), "--no-progress")
     assert code == 0, text
 
@@ -263,3 +289,13 @@ def test_zero_length_state_chunk_resume_says_how_to_recover(store: Path, synth_r
     assert code == 0 and "(6 processed" in text, text
     assert store_digest(store) == store_digest(synth_store)
     assert zarr.open_group(str(store), mode="r").attrs["complete"]
+
+
+def test_a_schema_1_store_reads_but_does_not_resume(synth_root: Path, store: Path) -> None:
+    """Issue 33 bumped the schema to 2 (planned regions): a version-1 store stays readable, and
+    `--resume` of it is one line saying to build again into a new --out."""
+    zarr.open_group(str(store), mode="r+").attrs["schema_version"] = 1
+    assert open_store(store).jpeg_bytes(0)
+    code, text = _cli(*_build_args(synth_root, store, "--resume"))
+    line = _one_error_line(text)
+    assert code == 1 and "store schema 1" in line and "new --out" in line

@@ -2,12 +2,12 @@
 
 The work runs as tasks on Dask (`occdata.runtime.cluster`): one block of `--block-samples` samples per task,
 aligned to the store's chunks and shards, each task writing its own chunks (`occdata.store.blocks`):
-many writers, and only sizes and errors travel back to this process, which places the blocks'
-ragged payloads (chunk-aligned, in block order, `occdata.store.plan`) and owns the metadata. A
-sample is complete only once its state flag says so; `--resume` commits what an interrupted run
-converted, converts the rest, and gives a store identical to an uninterrupted build, for any number
-of workers. The parts: `config` (options), `inputs` (what is read), `identity` (what a resume must
-match), `create` (the store's layout), `plan` (the client side of a run).
+many writers, every byte written once, in any order. Before any task runs, this process plans where
+each block's ragged payload goes from the inputs alone (`occdata.store.plan`); only errors and sizes
+travel back, and this process owns the metadata. A sample is complete only once its state flag says
+so; `--resume` converts the blocks not done and gives a store identical to an uninterrupted build, for
+any number of workers. The parts: `config` (options), `inputs` (what is read), `identity` (what a
+resume must match), `create` (the store's layout), `plan` (the client side of a run).
 """
 
 from __future__ import annotations
@@ -17,34 +17,34 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import zarr
 
 from occdata.errors import OccDataError
 from occdata.runtime.cluster import cluster_client, run_tasks
 from occdata.runtime.lock import store_lock
-from occdata.runtime.storage import is_remote, remove_tree, sibling
-from occdata.store.blocks import BlockSummary, CommitJob, ConvertJob, sample_checksums, staged_summary
+from occdata.runtime.storage import is_remote
+from occdata.store.blocks import BlockSummary, ConvertJob, sample_checksums
 from occdata.store.config import ROOT_GTS, BuildConfig, GtsDefault, LabelsSource
-from occdata.store.create import STAGING_SUFFIX, consolidate, open_or_create, resume_state, store_exists
+from occdata.store.create import STAGING_SUFFIX, consolidate, grow_flat, open_or_create, resume_state, store_exists
 from occdata.store.identity import identity_diff
 from occdata.store.inputs import BuildInputs, check_sweep_files, find_label_files, read_inputs
-from occdata.store.layout import STATE_DONE, STATE_ERROR, STATE_PENDING
+from occdata.store.layout import REGIONS, STATE_DONE, STATE_ERROR, STATE_PENDING
 from occdata.store.plan import (
     Coordinator,
     Span,
     block_spans,
     blocks_todo,
-    committed_end,
+    payload_bounds,
+    plan_regions,
+    relocate,
     reset_blocks,
-    set_flat_length,
 )
 from occdata.store.reader import store_location
 
 __all__ = ["ROOT_GTS", "STAGING_SUFFIX", "BuildConfig", "BuildReport", "GtsDefault", "LabelsSource", "build_store",
            "check_sweep_files", "consolidate", "find_label_files", "identity_diff",
            "sample_checksums"]
-
-Job = ConvertJob | CommitJob
 
 
 @dataclass(frozen=True)
@@ -78,66 +78,64 @@ def build_store(config: BuildConfig, client: Any = None) -> BuildReport:
 
 def _build_locked(config: BuildConfig, client: Any, inputs: BuildInputs) -> BuildReport:
     resumed = store_exists(store_location(config.out))
-    root, out = open_or_create(config, inputs.ds, list(inputs.split_names), inputs.gts)
-    staging = sibling(out, STAGING_SUFFIX)
-    state = resume_state(root)
     spans = block_spans(len(inputs.ds.samples), config.block_samples)
+
+    def plan() -> np.ndarray:  # a new store's regions, from the tables and the files' sizes
+        return plan_regions(payload_bounds(inputs.ds.samples, inputs.histories, config.options), spans)
+
+    root, out = open_or_create(config, inputs.ds, list(inputs.split_names), inputs.gts, plan)
+    state = resume_state(root)
     todo = blocks_todo(state, spans)
     if todo and root.attrs.get("complete"):
         root.attrs["complete"] = False  # until this run has committed them again
     reset_blocks(root, state, spans, todo, every=resumed)
-    coord = Coordinator(root, out, staging, spans, todo, config.on_error)
-    jobs = _first_jobs(config, inputs, coord, out, staging, int(root["sample/token"].shape[-1]))
+    regions = root[REGIONS][:]
+    grow_flat(root, regions)  # a run killed between a relocation and the grow
+    consolidate(out)  # what every task reads first: current before any task runs
+    coord = Coordinator(root, config.on_error)
     converted = [0]
 
-    def on_result(job: Job, result: BlockSummary | int) -> list[CommitJob]:
-        if isinstance(result, BlockSummary):  # samples that needed work (a block's done ones are redone with it)
+    def on_result(job: ConvertJob, result: BlockSummary) -> list[ConvertJob]:
+        if result.placed:  # samples that needed work (a block's done ones are redone with it)
             converted[0] += int((state[job.i0 : job.i1] != STATE_DONE).sum())
-            return coord.add(result)
-        return []
+        return coord.add(result)
 
-    run_tasks(client, jobs, desc="build", unit="sample", progress=config.progress, on_result=on_result,
-              keep=coord.keep)
+    tok_width = int(root["sample/token"].shape[-1])
+    wave = sorted(todo)
+    for attempt in range(2):  # the second wave: blocks that outgrew their region, in their new one
+        jobs = [_convert_job(config, inputs, out, spans[b], regions, tok_width) for b in wave]
+        run_tasks(client, jobs, desc="build", unit="sample", progress=config.progress, on_result=on_result,
+                  keep=coord.keep)
+        if not coord.outgrown:
+            break
+        if attempt:
+            raise OccDataError(f"blocks {sorted(coord.outgrown)} changed size while this build ran (their input "
+                               "files were rewritten); rerun with --resume once the input is still")
+        wave, regions = sorted(coord.outgrown), relocate(regions, coord.outgrown)
+        coord.outgrown = {}
+        root[REGIONS][...] = regions  # the new regions first: a resume finds them there
+        grow_flat(root, regions)
+        consolidate(out)
     if coord.failure is not None:
         i, token, reason = coord.failure
         raise OccDataError(
             f"sample {i} ({token}) failed: {reason}. Everything before it is committed; fix the input and rerun "
             "with --resume (or use --on-error skip)."
         )
-    return _finish(config, root, out, staging, inputs, converted[0], {n: p.high for n, p in coord.placers.items()})
+    return _finish(config, root, out, inputs, converted[0])
 
 
-def _first_jobs(config: BuildConfig, inputs: BuildInputs, coord: Coordinator, out: str, staging: str,
-                tok_width: int) -> list[Job]:
-    """A convert job per block to (re)build; a block an interrupted run converted (staged, no
-    errors) is committed from its staging object instead."""
-    jobs: list[Job] = []
-    for b, i0, i1 in coord.spans:
-        if b not in coord.todo:
-            continue
-        staged = staged_summary(staging, b)
-        if staged is not None and not staged.errors:
-            jobs += coord.add(staged)
-        else:
-            jobs.append(_convert_job(config, inputs, out, staging, (b, i0, i1), tok_width))
-    return jobs
-
-
-def _convert_job(config: BuildConfig, inputs: BuildInputs, out: str, staging: str, span: Span,
+def _convert_job(config: BuildConfig, inputs: BuildInputs, out: str, span: Span, regions: np.ndarray,
                  tok_width: int) -> ConvertJob:
     b, i0, i1 = span
-    return ConvertJob(out, staging, b, i0, i1, tuple(inputs.sample_input(i, config, tok_width) for i in range(i0, i1)))
+    return ConvertJob(out, b, i0, i1, tuple(inputs.sample_input(i, config, tok_width) for i in range(i0, i1)),
+                      tuple((int(a), int(e)) for a, e in regions[b]), config.on_error)
 
 
-def _finish(config: BuildConfig, root: zarr.Group, out: str, staging: str, inputs: BuildInputs,
-            processed: int, high: dict[str, int]) -> BuildReport:
-    """The final commit (idempotent): completeness, the run's options, staging removed."""
+def _finish(config: BuildConfig, root: zarr.Group, out: str, inputs: BuildInputs, processed: int) -> BuildReport:
+    """The final commit (idempotent, in no block order): completeness, the run's options, metadata."""
     final_state = root["status/state"][:]
     complete = bool((final_state != STATE_PENDING).all())
-    if complete:
-        remove_tree(staging)
-        for name, rows in high.items():
-            set_flat_length(out, name, max(rows, committed_end(root, name)))
     root.attrs.update({"complete": complete,
                        "build_config": {"workers": config.cluster.workers, "on_error": config.on_error}})
     consolidate(out)

@@ -8,13 +8,14 @@ import json
 import os
 import shutil
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zarr
 from zarr.codecs import ZstdCodec
+from zarr.core.sync import sync
 
 from occdata.constants import CAMERA_ORDER, CLASS_COLORS, CLASS_NAMES, FREE_LABEL, GRID
 from occdata.errors import OccDataError
@@ -24,6 +25,7 @@ from occdata.store.identity import build_identity, identity_diff
 from occdata.store.layout import (
     FLAT_ARRAYS,
     PER_SAMPLE,
+    REGIONS,
     SCHEMA_NAME,
     SCHEMA_VERSION,
     TOKEN_ARRAYS,
@@ -36,16 +38,19 @@ if TYPE_CHECKING:
     from occdata.nuscenes import NuScenesDataset
     from occdata.store.config import BuildConfig
 
-__all__ = ["STAGING_SUFFIX", "consolidate", "create_arrays", "open_or_create", "resume_state", "root_attrs",
-           "store_exists"]
+__all__ = ["STAGING_SUFFIX", "consolidate", "create_arrays", "grow_flat", "open_or_create", "resume_state",
+           "root_attrs", "store_exists"]
 
 
 def _compressor(name: str) -> Any:
     return None if name == "images/jpeg" else ZstdCodec(level=1)
 
 
-def create_arrays(root: zarr.Group, n: int, block: int, attrs: dict[str, Any], tok_width: int) -> None:
-    """Every array of the layout for `n` samples in blocks of `block`, pending, and the root attributes."""
+def create_arrays(root: zarr.Group, n: int, block: int, attrs: dict[str, Any], tok_width: int,
+                  regions: np.ndarray | None = None) -> None:
+    """Every array of the layout for `n` samples in blocks of `block`, pending, and the root attributes.
+    `regions` `(n_blocks, len(FLAT_ARRAYS), 2) int64`: the plan (`occdata.store.plan.plan_regions`);
+    the flat arrays are as long as its end from the start (None: empty plan, empty flat arrays)."""
     n_check = len(checksummed_names())
     for s in PER_SAMPLE:
         shape = (n, *s.shape)
@@ -61,11 +66,20 @@ def create_arrays(root: zarr.Group, n: int, block: int, attrs: dict[str, Any], t
             s.name, shape=shape, dtype=s.dtype, chunks=chunks, shards=shards,
             fill_value=s.fill, compressors=_compressor(s.name),
         )
-    for name, (row, dtype, chunk_rows) in FLAT_ARRAYS.items():
+    n_blocks = -(-n // block)
+    if regions is None:
+        regions = np.zeros((n_blocks, len(FLAT_ARRAYS), 2), dtype=np.int64)
+    if regions.shape != (n_blocks, len(FLAT_ARRAYS), 2):
+        raise OccDataError(f"a plan for {regions.shape[0]} blocks, but {n} samples make {n_blocks} blocks")
+    for f, (name, (row, dtype, chunk_rows)) in enumerate(FLAT_ARRAYS.items()):
+        end = int(regions[:, f, 1].max()) if n_blocks else 0
         root.create_array(
-            name, shape=(0, *row), dtype=dtype, chunks=(chunk_rows, *row), fill_value=0,
+            name, shape=(end, *row), dtype=dtype, chunks=(chunk_rows, *row), fill_value=0,
             compressors=_compressor(name),
         )
+    root.create_array(REGIONS, shape=regions.shape, dtype="int64", chunks=regions.shape, fill_value=0,
+                      compressors=ZstdCodec(level=1))
+    root[REGIONS][...] = regions
     # Every commit flag exists from the start (pending): with many writers, blocks commit in any
     # order, and an absent state chunk stays a sign of damage (occdata.store.integrity).
     root["status/state"].with_config({"write_empty_chunks": True})[:] = np.zeros(n, dtype=np.uint8)
@@ -115,7 +129,7 @@ def root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str],
     }
 
 
-STAGING_SUFFIX = ".staging"  # <store>.staging: converted blocks not yet committed
+STAGING_SUFFIX = ".staging"  # <store>.staging: where schema-1 builds staged blocks (removed, never written now)
 _CREATING = "occdata_creating"  # root attribute of a store whose layout is still being written (object stores)
 
 
@@ -164,6 +178,11 @@ def _open_existing(config: BuildConfig, out: str, attrs: dict[str, Any]) -> zarr
             raise OccDataError(f"cannot resume: {exc}") from None
     if root.attrs.get("schema") != SCHEMA_NAME:
         raise OccDataError(f"cannot resume {out}: not an occdata store (no schema attribute)")
+    if root.attrs.get("schema_version") != SCHEMA_VERSION:
+        raise OccDataError(
+            f"cannot resume {out}: it was built by an older occdata (store schema {root.attrs.get('schema_version')}, "
+            f"this one writes {SCHEMA_VERSION}); it stays readable, but to finish it build again into a new --out"
+        )
     stored = root.attrs.get("build_identity")
     if isinstance(stored, dict) and isinstance(stored.get("options"), dict):
         stored = {**stored, "options": {"lidar_sweeps": 0, **stored["options"]}}  # stores from before sweeps
@@ -179,8 +198,9 @@ def _open_existing(config: BuildConfig, out: str, attrs: dict[str, Any]) -> zarr
 
 
 def open_or_create(config: BuildConfig, ds: NuScenesDataset, split_names: list[str],
-                   gts: Path | None) -> tuple[zarr.Group, str]:
-    """The store to write, and its location (a local path or a URL)."""
+                   gts: Path | None, plan: Callable[[], np.ndarray]) -> tuple[zarr.Group, str]:
+    """The store to write, and its location (a local path or a URL). `plan()` gives a new store's
+    regions (`create_arrays`); a resumed store keeps its own."""
     out = store_location(config.out)
     attrs = root_attrs(config, ds, split_names, gts)
     if store_exists(out):
@@ -189,14 +209,14 @@ def open_or_create(config: BuildConfig, ds: NuScenesDataset, split_names: list[s
     tok_width = token_width(_all_tokens(ds))
     if is_remote(out):  # no rename on an object store: the root is marked until the layout is complete
         root = zarr.open_group(out, mode="w", attributes={_CREATING: True})
-        create_arrays(root, len(ds.samples), config.block_samples, attrs, tok_width)
+        create_arrays(root, len(ds.samples), config.block_samples, attrs, tok_width, plan())
         consolidate(out)
         return zarr.open_group(out, mode="r+", use_consolidated=False), out
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(out + ".creating")
     shutil.rmtree(tmp, ignore_errors=True)
     root = zarr.open_group(tmp, mode="w")
-    create_arrays(root, len(ds.samples), config.block_samples, attrs, tok_width)
+    create_arrays(root, len(ds.samples), config.block_samples, attrs, tok_width, plan())
     consolidate(str(tmp))
     tmp.rename(out)  # the store appears only once its layout is complete
     return zarr.open_group(out, mode="r+", use_consolidated=False), out
@@ -207,6 +227,19 @@ def _all_tokens(ds: NuScenesDataset) -> Iterator[str]:
         yield s.token
         yield s.lidar.token
         yield from (c.token for c in s.cameras)
+
+
+def grow_flat(root: zarr.Group, regions: np.ndarray) -> bool:
+    """Each flat array at least as long as the plan's end (after `relocate`); True if one grew (the
+    caller then rewrites the consolidated metadata that tasks read)."""
+    grown = False
+    for f, name in enumerate(FLAT_ARRAYS):
+        arr = root[name]
+        end = int(regions[:, f, 1].max()) if len(regions) else 0
+        if arr.shape[0] < end:  # growing deletes nothing: skip zarr's walk over the old chunks
+            sync(arr._async_array.resize((end, *arr.shape[1:]), delete_outside_chunks=False))
+            grown = True
+    return grown
 
 
 def consolidate(out: str) -> None:

@@ -149,25 +149,12 @@ class StoreIntegrity:
     def problems_absent(self, name: str, state: np.ndarray) -> list[tuple[int, str]]:
         """(sample, reason) for committed samples that an absent chunk of `name` makes wrong."""
         committed = state != STATE_PENDING
+        if name in FLAT_ARRAYS:  # only the chunks under committed offsets: the address space is sparse
+            return self._flat_absent(name, committed) if committed.any() else []
         absent = self.absent_chunks(name)
         if not absent.any() or not committed.any():
             return []
         out: list[tuple[int, str]] = []
-        if name in FLAT_ARRAYS:
-            rows = self._chunk_rows(name)
-            off_name = next(o for o, f in FLAT_OF_OFFSETS.items() if f == name)
-            off = self._read(off_name)
-            for i in np.flatnonzero(committed):
-                for start, n in off[i]:
-                    if n <= 0:
-                        continue
-                    ks = np.arange(int(start) // rows, (int(start) + int(n) - 1) // rows + 1)
-                    ks = ks[ks < len(absent)]
-                    if absent[ks].any():
-                        key = self._chunk_key(name, int(ks[absent[ks]][0]))
-                        out.append((int(i), f"chunk {key} is missing"))
-                        break
-            return out
         rows = self._chunk_rows(name)
         for k in np.flatnonzero(absent):
             idx = [i for i in range(k * rows, min((k + 1) * rows, len(state))) if committed[i]]
@@ -181,6 +168,25 @@ class StoreIntegrity:
             stored = self.checksums()[idx, col]
             bad = stored != self.fill_crc(name)
             out += [(i, f"chunk {key} is missing") for i, b in zip(idx, bad, strict=True) if b]
+        return out
+
+    def _flat_absent(self, name: str, committed: np.ndarray) -> list[tuple[int, str]]:
+        """(sample, reason) for committed samples with a flat-array chunk under their offsets absent."""
+        rows = self._chunk_rows(name)
+        off_name = next(o for o, f in FLAT_OF_OFFSETS.items() if f == name)
+        off = self._read(off_name)
+        keys = self.stored_keys(name)
+        n_chunks = math.ceil(self.group[name].shape[0] / rows)
+        out: list[tuple[int, str]] = []
+        for i in np.flatnonzero(committed):
+            for start, n in off[i]:
+                if n <= 0:
+                    continue
+                gone = [k for k in range(int(start) // rows, min((int(start) + int(n) - 1) // rows + 1, n_chunks))
+                        if self._chunk_key(name, k) not in keys]
+                if gone:
+                    out.append((int(i), f"chunk {self._chunk_key(name, gone[0])} is missing"))
+                    break
         return out
 
     def check_present(self, name: str, state: np.ndarray) -> None:

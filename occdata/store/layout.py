@@ -1,9 +1,10 @@
-"""The store schema (version 1): array names, shapes, dtypes, chunking. See docs/store.md.
+"""The store schema (version 2): array names, shapes, dtypes, chunking. See docs/store.md.
 
 Every per-sample array has the sample axis first. Small arrays are chunked by blocks of samples;
 large label arrays have one chunk per sample inside one shard per block (few files, cheap random
 access). Ragged data (JPEG bytes, LiDAR depth points) lives in flat arrays with (start, length)
-offsets per (sample, camera).
+offsets per (sample, camera); each block of samples owns a chunk-aligned region of them, planned
+before any sample is converted (`plan/regions`, version 2), so a task writes its payload in place.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ __all__ = [
     "token_str",
     "token_width",
     "PER_SAMPLE",
+    "READABLE_SCHEMA_VERSIONS",
+    "REGIONS",
     "SCHEMA_NAME",
     "SCHEMA_VERSION",
     "STATE_DONE",
@@ -37,7 +40,8 @@ __all__ = [
 ]
 
 SCHEMA_NAME = "occdata.store"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: every block's ragged payload in its own planned region (gaps between blocks)
+READABLE_SCHEMA_VERSIONS = (1, 2)  # version 1 (blocks packed back to back) reads the same, through the offsets
 N_PREV = 16  # temporal history length (DESIGN §5.4)
 N_CAM = 6
 
@@ -95,6 +99,10 @@ FLAT_ARRAYS: dict[str, tuple[tuple[int, ...], str, int]] = {
     "images/jpeg": ((), "uint8", 1 << 20),
     "depth/uvd": ((3,), "float32", 1 << 16),
 }
+
+# `(n_blocks, len(FLAT_ARRAYS), 2) int64`: each block's [start, end) rows in each flat array (FLAT_ARRAYS
+# order). Written by the build's client only (at creation; again when a block outgrows its region).
+REGIONS = "plan/regions"
 
 # Which offsets array indexes which flat array.
 FLAT_OF_OFFSETS = {"images/offsets": "images/jpeg", "depth/offsets": "depth/uvd"}

@@ -1,22 +1,36 @@
-"""The client side of a build run: which blocks to (re)build, and the `Coordinator` that places
-converted blocks in the flat arrays in block order and hands back their commit jobs."""
+"""The client side of a build run: which blocks to (re)build, where each block's ragged payload goes
+(planned from the inputs before any task runs), and the `Coordinator` that takes the tasks' summaries
+in any order.
+
+The plan: every sample gets an upper bound on its rows in each flat array, from the tables and the
+files' sizes only (`payload_bounds`); block b's region is the sum of its samples' bounds, rounded up
+to whole chunks, and the regions follow each other in block order (`plan_regions`). A task writes its
+payload at the start of its region; the chunks its payload does not reach are never written, so a
+generous bound costs address space, not bytes. The plan is stored (`plan/regions`) when the store is
+created, so a resume uses the same one whatever happened to the files since."""
 
 from __future__ import annotations
 
+import os
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import zarr
-from zarr.core.sync import sync
 
-from occdata.store.blocks import BlockSummary, CommitJob, ConvertJob, Placer, flat_footprint, open_flat
-from occdata.store.create import consolidate
-from occdata.store.layout import FLAT_ARRAYS, FLAT_OF_OFFSETS, STATE_DONE, STATE_PENDING
+from occdata.nuscenes import LidarRecord, SampleRecord
+from occdata.store.blocks import BlockSummary, ConvertJob
+from occdata.store.layout import FLAT_ARRAYS, N_CAM, STATE_DONE, STATE_PENDING
+from occdata.store.sample import SampleOptions
 
-__all__ = ["Coordinator", "Span", "align", "block_spans", "blocks_todo", "committed_end", "reset_blocks",
-           "set_flat_length"]
+__all__ = ["LIDAR_POINT_BYTES", "Coordinator", "Span", "align", "block_spans", "blocks_todo", "jpeg_bound",
+           "payload_bounds", "plan_regions", "relocate", "reset_blocks"]
 
 Span = tuple[int, int, int]  # (block, first sample, end sample)
+LIDAR_POINT_BYTES = 20  # a .pcd.bin point: x, y, z, intensity, ring as float32
+JPEG_HEADER_BYTES = 1 << 16  # markers, tables and a few APP segments on top of the pixel bound
 
 
 def align(n: int, chunk: int) -> int:
@@ -32,103 +46,108 @@ def blocks_todo(state: np.ndarray, spans: list[Span]) -> set[int]:
     return {b for b, i0, i1 in spans if (state[i0:i1] != STATE_DONE).any()}
 
 
-class Coordinator:
-    """Places converted blocks in block order and hands back their commit jobs; records errors
-    (skip) or stops at the first failed sample (fail)."""
+def jpeg_bound(width: int, height: int, scale: float = 1.0) -> int:
+    """Bytes planned for one stored JPEG of a `width` x `height` image (`scale`: --image-scale): the
+    raw RGB size of the stored image plus headers. From the tables alone, so a file fixed between
+    runs (a truncated JPEG replaced) keeps its block's region; a stream larger than that (noise at
+    quality 100) is legal and moves its block to the end of the array (`relocate`)."""
+    if scale != 1.0:
+        width, height = round(width * scale), round(height * scale)
+    return 3 * int(width) * int(height) + JPEG_HEADER_BYTES
 
-    def __init__(self, root: zarr.Group, out: str, staging: str, spans: list[Span], todo: set[int],
-                 on_error: str) -> None:
-        self.root, self.out, self.staging, self.spans, self.todo = root, out, staging, spans, todo
-        self.on_error = on_error
-        self.summaries: dict[int, BlockSummary] = {}
-        self.next = 0  # position in spans of the next block to place
+
+def _points(path: Path) -> int:
+    """LiDAR points in a `.pcd.bin` file by its size; 0 if it cannot be read now (such a sample fails;
+    if it is fixed later and succeeds, its block moves to the end: `relocate`)."""
+    try:
+        return os.stat(path).st_size // LIDAR_POINT_BYTES
+    except OSError:
+        return 0
+
+
+def payload_bounds(samples: Sequence[SampleRecord], histories: Sequence[tuple[LidarRecord, ...]],
+                   options: SampleOptions, threads: int = 16) -> np.ndarray:
+    """`(n, len(FLAT_ARRAYS)) int64` rows planned per sample in each flat array: JPEG bytes from the
+    image sizes in the tables (`jpeg_bound`); depth rows = 6 cameras x the points of the keyframe
+    sweep and of each history sweep (a point can land in several cameras), from the files' sizes
+    (one stat per distinct file, in `threads` threads: a network file system answers slowly)."""
+    files = list(dict.fromkeys(p for s, h in zip(samples, histories, strict=True)
+                               for p in (s.lidar.path, *(r.path for r in h))))
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        points = dict(zip(files, pool.map(_points, files), strict=True))
+    out = np.zeros((len(samples), len(FLAT_ARRAYS)), dtype=np.int64)
+    for i, (s, h) in enumerate(zip(samples, histories, strict=True)):
+        for f, name in enumerate(FLAT_ARRAYS):
+            if name == "images/jpeg":
+                out[i, f] = sum(jpeg_bound(c.width, c.height, options.image_scale) for c in s.cameras)
+            else:
+                out[i, f] = N_CAM * sum(points[p] for p in (s.lidar.path, *(r.path for r in h)))
+    return out
+
+
+def plan_regions(bounds: np.ndarray, spans: list[Span]) -> np.ndarray:
+    """`(n_blocks, len(FLAT_ARRAYS), 2) int64` [start, end) rows of each block's region: its samples'
+    `bounds` `(n, F)` summed, rounded up to whole chunks, blocks one after the other."""
+    out = np.zeros((len(spans), len(FLAT_ARRAYS), 2), dtype=np.int64)
+    for f, (_, _, chunk) in enumerate(FLAT_ARRAYS.values()):
+        sizes = np.array([align(int(bounds[i0:i1, f].sum()), chunk) for _, i0, i1 in spans], dtype=np.int64)
+        ends = np.cumsum(sizes)
+        out[:, f, 0], out[:, f, 1] = ends - sizes, ends
+    return out
+
+
+def relocate(regions: np.ndarray, needs: dict[int, tuple[int, ...]]) -> np.ndarray:
+    """`regions` with new ones, after the current end of each flat array and in block order, for the
+    blocks whose payload (`needs`: rows per flat array) outgrew their region (an input file that grew
+    since the plan was made). The old region stays reserved: nothing else is ever put there."""
+    out = regions.copy()
+    for f, (_, _, chunk) in enumerate(FLAT_ARRAYS.values()):
+        end = int(out[:, f, 1].max()) if len(out) else 0
+        for b in sorted(needs):
+            if needs[b][f] > out[b, f, 1] - out[b, f, 0]:
+                out[b, f] = (end, end + align(needs[b][f], chunk))
+                end = int(out[b, f, 1])
+    return out
+
+
+class Coordinator:
+    """Takes the block summaries in any order: under --on-error skip it records the errors (after the
+    task wrote the flags: a resume redoes such a block anyway); under fail it keeps the first failed
+    sample, and blocks after it are no longer started. Blocks that outgrew their region are kept for
+    `relocate`."""
+
+    def __init__(self, root: zarr.Group, on_error: str) -> None:
+        self.root, self.on_error = root, on_error
         self.failure: tuple[int, str, str] | None = None
         self.errors: list[dict[str, Any]] = []
-        self.footprints: dict[str, dict[int, tuple[int, int] | None]] = {}
-        self.placers: dict[str, Placer] = {}
-        for off_name, flat_name in FLAT_OF_OFFSETS.items():
-            chunk = FLAT_ARRAYS[flat_name][2]
-            offsets = root[off_name][:] if len(todo) < len(spans) else None
-            fp = {b: flat_footprint(offsets[i0:i1], chunk) for b, i0, i1 in spans if b not in todo} if (
-                offsets is not None) else {}
-            self.footprints[flat_name] = fp
-            self.placers[flat_name] = Placer(chunk, [f for f in fp.values() if f is not None])
+        self.outgrown: dict[int, tuple[int, ...]] = {}
 
-    def keep(self, job: ConvertJob | CommitJob) -> bool:
-        """After a failure under --on-error fail, blocks after the failed one are not converted. (A
-        commit job exists only for a block placed before any later failure: always kept.)"""
+    def keep(self, job: ConvertJob) -> bool:
+        """After a failure under --on-error fail, blocks after the failed sample are not started."""
         return self.failure is None or job.i0 <= self.failure[0]
 
-    def add(self, summary: BlockSummary) -> list[CommitJob]:
-        """A converted block: the commit jobs of every block that can now be placed, in block order."""
-        self.summaries[summary.block] = summary
+    def add(self, summary: BlockSummary) -> list[ConvertJob]:
+        """One finished task; never any follow-up job (relocated blocks run after this wave)."""
+        if not summary.placed:
+            self.outgrown[summary.block] = summary.needs
+            return []
         if self.on_error == "fail" and summary.errors:
             first = min(summary.errors)
             if self.failure is None or first[0] < self.failure[0]:
                 self.failure = first
-        jobs: list[CommitJob] = []
-        while self.next < len(self.spans):
-            b, i0, i1 = self.spans[self.next]
-            if b not in self.todo:
-                for name, placer in self.placers.items():
-                    placer.skip(self.footprints[name].get(b))
-                self.next += 1
-                continue
-            s = self.summaries.get(b)
-            if s is None or (self.failure is not None and i0 > self.failure[0]):
-                break
-            jobs.append(self._place(s, i0, i1))
-            self.next += 1
-        return jobs
-
-    def _place(self, s: BlockSummary, i0: int, i1: int) -> CommitJob:
-        starts = {name: placer.place(s.rows[name]) for name, placer in self.placers.items()}
-        grown = False
-        for name, placer in self.placers.items():  # the client alone writes metadata
-            arr = open_flat(self.out, name)
-            if arr.shape[0] < placer.high:  # grow by doubling: few metadata rewrites (trimmed at the end)
-                step = max(placer.high, 2 * arr.shape[0], 16 * arr.chunks[0])
-                arr.resize((align(step, arr.chunks[0]), *arr.shape[1:]))
-                grown = True
-        if grown:
-            consolidate(self.out)
-        until = i1
-        if self.failure is not None and i0 <= self.failure[0] < i1:
-            until = self.failure[0]
-        elif s.errors:  # skip: the errors are recorded before the block's state says "error"
-            self.errors += [{"index": int(i), "token": t, "reason": r} for i, t, r in s.errors]
+        elif summary.errors:
+            self.errors += [{"index": int(i), "token": t, "reason": r} for i, t, r in summary.errors]
             self.root.attrs["errors"] = sorted(self.errors, key=lambda e: e["index"])
-        return CommitJob(self.out, self.staging, s.block, i0, i1, starts, until)
-
-
-def set_flat_length(out: str, name: str, rows: int) -> None:
-    """The final length of a flat array (grown by steps during the build); a shrink deletes nothing
-    (no chunk lies beyond the placed blocks), so it costs one metadata write, not a listing."""
-    arr = open_flat(out, name)
-    if arr.shape[0] == rows:
-        return
-    try:
-        sync(arr._async_array.resize((rows, *arr.shape[1:]), delete_outside_chunks=False))
-    except TypeError:  # a zarr without that option
-        arr.resize((rows, *arr.shape[1:]))
+        return []
 
 
 def reset_blocks(root: zarr.Group, state: np.ndarray, spans: list[Span], todo: set[int], every: bool) -> None:
     """Blocks to (re)build are pending again before any of their data moves; their old errors go.
-    `every` (a resumed store): also write the flags that are pending already, so that a store from
-    before issue 24 (no state chunk for its pending tail) has every state chunk from now on."""
+    `every` (a resumed store): also write the flags that are pending already, so that every state
+    chunk exists from now on."""
     arr = root["status/state"].with_config({"write_empty_chunks": True})
     for b, i0, i1 in spans:
         if b in todo and (every or (state[i0:i1] != STATE_PENDING).any()):
             arr[i0:i1] = np.zeros(i1 - i0, dtype=np.uint8)
     if root.attrs.get("errors"):
         root.attrs["errors"] = []
-
-
-def committed_end(root: zarr.Group, flat_name: str) -> int:
-    """The end of the last range that a committed sample uses in a flat array (chunk-aligned)."""
-    off_name = next(o for o, f in FLAT_OF_OFFSETS.items() if f == flat_name)
-    off = root[off_name][:]
-    used = off[..., 1] > 0
-    end = int((off[..., 0] + off[..., 1])[used].max()) if used.any() else 0
-    return align(end, FLAT_ARRAYS[flat_name][2])

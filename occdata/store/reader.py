@@ -17,8 +17,8 @@ from occdata.store.layout import (
     FLAT_ARRAYS,
     MIN_TOKEN_BYTES,
     PER_SAMPLE,
+    READABLE_SCHEMA_VERSIONS,
     SCHEMA_NAME,
-    SCHEMA_VERSION,
     STATE_DONE,
     STATE_ERROR,
     STATE_PENDING,
@@ -57,10 +57,10 @@ class StoreReader:
         attrs = dict(self.group.attrs)
         if attrs.get("schema") != SCHEMA_NAME:
             raise OccDataError(f"not an occdata store: {self.path} (no schema attribute)")
-        if attrs.get("schema_version") != SCHEMA_VERSION:
+        if attrs.get("schema_version") not in READABLE_SCHEMA_VERSIONS:
             raise OccDataError(
                 f"store {self.path} has schema version {attrs.get('schema_version')}, this package reads "
-                f"{SCHEMA_VERSION}; rebuild it with this version of occdata"
+                f"{', '.join(map(str, READABLE_SCHEMA_VERSIONS))}; rebuild it with this version of occdata"
             )
         self.attrs: dict[str, Any] = attrs
         self.n_samples: int = self._check_layout()
