@@ -29,9 +29,9 @@ class LabelLayout(StrEnum):
     """How a grid's labels are stored (occdata.label_formats)."""
 
     OCC3D = "occ3d"  # <scene>/<sample token>/labels.npz: semantics, mask_lidar, mask_camera (X, Y, Z) uint8
-    OPENOCC_V2 = "openocc-v2"  # <scene>/<sample token>/labels.npz: semantics (own class order), masks, flow
-    SURROUNDOCC = "surroundocc"  # <LiDAR file name>.npy: (N, 4) [x, y, z, class] of the occupied voxels
-    OPENOCCUPANCY = "openoccupancy"  # scene_<scene token>/occupancy/<LiDAR file stem>.npy: (N, 4) [z, y, x, class]
+    OPENOCC_V2 = "openocc-v2"  # <scene>/<sample token>/labels.npz: semantics (own class order), flow, masks
+    SURROUNDOCC = "surroundocc"  # samples/<LiDAR file name>.npy: (N, 4) [x, y, z, class] of the occupied voxels
+    OPENOCCUPANCY = "openoccupancy"  # scene_<scene token>/occupancy/<LiDAR sample_data token>.npy: [z, y, x, class]
 
 
 # Target id of each Occ3D class (index = our id: others, barrier, ..., vegetation, free).
@@ -39,10 +39,12 @@ _OCC3D_IDS = tuple(range(NUM_CLASSES))
 # nuScenes-lidarseg's 16 evaluation classes keep our order 1..16; "others" has no class there (noise, 0).
 _LIDARSEG16_IDS = (0, *range(1, 17), 0)
 # OpenOcc v2: car, truck, trailer, bus, construction_vehicle, bicycle, motorcycle, pedestrian, traffic_cone,
-# barrier, driveable_surface, other_flat, sidewalk, terrain, manmade, vegetation (0..15), free 16.
+# barrier, driveable_surface, other_flat, sidewalk, terrain, manmade, vegetation (0..15), free 16. It has no
+# "others" class and no ignore id: our "others" voxels are written as free (docs/labels.md).
 _OPENOCC_NAMES = ("car", "truck", "trailer", "bus", "construction_vehicle", "bicycle", "motorcycle", "pedestrian",
                   "traffic_cone", "barrier", "driveable_surface", "other_flat", "sidewalk", "terrain", "manmade",
                   "vegetation", "free")
+_OPENOCC_IDS = tuple(_OPENOCC_NAMES.index(n if n in _OPENOCC_NAMES else "free") for n in CLASS_NAMES)
 
 
 @dataclass(frozen=True)
@@ -104,9 +106,7 @@ GRID_PRESETS: dict[str, GridSpec] = {g.name: g for g in (
     GridSpec("occ3d", OccGrid((-40.0, -40.0, -1.0), (40.0, 40.0, 5.4), 0.4), LabelFrame.KEY_EGO, LabelLayout.OCC3D,
              _OCC3D_IDS, CLASS_NAMES, FREE_LABEL),
     GridSpec("openocc-v2", OccGrid((-40.0, -40.0, -1.0), (40.0, 40.0, 5.4), 0.4), LabelFrame.KEY_EGO,
-             LabelLayout.OPENOCC_V2,
-             tuple(_OPENOCC_NAMES.index(n) if n in _OPENOCC_NAMES else _OPENOCC_NAMES.index("manmade")
-                   for n in CLASS_NAMES), _OPENOCC_NAMES, 16),
+             LabelLayout.OPENOCC_V2, _OPENOCC_IDS, _OPENOCC_NAMES, 16),
     GridSpec("surroundocc", OccGrid((-50.0, -50.0, -5.0), (50.0, 50.0, 3.0), 0.5), LabelFrame.LIDAR,
              LabelLayout.SURROUNDOCC, _LIDARSEG16_IDS, ("noise", *CLASS_NAMES[1:17]), 0, masks=False),
     GridSpec("openoccupancy", OccGrid((-51.2, -51.2, -5.0), (51.2, 51.2, 3.0), 0.2), LabelFrame.LIDAR,

@@ -51,15 +51,18 @@ def test_overlapping_boxes_first_wins() -> None:
 def test_vote_majority_by_hand() -> None:
     shape = np.array([2, 2, 2])
     lower = np.zeros(3)
-    counts = np.zeros((8, 4), np.int32)
-    # Voxel (0, 0, 0): classes 1, 2, 2 -> 2. Voxel (1, 1, 1): 3, 1 (tie) -> 1. One point outside.
+    # Voxel (0, 0, 0): classes 1, 2, 2 -> 2. Voxel (1, 1, 1): 3, 1 (tie) -> 1. One point outside; class 5
+    # is skipped (>= 4 classes). Voxel (1, 0, 0) gets 3 in the first list and 2, 2 in the second -> 2.
     pts = np.array([[0.1, 0.1, 0.1], [0.2, 0.2, 0.2], [0.3, 0.3, 0.3], [1.5, 1.5, 1.5], [1.6, 1.6, 1.6],
-                    [2.5, 0.1, 0.1]])
-    cls = np.array([1, 2, 2, 3, 1, 1], np.uint8)
-    vote_voxels(counts, pts, cls, np.eye(4), lower, 1.0, shape)
-    out = majority(counts, (2, 2, 2), 17)
-    assert out[0, 0, 0] == 2 and out[1, 1, 1] == 1
-    assert (out == 17).sum() == 6
+                    [2.5, 0.1, 0.1], [0.5, 0.5, 1.5], [1.2, 0.1, 0.1]])
+    cls = np.array([1, 2, 2, 3, 1, 1, 5, 3], np.uint8)
+    first = vote_voxels(pts, cls, np.eye(4), lower, 1.0, shape, 4)
+    assert sorted(first.tolist()) == sorted([1, 2, 2, 7 * 4 + 3, 7 * 4 + 1, 4 * 4 + 3])  # (flat, class) keys
+    second = vote_voxels(np.array([[1.1, 0.2, 0.3], [1.9, 0.9, 0.9]]), np.array([2, 2], np.uint8), np.eye(4),
+                         lower, 1.0, shape, 4)
+    out = majority([first, second], (2, 2, 2), 4, 17)
+    assert out[0, 0, 0] == 2 and out[1, 1, 1] == 1 and out[1, 0, 0] == 2
+    assert (out == 17).sum() == 5
 
 
 def test_vote_twin_agrees_with_a_transform() -> None:
@@ -69,12 +72,15 @@ def test_vote_twin_agrees_with_a_transform() -> None:
     T = _box(0.3, -0.7, 0.2, 0.6)
     shape = np.array([20, 24, 8])
     lower = np.array([-4.0, -4.8, -1.6])
-    a = np.zeros((int(shape.prod()), 17), np.int32)
-    b = np.zeros_like(a)
-    vote_voxels(a, pts, cls, T, lower, 0.4, shape)
-    vote_voxels_reference(b, pts, cls, T, lower, 0.4, shape)
+    a = vote_voxels(pts, cls, T, lower, 0.4, shape, 17)
+    b = vote_voxels_reference(pts, cls, T, lower, 0.4, shape, 17)
     np.testing.assert_array_equal(a, b)
-    assert a.sum() > 1000
+    assert len(a) > 1000
+    # majority against a dense count table, argmax's first maximum (the lowest class on a tie)
+    counts = np.zeros((int(shape.prod()), 17), np.int64)
+    np.add.at(counts, (a // 17, a % 17), 1)
+    dense = np.where(counts.max(1) > 0, counts.argmax(1), 17).reshape(tuple(shape))
+    np.testing.assert_array_equal(majority([a[:5000], a[5000:]], tuple(shape), 17, 17), dense)
 
 
 def test_nearest_labels_by_hand_and_twin() -> None:

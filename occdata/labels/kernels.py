@@ -1,8 +1,8 @@
 """Numba kernels of label generation, each with a plain numpy twin (tests check they agree).
 
 - `points_in_boxes`: which 3D box (if any) holds each point.
-- `vote_voxels`: transform points into a voxel grid's frame and count class votes per voxel
-  (`majority` then takes the most voted class).
+- `vote_voxels`: transform points into a voxel grid's frame, one (voxel, class) vote key per point
+  (`majority` then takes the most voted class per voxel).
 - `nearest_labels`: the class of each query point's nearest labelled reference point within a radius.
 
 Boxes are given by `T_box_from_world (B, 4, 4) float64` and half extents `half_size (B, 3) float64`
@@ -67,17 +67,20 @@ def points_in_boxes_reference(points: np.ndarray, T_box_from_world: np.ndarray, 
 
 @njit(cache=True)
 def vote_voxels(
-    counts: np.ndarray, points: np.ndarray, classes: np.ndarray, T_grid_from_world: np.ndarray, lower: np.ndarray,
-    voxel_size: float, shape: np.ndarray,
-) -> None:
-    """Add one vote per point to `counts (X * Y * Z, n_classes) int32` (in place).
+    points: np.ndarray, classes: np.ndarray, T_grid_from_world: np.ndarray, lower: np.ndarray, voxel_size: float,
+    shape: np.ndarray, n_classes: int,
+) -> np.ndarray:
+    """One vote per point as a key `flat voxel index * n_classes + class`, `(M,) int64` (M <= N).
 
     points `(N, 3) float64` in the world frame, moved into the grid frame by `T_grid_from_world
     (4, 4)`; classes `(N,) uint8` (values >= n_classes are skipped); points outside the grid too. A
-    voxel is [lower + i v, lower + (i + 1) v) per axis; the flat index is (ix * Y + iy) * Z + iz."""
+    voxel is [lower + i v, lower + (i + 1) v) per axis; the flat index is (ix * Y + iy) * Z + iz.
+    Keys, not a dense (voxels, classes) count table: memory follows the points, not the grid (a
+    512 x 512 x 40 grid's table took 0.7 GB)."""
     X, Y, Z = shape[0], shape[1], shape[2]
-    n_classes = counts.shape[1]
     T = T_grid_from_world
+    out = np.empty(points.shape[0], np.int64)
+    m = 0
     for i in range(points.shape[0]):
         c = classes[i]
         if c >= n_classes:
@@ -87,27 +90,37 @@ def vote_voxels(
         iy = int(np.floor((T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3] - lower[1]) / voxel_size))
         iz = int(np.floor((T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3] - lower[2]) / voxel_size))
         if 0 <= ix < X and 0 <= iy < Y and 0 <= iz < Z:
-            counts[(ix * Y + iy) * Z + iz, c] += 1
+            out[m] = ((ix * Y + iy) * Z + iz) * n_classes + c
+            m += 1
+    return out[:m]
 
 
 def vote_voxels_reference(
-    counts: np.ndarray, points: np.ndarray, classes: np.ndarray, T_grid_from_world: np.ndarray, lower: np.ndarray,
-    voxel_size: float, shape: np.ndarray,
-) -> None:
+    points: np.ndarray, classes: np.ndarray, T_grid_from_world: np.ndarray, lower: np.ndarray, voxel_size: float,
+    shape: np.ndarray, n_classes: int,
+) -> np.ndarray:
     """Numpy twin of `vote_voxels`."""
     shape = tuple(int(s) for s in shape)
-    keep = classes < counts.shape[1]
+    keep = classes < n_classes
     p = points[keep] @ T_grid_from_world[:3, :3].T + T_grid_from_world[:3, 3]
     idx = np.floor((p - lower) / voxel_size).astype(np.int64)
     ok = ((idx >= 0) & (idx < np.array(shape))).all(axis=1)
     flat = np.ravel_multi_index(tuple(idx[ok].T), shape)
-    np.add.at(counts, (flat, classes[keep][ok].astype(np.int64)), 1)
+    return flat * n_classes + classes[keep][ok].astype(np.int64)
 
 
-def majority(counts: np.ndarray, shape: tuple[int, int, int], empty: int) -> np.ndarray:
-    """`(X, Y, Z) uint8`: per voxel the class with the most votes in `counts (X * Y * Z, C)`, ties to
-    the lowest class index (argmax's first maximum); `empty` where a voxel has no vote."""
-    return np.where(counts.max(axis=1) > 0, counts.argmax(axis=1), empty).astype(np.uint8).reshape(shape)
+def majority(votes: list[np.ndarray], shape: tuple[int, int, int], n_classes: int, empty: int) -> np.ndarray:
+    """`(X, Y, Z) uint8`: per voxel the class with the most votes among the keys of `votes` (each
+    `vote_voxels`' output), ties to the lowest class index; `empty` where a voxel has no vote."""
+    keys, counts = np.unique(np.concatenate([np.zeros(0, np.int64), *votes]), return_counts=True)
+    voxel, cls = np.divmod(keys, n_classes)
+    order = np.lexsort((cls, -counts, voxel))  # per voxel: most votes first, then the lowest class
+    voxel, cls = voxel[order], cls[order]
+    first = np.ones(len(voxel), bool)
+    first[1:] = voxel[1:] != voxel[:-1]
+    out = np.full(int(np.prod(shape)), empty, np.uint8)
+    out[voxel[first]] = cls[first]
+    return out.reshape(shape)
 
 
 @njit(cache=True)

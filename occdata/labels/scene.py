@@ -265,14 +265,14 @@ def _semantics(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tupl
     instance points placed at that box's pose; FREE_LABEL where no point falls."""
     shape = np.array(grid.shape, np.int64)
     lower = np.array(grid.lower, np.float64)
-    counts = np.zeros((int(shape.prod()), NUM_CLASSES - 1), np.int32)
-    vote_voxels(counts, static[0], static[1], T_grid_from_global, lower, grid.voxel_size, shape)
+    n = NUM_CLASSES - 1
+    votes = [vote_voxels(static[0], static[1], T_grid_from_global, lower, grid.voxel_size, shape, n)]
     for box in boxes:  # (none placed in the control: it has no instance points)
         pts, cls = cloud.instance(box.instance_token)
         if len(pts):
             T = T_grid_from_global @ box.T_global_from_box()
-            vote_voxels(counts, np.ascontiguousarray(pts), cls, T, lower, grid.voxel_size, shape)
-    return majority(counts, grid.shape, FREE_LABEL)
+            votes.append(vote_voxels(np.ascontiguousarray(pts), cls, T, lower, grid.voxel_size, shape, n))
+    return majority(votes, grid.shape, n, FREE_LABEL)
 
 
 def _masks(semantics: np.ndarray, sample: SampleRecord, rays: tuple[np.ndarray, np.ndarray],

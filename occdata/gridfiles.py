@@ -1,0 +1,108 @@
+"""Label files of every grid layout: where they go, writing them, and reading them as each benchmark's
+own loader does (docs/labels.md, "Grids"; the formats were checked against each benchmark's code).
+
+- occ3d: `<root>/<scene name>/<sample token>/labels.npz`, dense `(X, Y, Z) uint8` `semantics`,
+  `mask_lidar`, `mask_camera` (occdata.occ3d).
+- openocc-v2: the same path and arrays with OpenOcc v2's class ids (free 16) and `flow`
+  `(X, Y, Z, 2) float32` (vx, vy) m/s; its loader reads `semantics` and `flow` only.
+- surroundocc: `<root>/samples/<LIDAR_TOP file name>.npy`, sparse `(N, 4) int64` [x, y, z, class] of
+  the occupied voxels (class 0 = noise, read as ignore; absent voxels are empty).
+- openoccupancy: `<root>/scene_<scene token>/occupancy/<LIDAR_TOP sample_data token>.npy`, sparse
+  `(N, 4) int64` [z, y, x, class] (class 0 = noise).
+"""
+
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from occdata.constants import FREE_LABEL
+from occdata.errors import OccDataError
+from occdata.fileio import npz_bytes, write_atomic
+from occdata.grids import GridSpec, LabelLayout
+
+__all__ = ["IGNORE", "LabelSite", "grid_label_path", "read_grid_label", "write_grid_label"]
+
+IGNORE = 255  # what the sparse layouts' loaders turn noise (class 0) into
+
+
+@dataclass(frozen=True)
+class LabelSite:
+    """What names a keyframe's label file in the four layouts."""
+
+    scene_name: str
+    scene_token: str
+    sample_token: str
+    lidar_token: str  # the keyframe's LIDAR_TOP sample_data token
+    lidar_file: str  # its file name, e.g. n008-...__LIDAR_TOP__1537297541450317.pcd.bin
+
+
+def grid_label_path(spec: GridSpec, root: str | Path, site: LabelSite) -> Path:
+    root = Path(root)
+    if spec.layout is LabelLayout.SURROUNDOCC:
+        return root / "samples" / f"{site.lidar_file}.npy"
+    if spec.layout is LabelLayout.OPENOCCUPANCY:
+        return root / f"scene_{site.scene_token}" / "occupancy" / f"{site.lidar_token}.npy"
+    return root / site.scene_name / site.sample_token / "labels.npz"
+
+
+def write_grid_label(spec: GridSpec, root: str | Path, site: LabelSite, labels: dict[str, np.ndarray]) -> Path:
+    """Write one keyframe's labels on `spec` atomically (the same bytes for the same labels).
+
+    labels: `semantics` `(X, Y, Z) uint8` in Occ3D classes (17 = free), and where the layout has them
+    `mask_lidar`, `mask_camera` `(X, Y, Z) uint8` and `flow` `(X, Y, Z, 2) float32`."""
+    sem = labels["semantics"]
+    if sem.shape != spec.shape:
+        raise OccDataError(f"labels of shape {sem.shape} for grid {spec.name} {spec.shape}")
+    path = grid_label_path(spec, root, site)
+    stored = spec.lut()[sem]
+    if spec.layout in (LabelLayout.SURROUNDOCC, LabelLayout.OPENOCCUPANCY):
+        xyz = np.argwhere(sem != FREE_LABEL)  # (N, 3) x, y, z in C order: sorted, so the bytes are fixed
+        cols = xyz if spec.layout is LabelLayout.SURROUNDOCC else xyz[:, ::-1]
+        rows = np.concatenate([cols, stored[tuple(xyz.T)][:, None]], axis=1).astype(np.int64)
+        buf = io.BytesIO()
+        np.lib.format.write_array(buf, rows, allow_pickle=False)
+        write_atomic(path, buf.getvalue())
+        return path
+    arrays = {"semantics": stored}
+    arrays |= {k: labels[k] for k in ("mask_lidar", "mask_camera") if k in labels}
+    if spec.layout is LabelLayout.OPENOCC_V2:
+        flow = labels.get("flow")
+        arrays["flow"] = np.zeros((*spec.shape, 2), np.float32) if flow is None else flow.astype(np.float32)
+    write_atomic(path, npz_bytes(arrays))
+    return path
+
+
+def read_grid_label(spec: GridSpec, path: str | Path) -> dict[str, np.ndarray]:
+    """A label file of `spec` as its benchmark's loader reads it: `semantics` `(X, Y, Z) uint8` dense in
+    the grid's own ids (sparse layouts: 0 = empty, noise -> IGNORE), plus `flow` (openocc-v2) and the
+    masks where the file has them. One `OccDataError` per bad file."""
+    path = Path(path)
+    try:
+        loaded = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise OccDataError(f"bad {spec.name} label {path}: {type(exc).__name__}: {exc}") from None
+    if spec.layout in (LabelLayout.SURROUNDOCC, LabelLayout.OPENOCCUPANCY):
+        return {"semantics": _dense(spec, path, np.asarray(loaded))}
+    with loaded as npz:
+        out = {k: np.asarray(npz[k]) for k in npz.files}
+    if out.get("semantics", np.zeros(0)).shape != spec.shape:
+        raise OccDataError(f"bad {spec.name} label {path}: semantics missing or not of shape {spec.shape}")
+    return out
+
+
+def _dense(spec: GridSpec, path: Path, rows: np.ndarray) -> np.ndarray:
+    """Sparse (N, 4) rows -> dense `(X, Y, Z) uint8`: 0 empty, noise (class 0) -> IGNORE."""
+    if rows.ndim != 2 or rows.shape[1] != 4 or rows.dtype.kind not in "iu":
+        raise OccDataError(f"bad {spec.name} label {path}: expected (N, 4) integer rows, got {rows.shape} {rows.dtype}")
+    xyz = rows[:, :3] if spec.layout is LabelLayout.SURROUNDOCC else rows[:, 2::-1]
+    if len(rows) and ((xyz < 0).any() or (xyz >= np.array(spec.shape)).any()):
+        raise OccDataError(f"bad {spec.name} label {path}: voxel indices outside {spec.shape}")
+    cls = rows[:, 3].copy()
+    cls[cls == 0] = IGNORE
+    dense = np.zeros(spec.shape, np.uint8)
+    dense[tuple(xyz.T)] = cls
+    return dense
