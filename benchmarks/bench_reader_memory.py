@@ -136,10 +136,11 @@ def main() -> None:
         return
     sys.path.insert(0, str(_REPO))
     from benchmarks.common import emit_json
-    from benchmarks.provenance import finish, machine
+    from benchmarks.provenance import finish, git_state, machine
 
-    record = machine(code=str(args.code.resolve()), workers=2, threads_per_worker=1, real_scenes=args.real_scenes,
-                     samples=args.samples, build_lidar_sweeps=args.sweeps,
+    code = args.code.resolve()
+    record = machine(code=str(code), code_commit=git_state(code)[0], workers=2, threads_per_worker=1,
+                     real_scenes=args.real_scenes, samples=args.samples, build_lidar_sweeps=args.sweeps,
                      note="2-core VM shared with other jobs: RSS is the main figure, timings are noisy")
     base = Path(tempfile.mkdtemp(prefix="bench_reader_memory_"))
     trees = args.trees or base / "trees"
@@ -152,7 +153,7 @@ def main() -> None:
         runs[str(n)] = {"tables_mib": round(table_mib, 1)}
         for command in args.commands:
             out = base / f"{command}{n}" / ("data.zarr" if command == "build" else "")
-            runs[str(n)][command] = measure(args.code.resolve(), command, root, out, args.sweeps)
+            runs[str(n)][command] = measure(code, command, root, out, args.sweeps)
             print(n, command, runs[str(n)][command], file=sys.stderr)
     emit_json({"machine": finish(record), "runs": runs}, args.json)
 
