@@ -169,3 +169,26 @@ def test_synth_cli_table_only_options(tmp_path) -> None:
     assert scan_tree(tmp_path / "w", None, check_files=False)["samples_per_split"]["table_only"] == 6
     r = CliRunner().invoke(main, ["synth", "--out", str(tmp_path / "x"), "--table-only-scenes", "-1"])
     assert r.exit_code != 0 and "Traceback" not in r.output
+
+
+def test_real_scene_slice_ships_its_boxes_and_sweeps(real_seq_root) -> None:
+    """Real scene-0916 (41 keyframes, its sweep rows and 1,000+ boxes): the slice a task ships gives
+    every LiDAR sweep the devkit-exact boxes of the full read, and pickles to well under a MB per
+    keyframe's worth of rows."""
+    inputs, _ = load_inputs(LabelsConfig(root=real_seq_root, out=Path("unused"),
+                                         options=LabelOptions(lidar_sweeps=True)))
+    (scene,) = inputs.dataset.scenes
+    part = inputs.for_scene(scene)
+    ds = inputs.dataset
+    n_boxes = sum(len(b) for b in part.annotations.boxes_by_sample.values())
+    assert n_boxes == sum(len(b) for b in inputs.annotations.boxes_by_sample.values()) > 1000
+    assert part.annotations.instance_category.keys() <= inputs.annotations.instance_category.keys()
+    n_sweeps = 0
+    for k, sample in enumerate(part.dataset.samples):
+        for rec in (sample.lidar, *sample.sweeps):
+            n_sweeps += 1
+            full = boxes_for_lidar(inputs.annotations, ds, ds.index_of(sample.token), rec)
+            assert [(b.token, b.timestamp) for b in boxes_for_lidar(part.annotations, part.dataset, k, rec)] == [
+                (b.token, b.timestamp) for b in full]
+    assert n_sweeps > 10 * len(scene.sample_tokens) - 50  # ~10 LiDAR frames per keyframe at 20 Hz
+    assert len(pickle.dumps(part)) < 2_000_000
