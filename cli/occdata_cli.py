@@ -43,9 +43,15 @@ def main() -> None:
 @click.option("--seed", default=0, show_default=True, type=int, help="World seed (same seed, same bytes).")
 @click.option("--width", default=1600, show_default=True, type=click.IntRange(min=16), help="Image width.")
 @click.option("--height", default=900, show_default=True, type=click.IntRange(min=16), help="Image height.")
+@click.option("--table-only-scenes", default=0, show_default=True, type=click.IntRange(min=0), metavar="N",
+              help="Also write N scenes as table rows alone (no sensor files or labels; split table_only): a "
+                   "nuScenes-size tree for memory and start-up measurements.")
+@click.option("--table-only-samples", default=40, show_default=True, type=click.IntRange(min=1), metavar="M",
+              help="Keyframes per table-only scene (nuScenes has about 40).")
 @progress_option()
 @friendly_errors
-def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: int, progress: bool) -> None:
+def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: int, table_only_scenes: int,
+          table_only_samples: int, progress: bool) -> None:
     """Write a synthetic nuScenes-format world with Occ3D labels and exact depth maps.
 
     Tables (v1.0-mini), 6 ray-cast camera images, a 32-beam LiDAR sweep per keyframe and 9
@@ -55,8 +61,10 @@ def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: in
     from occdata.synth import SynthConfig, synthesize
 
     root = synthesize(SynthConfig(out=local_path(out, "--out"), scenes=scenes, samples=samples, seed=seed,
-                                  width=width, height=height, progress=progress))
-    click.echo(f"wrote {scenes} scenes x {samples} samples to {root}")
+                                  width=width, height=height, progress=progress,
+                                  table_only_scenes=table_only_scenes, table_only_samples=table_only_samples))
+    extra = f" (+ {table_only_scenes} table-only scenes)" if table_only_scenes else ""
+    click.echo(f"wrote {scenes} scenes x {samples} samples{extra} to {root}")
 
 
 @main.command()

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import functools
 import json
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -162,15 +161,21 @@ def _settings(header: dict[str, Any]) -> dict[str, Any]:
 
 @dataclass(frozen=True)
 class SceneJob:
-    """One task: label scene `scene` of `cfg`'s tree (small and picklable: never the data).
-    `inputs`: what the runner loaded, for a run in its own process; None on a Dask worker, which
-    loads them once per process (`_worker_inputs`)."""
+    """One task: label scene `scene` of `cfg`'s tree. `inputs` is that scene's slice of what the
+    client read (`SceneInputs.for_scene`: its records, boxes and lidarseg paths, never the tables):
+    a worker holds only its task's rows and never opens a table file, so its memory does not grow
+    with the number of scenes in the tree."""
 
     cfg: LabelsConfig
     scene: str
     settings: str  # JSON of `_settings(header)`, copied into the scene's record
     keyframes: int
-    inputs: SceneInputs | None = field(default=None, compare=False, repr=False)
+    inputs: SceneInputs = field(compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        names = [sc.name for sc in self.inputs.dataset.scenes]
+        if names != [self.scene]:
+            raise ValueError(f"a SceneJob carries the slice of scene {self.scene!r} alone, not of {names[:3]}")
 
     @property
     def units(self) -> int:
@@ -179,20 +184,13 @@ class SceneJob:
     def run(self, should_stop: StopCheck = no_stop) -> dict[str, int]:
         """Label the scene and write its files, then its record (idempotent: a rerun rewrites the same
         bytes). Returns the scene's counts."""
-        inputs = self.inputs if self.inputs is not None else _worker_inputs(self.cfg)
-        scene = next(sc for sc in inputs.dataset.scenes if sc.name == self.scene)
-        labels = label_scene(inputs, scene, self.cfg.options, should_stop)
+        scene = self.inputs.dataset.scenes[0]
+        labels = label_scene(self.inputs, scene, self.cfg.options, should_stop)
         labels, counts = labels[0]["occ3d"], labels[1]
         record = {"settings": json.loads(self.settings), "counts": dataclasses.asdict(counts),
                   "samples": sorted(labels)}
         _write_scene(self.cfg.out, scene.name, labels, record)
         return record["counts"]
-
-
-@functools.lru_cache(maxsize=1)
-def _worker_inputs(cfg: LabelsConfig) -> SceneInputs:
-    """A Dask worker runs many scenes of the same tree: its inputs are read once per process."""
-    return load_inputs(cfg)[0]
 
 
 def run_scene(job: SceneJob) -> dict[str, int]:
@@ -215,8 +213,8 @@ def generate_labels(cfg: LabelsConfig, client: Any = None) -> LabelsReport:
         todo = [sc for sc in inputs.dataset.scenes if not scene_record_path(cfg.out, sc.name).is_file()]
         skipped = len(inputs.dataset.scenes) - len(todo)
         settings = json.dumps(_settings(header), sort_keys=True)
-        here = inputs if client is None and cfg.cluster.in_process() else None  # tasks here reuse what is loaded
-        jobs = [SceneJob(cfg, sc.name, settings, len(sc.sample_tokens), here) for sc in todo]
+        # The tables are read once, here; each task carries its scene's slice (O(scene) to make).
+        jobs = [SceneJob(cfg, sc.name, settings, len(sc.sample_tokens), inputs.for_scene(sc)) for sc in todo]
         with contextlib.nullcontext(client) if client is not None else cluster_client(cfg.cluster) as run_on:
             run_tasks(run_on, jobs, desc="labels", unit="sample", progress=cfg.progress)
         manifest = _commit(cfg.out, header, (sc.name for sc in inputs.dataset.scenes))

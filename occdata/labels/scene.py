@@ -83,6 +83,15 @@ class SceneInputs:
     lidarseg: dict[str, object] = field(default_factory=dict)
     lidarseg_lut: np.ndarray | None = None  # (256,) uint8: lidarseg index -> Occ3D class or DROP
 
+    def for_scene(self, scene: SceneRecord) -> SceneInputs:
+        """What labelling `scene` reads and nothing else: its samples (with their sweeps), their
+        boxes and lidarseg files. A task carries this slice, so a worker's memory does not grow with
+        the tree (a sweep's boxes need only its own sample and that sample's `prev`, both in the scene)."""
+        ds = self.dataset.scene_slice(scene)
+        lidar_tokens = [rec.token for s in ds.samples for rec in (s.lidar, *s.sweeps)]
+        return SceneInputs(ds, self.annotations.for_samples(scene.sample_tokens),
+                           {t: self.lidarseg[t] for t in lidar_tokens if t in self.lidarseg}, self.lidarseg_lut)
+
 
 @dataclass
 class SceneCounts:

@@ -62,6 +62,12 @@ class Annotations:
     boxes_by_sample: dict[str, tuple[BoxRecord, ...]]  # sample token -> its boxes (table order)
     instance_category: dict[str, str]  # instance token -> category name
 
+    def for_samples(self, sample_tokens: Collection[str]) -> Annotations:
+        """The boxes of `sample_tokens` alone, and their instances' categories (a task's slice)."""
+        boxes = {t: self.boxes_by_sample[t] for t in sample_tokens if t in self.boxes_by_sample}
+        instances = dict.fromkeys(b.instance_token for bs in boxes.values() for b in bs)
+        return Annotations(boxes_by_sample=boxes, instance_category={k: self.instance_category[k] for k in instances})
+
     def boxes_at(
         self, sample_token: str, prev_sample_token: str, t0_us: int, t1_us: int, t_us: int
     ) -> tuple[BoxRecord, ...]:

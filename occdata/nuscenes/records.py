@@ -166,6 +166,12 @@ class NuScenesDataset:
             self, scenes=scenes, samples=tuple(s for s in self.samples if s.scene_token in keep)
         )
 
+    def scene_slice(self, scene: SceneRecord) -> NuScenesDataset:
+        """The dataset of one scene alone (what a task on a worker holds), in `O(scene)` time.
+        The tree-wide `warnings` stay with the full dataset (they are reported once, by the client)."""
+        samples = tuple(self.samples[self._index[t]] for t in scene.sample_tokens)
+        return dataclasses.replace(self, scenes=(scene,), samples=samples, warnings=())
+
     def lidar_history(self, index: int, n: int) -> tuple[LidarRecord, ...]:
         """Up to `n` LIDAR_TOP sweeps before sample `index`'s keyframe sweep, nearest first: its own
         `sweeps`, then the previous keyframe's LIDAR_TOP and that keyframe's sweeps, and so on back

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +33,7 @@ from occdata.visibility import camera_mask, lidar_mask
 
 __all__ = [
     "KEYFRAME_PERIOD_US",
+    "TABLE_ONLY_SPLIT",
     "SWEEP_PERIOD_US",
     "LIDAR_AZIMUTH_STEP_DEG",
     "LIDAR_ELEVATIONS_DEG",
@@ -62,6 +64,8 @@ JPEG_QUALITY = 92
 SCENE_SPACING = 3000.0  # m between scene worlds in the global frame
 BASE_TIMESTAMP_US = 1_600_000_000_000_000
 MAP_NAME = "synth-town"
+TABLE_ONLY_SPLIT = "table_only"  # the split of `--table-only-scenes` (build/labels select train, val)
+TABLE_ONLY_BOXES = 34  # boxes per keyframe of a table-only scene: nuScenes trainval's mean (1.17 M / 34,149)
 
 
 @dataclass(frozen=True)
@@ -75,6 +79,8 @@ class SynthConfig:
     width: int = 1600
     height: int = 900
     progress: bool = True
+    table_only_scenes: int = 0  # extra scenes written as table rows alone (`_write_table_only_scene`)
+    table_only_samples: int = 40  # keyframes per table-only scene (nuScenes: 34,149 / 850 = 40.2)
 
 
 @dataclass(frozen=True, eq=False)
@@ -227,7 +233,7 @@ def _render_keyframe(
         ts = t_lidar + (CAMERA_TIME_OFFSETS_US[ch] if is_cam else 0)
         T_global_from_ego = ego_transform(world, ts)
         T_global_from_sensor = T_global_from_ego @ RIG[ch].T_ego_from_sensor
-        rel = f"samples/{ch}/{scene_name}__{ch}__{ts}.{'jpg' if is_cam else 'pcd.bin'}"
+        rel = _sample_file(scene_name, ch, ts)
         if is_cam:
             K = camera_K(ch, width, height)
             # Actors are placed at the camera's own timestamp.
@@ -263,12 +269,25 @@ def _render_keyframe(
     return frames, {"semantics": semantics, "mask_lidar": mask_lidar, "mask_camera": mask_camera}, key_lidar
 
 
+def _sample_file(scene_name: str, channel: str, t_us: int) -> str:
+    return f"samples/{channel}/{scene_name}__{channel}__{t_us}.{'jpg' if channel != LIDAR_CHANNEL else 'pcd.bin'}"
+
+
+def _sweep_file(scene_name: str, t_us: int) -> str:
+    return f"sweeps/{LIDAR_CHANNEL}/{scene_name}__{LIDAR_CHANNEL}__{t_us}.pcd.bin"
+
+
+def _lidarseg_row(sd_token: str) -> dict[str, str]:
+    return {"token": sd_token, "sample_data_token": sd_token,
+            "filename": f"lidarseg/{TABLE_VERSION}/{sd_token}_lidarseg.bin"}
+
+
 def _write_lidarseg(out: Path, sd_token: str, key_lidar: KeyframeLidar) -> dict[str, str]:
     """Write `lidarseg/<version>/<sd_token>_lidarseg.bin` (uint8, one label per point in file order);
     returns its lidarseg.json row."""
-    rel = f"lidarseg/{TABLE_VERSION}/{sd_token}_lidarseg.bin"
-    write_atomic(out / rel, key_lidar.lidarseg.astype(np.uint8).tobytes())
-    return {"token": sd_token, "sample_data_token": sd_token, "filename": rel}
+    row = _lidarseg_row(sd_token)
+    write_atomic(out / row["filename"], key_lidar.lidarseg.astype(np.uint8).tobytes())
+    return row
 
 
 def _annotate(world: SceneWorld, t_lidar: int, key_lidar: KeyframeLidar) -> KeyframeAnnotation:
@@ -308,7 +327,7 @@ def _write_sweep(out: Path, world: SceneWorld, scene_name: str, t_us: int) -> Se
     """Render and write one non-keyframe LIDAR_TOP sweep (actors at `t_us`) under sweeps/."""
     T_global_from_ego = ego_transform(world, t_us)
     points = render_lidar(world, WorldGrid.build(world, t_us), T_global_from_ego @ RIG[LIDAR_CHANNEL].T_ego_from_sensor)
-    rel = f"sweeps/{LIDAR_CHANNEL}/{scene_name}__{LIDAR_CHANNEL}__{t_us}.pcd.bin"
+    rel = _sweep_file(scene_name, t_us)
     write_atomic(out / rel, points.tobytes())
     return SensorFrame(LIDAR_CHANNEL, int(t_us), rel, T_global_from_ego)
 
@@ -380,13 +399,27 @@ def _keyframe_sample_data(sc: _Scene, f: Any, k: int) -> dict[str, Any]:
     }
 
 
+def _sample_row(sc: _Scene, k: int, scene_tok: str) -> dict[str, Any]:
+    return {"token": sc.sample_toks[k], "timestamp": sc.key_times[k], "scene_token": scene_tok,
+            "prev": sc.sample_toks[k - 1] if k > 0 else "", "next": sc.sample_toks[k + 1] if k + 1 < sc.samples else ""}
+
+
+def _add_sensor_rows(sc: _Scene, tables: dict[str, list], k: int, frames: list[SensorFrame],
+                     sweeps: list[tuple[str, SensorFrame]]) -> None:
+    """The ego_pose and sample_data rows of keyframe `k`'s sweeps (token, frame), then of its frames."""
+    for tok, f in sweeps:
+        tables["ego_pose"].append(_pose_row(tok, f.T_global_from_ego, f.timestamp))
+        tables["sample_data"].append(_sweep_row(tok, sc.sample_toks[k], sc.cs_tok[LIDAR_CHANNEL], f, sc.link[tok]))
+    for f in frames:
+        tables["ego_pose"].append(_pose_row(sc.sd_toks[f.channel][k], f.T_global_from_ego, f.timestamp))
+        tables["sample_data"].append(_keyframe_sample_data(sc, f, k))
+
+
 def _write_keyframe(sc: _Scene, tables: dict[str, list], k: int, scene_tok: str) -> KeyframeAnnotation:
     """Render keyframe `k` and the sweeps before it, write their files and labels, add their rows."""
     channels = (*CAMERA_ORDER, LIDAR_CHANNEL)
     t_lidar, s_tok = sc.key_times[k], sc.sample_toks[k]
-    tables["sample"].append({"token": s_tok, "timestamp": t_lidar, "scene_token": scene_tok,
-                             "prev": sc.sample_toks[k - 1] if k > 0 else "",
-                             "next": sc.sample_toks[k + 1] if k + 1 < sc.samples else ""})
+    tables["sample"].append(_sample_row(sc, k, scene_tok))
     window = range(max(0, k - MASK_SWEEP_RADIUS), min(sc.samples, k + MASK_SWEEP_RADIUS + 1))
     near = [sc.key_times[j] for j in window if j != k]
     frames, labels, key_lidar = _render_keyframe(sc.out, sc.world, sc.name, t_lidar,
@@ -396,19 +429,14 @@ def _write_keyframe(sc: _Scene, tables: dict[str, list], k: int, scene_tok: str)
     annotation = _annotate(sc.world, t_lidar, key_lidar)
     sweeps = [(tok, _write_sweep(sc.out, sc.world, sc.name, t)) for tok, t, kk in sc.lidar_chain
               if kk == k and t != t_lidar]
-    for tok, f in sweeps:
-        tables["ego_pose"].append(_pose_row(tok, f.T_global_from_ego, f.timestamp))
-        tables["sample_data"].append(_sweep_row(tok, s_tok, sc.cs_tok[LIDAR_CHANNEL], f, sc.link[tok]))
-    for f in frames:
-        tables["ego_pose"].append(_pose_row(sc.sd_toks[f.channel][k], f.T_global_from_ego, f.timestamp))
-        tables["sample_data"].append(_keyframe_sample_data(sc, f, k))
+    _add_sensor_rows(sc, tables, k, frames, sweeps)
     write_label(label_path(sc.out / "gts", sc.name, s_tok), labels)
     return annotation
 
 
-def _write_scene(config: SynthConfig, si: int, tables: dict[str, list], sensor_tok: dict[str, str],
-                 n_val: int, bar: tqdm) -> None:
-    """Scene `si`: its log, calibrations, scene row, then every keyframe; then its boxes."""
+def _begin_scene(config: SynthConfig, si: int, tables: dict[str, list], sensor_tok: dict[str, str], split: str,
+                 world: SceneWorld | None) -> tuple[_Scene, str]:
+    """Scene `si`'s log, calibration and scene rows; the tokens and links its keyframes share, and its token."""
     seed, channels = config.seed, (*CAMERA_ORDER, LIDAR_CHANNEL)
     log_tok = make_token(seed, "log", si)
     tables["log"].append({"token": log_tok, "logfile": f"synth-s{seed}-{si:04d}", "vehicle": "synth",
@@ -417,27 +445,67 @@ def _write_scene(config: SynthConfig, si: int, tables: dict[str, list], sensor_t
     tables["calibrated_sensor"] += cs_rows.values()
     scene_tok = make_token(seed, "scene", si)
     sample_toks = [make_token(seed, "sample", si, k) for k in range(config.samples)]
-    split = "val" if si >= config.scenes - n_val else "train"
+    what = "Synthetic town drive" if world is not None else "Table rows without sensor files"
     tables["scene"].append({
         "token": scene_tok, "log_token": log_tok, "nbr_samples": config.samples, "name": f"synth-{si:04d}",
-        "description": f"Synthetic town drive, seed {seed}; split={split}",
+        "description": f"{what}, seed {seed}; split={split}",
         "first_sample_token": sample_toks[0], "last_sample_token": sample_toks[-1],
     })
     key_times = keyframe_times(si, config.samples)
     chain = _lidar_chain(seed, si, config.samples, key_times)
     sc = _Scene(
-        out=Path(config.out), world=scene_world(seed, si, config.samples), name=f"synth-{si:04d}",
+        out=Path(config.out), world=world, name=f"synth-{si:04d}",
         samples=config.samples, width=config.width, height=config.height, sample_toks=sample_toks,
         sd_toks={ch: [make_token(seed, "sample_data", si, k, ch) for k in range(config.samples)] for ch in channels},
         cs_tok={ch: row["token"] for ch, row in cs_rows.items()}, key_times=key_times, lidar_chain=chain,
         link={tok: (chain[n - 1][0] if n else "", chain[n + 1][0] if n + 1 < len(chain) else "")
               for n, (tok, _, _) in enumerate(chain)},
     )
+    return sc, scene_tok
+
+
+def _write_scene(config: SynthConfig, si: int, tables: dict[str, list], sensor_tok: dict[str, str],
+                 n_val: int, bar: tqdm) -> None:
+    """Scene `si`: its log, calibrations, scene row, then every keyframe; then its boxes."""
+    split = "val" if si >= config.scenes - n_val else "train"
+    sc, scene_tok = _begin_scene(config, si, tables, sensor_tok, split, scene_world(config.seed, si, config.samples))
     keyframe_anns: list[KeyframeAnnotation] = []
     for k in range(config.samples):
         keyframe_anns.append(_write_keyframe(sc, tables, k, scene_tok))
         bar.update(1)
-    instances, annotations = annotation_rows(seed, si, sample_toks, keyframe_anns)
+    instances, annotations = annotation_rows(config.seed, si, sc.sample_toks, keyframe_anns)
+    tables["instance"] += instances
+    tables["sample_annotation"] += annotations
+
+
+def _write_table_only_scene(config: SynthConfig, si: int, tables: dict[str, list], sensor_tok: dict[str, str]) -> None:
+    """Scene `si` as table rows alone, with no file (image, LiDAR, lidarseg, label, depth) behind them:
+    the rows a reader keeps of a nuScenes-size tree, made in milliseconds (`--table-only-scenes`).
+    Per keyframe as a rendered scene: 7 keyframe and 9 sweep sample_data rows with their ego poses,
+    a lidarseg row, and `TABLE_ONLY_BOXES` boxes (parked cars; the ego drives straight at 5 m/s)."""
+    config = dataclasses.replace(config, samples=config.table_only_samples)
+    sc, scene_tok = _begin_scene(config, si, tables, sensor_tok, TABLE_ONLY_SPLIT, None)
+    x0 = 1000.0 + SCENE_SPACING * si
+
+    def pose(t_us: int) -> np.ndarray:
+        T = np.eye(4)
+        T[:2, 3] = (x0 + 5.0 * (t_us - sc.key_times[0]) / 1e6, 1000.0)
+        return T
+
+    for k, t_lidar in enumerate(sc.key_times):
+        tables["sample"].append(_sample_row(sc, k, scene_tok))
+        times = {ch: t_lidar + CAMERA_TIME_OFFSETS_US.get(ch, 0) for ch in (*CAMERA_ORDER, LIDAR_CHANNEL)}
+        frames = [SensorFrame(ch, t, _sample_file(sc.name, ch, t), pose(t)) for ch, t in times.items()]
+        sweeps = [(tok, SensorFrame(LIDAR_CHANNEL, t, _sweep_file(sc.name, t), pose(t)))
+                  for tok, t, kk in sc.lidar_chain if kk == k and t != t_lidar]
+        _add_sensor_rows(sc, tables, k, frames, sweeps)
+        tables["lidarseg"].append(_lidarseg_row(sc.sd_toks[LIDAR_CHANNEL][k]))
+    n = TABLE_ONLY_BOXES
+    centers = np.stack([x0 + 8.0 * np.arange(n), np.full(n, 1006.0), np.full(n, 0.85)], axis=1)
+    boxes = ObjectBoxes(tuple(f"static-{i}" for i in range(n)), ("car",) * n, centers,
+                        np.tile([1.9, 4.6, 1.7], (n, 1)), np.zeros(n), np.zeros(n))
+    keyframe = KeyframeAnnotation(boxes, np.zeros(n, np.int64), np.full(n, 4, np.int64))
+    instances, annotations = annotation_rows(config.seed, si, sc.sample_toks, [keyframe] * config.samples)
     tables["instance"] += instances
     tables["sample_annotation"] += annotations
 
@@ -452,6 +520,8 @@ def synthesize(config: SynthConfig) -> Path:
     """
     if config.scenes < 1 or config.samples < 1:
         raise OccDataError("--scenes and --samples must be >= 1")
+    if config.table_only_scenes < 0 or config.table_only_samples < 1:
+        raise OccDataError("--table-only-scenes must be >= 0 and --table-only-samples >= 1")
     if config.width < 16 or config.height < 16:
         raise OccDataError("--width and --height must be >= 16")
     out = Path(config.out)
@@ -463,6 +533,8 @@ def synthesize(config: SynthConfig) -> Path:
     with tqdm(total=config.scenes * config.samples, desc="synth", unit="sample", disable=not config.progress) as bar:
         for si in range(config.scenes):
             _write_scene(config, si, tables, sensor_tok, n_val, bar)
+    for si in range(config.scenes, config.scenes + config.table_only_scenes):
+        _write_table_only_scene(config, si, tables, sensor_tok)
     log_tokens = [r["token"] for r in tables["log"]]
     tables["map"] = [{"token": make_token(config.seed, "map", MAP_NAME), "log_tokens": log_tokens,
                       "category": "semantic_prior", "filename": f"maps/{MAP_NAME}.png"}]
