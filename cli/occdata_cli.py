@@ -18,6 +18,7 @@ from cli.options import (
     root_options,
     store_option,
 )
+from occdata.grids import GRID_NAMES, grids_from_options
 
 if TYPE_CHECKING:
     from occdata.runtime.cluster import ClusterConfig
@@ -165,7 +166,8 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
 @main.command()
 @root_options()
 @click.option("--out", required=True, metavar="DIR",
-              help="Output folder: <out>/<scene>/<sample_token>/labels.npz (Occ3D's layout) + labels.json.")
+              help="Output folder: <out>/<scene>/<sample_token>/labels.npz (Occ3D's layout), other grids in "
+                   "<out>/<grid>/, and the manifest labels.json.")
 @click.option("--split", "splits", multiple=True, help="Only scenes of this split (repeatable).")
 @click.option("--scene", "scenes", multiple=True, help="Only this scene (repeatable), e.g. scene-0916.")
 @click.option("--lidar-sweeps", is_flag=True,
@@ -177,30 +179,44 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
               help="Metres within which a sweep point takes the class of the nearest labelled keyframe point.")
 @click.option("--no-boxes", is_flag=True,
               help="The control: aggregate every point in the global frame, ignoring boxes (moving objects smear).")
+@click.option("--grid", "grids", multiple=True, type=click.Choice(list(GRID_NAMES)),
+              help="A benchmark's grid to write (repeatable; one aggregation serves all): occ3d (default; 0.4 m, "
+                   "key ego, OUT/<scene>/<token>/labels.npz), openocc-v2 (its classes + flow), surroundocc (0.5 m, "
+                   "LiDAR frame, sparse .npy), openoccupancy (0.2 m, 512x512x40, LiDAR frame). Grids other than "
+                   "occ3d go to OUT/<grid>/ in their benchmark's own layout.")
+@click.option("--voxel-size", type=click.FloatRange(0.05, 2.0), default=None,
+              help="Also write a custom grid: Occ3D's frame, classes and layout at this voxel size (m), in "
+                   "OUT/occ3d-<size>m/.")
+@click.option("--range", "grid_range", type=float, nargs=6, default=None,
+              metavar="XMIN YMIN ZMIN XMAX YMAX ZMAX",
+              help="The custom grid's range in metres (key ego; default Occ3D's -40 -40 -1 40 40 5.4).")
 @cluster_options(per_worker=", one scene each at a time")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run: finished scenes are skipped.")
 @progress_option()
 @friendly_errors
 def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], scenes: tuple[str, ...],
-           lidar_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, cluster: ClusterConfig,
+           lidar_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, grids: tuple[str, ...],
+           voxel_size: float | None, grid_range: tuple[float, ...] | None, cluster: ClusterConfig,
            resume: bool, progress: bool) -> None:
-    """Generate Occ3D-style occupancy labels from LiDAR and 3D boxes (and lidarseg when present).
+    """Generate occupancy labels from LiDAR and 3D boxes (and lidarseg when present), on the grid of
+    Occ3D-nuScenes and, with --grid / --voxel-size, of other benchmarks.
 
     Per scene: LiDAR points aggregated over time, static points in the global frame, points inside a
-    box in that box's frame (moving objects stay sharp), a majority vote of point classes per 0.4 m
-    voxel of each keyframe's grid, then LiDAR and camera visibility masks. The output is read by
-    `occdata build --gts OUT`. See docs/labels.md.
+    box in that box's frame (moving objects stay sharp); then per keyframe and grid a majority vote of
+    point classes per voxel, and LiDAR and camera visibility masks where the layout has them. The
+    Occ3D output is read by `occdata build --gts OUT`. See docs/labels.md.
     """
     from occdata.labels import LabelOptions, LabelsConfig, generate_labels
 
     out_path = local_path(out, "--out")
+    specs = grids_from_options(grids, voxel_size, grid_range)
     with exit_on_interrupt(f"interrupted: finished scenes are kept in {out_path}; rerun with --resume to continue"):
         report = generate_labels(LabelsConfig(
             root=local_path(root, "--root"), out=out_path, version=version, splits=splits or None,
             scenes=scenes or None, resume=resume, progress=progress,
             options=LabelOptions(lidar_sweeps=lidar_sweeps, static_class=static_class, knn_radius=knn_radius,
                                  use_boxes=not no_boxes),
-            cluster=cluster,
+            cluster=cluster, grids=specs,
         ))
     seg = "lidarseg classes" if report.with_lidarseg else f"no lidarseg: static points are class {static_class}"
     click.echo(f"{out_path}: {report.scenes_done} scene(s) labelled, {report.scenes_skipped} already done, "

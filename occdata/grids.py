@@ -14,8 +14,10 @@ from enum import StrEnum
 import numpy as np
 
 from occdata.constants import CLASS_NAMES, FREE_LABEL, NUM_CLASSES, OccGrid
+from occdata.errors import OccDataError
 
-__all__ = ["GRID_PRESETS", "GridSpec", "LabelFrame", "LabelLayout", "custom_grid", "grid_preset"]
+__all__ = ["GRID_NAMES", "GRID_PRESETS", "GridSpec", "LabelFrame", "LabelLayout", "custom_grid", "grid_preset",
+           "grids_from_options"]
 
 
 class LabelFrame(StrEnum):
@@ -126,3 +128,21 @@ def custom_grid(voxel_size: float, lower: tuple[float, float, float], upper: tup
     b = grid_preset(base)
     return GridSpec(f"{base}-{voxel_size:g}m", OccGrid(tuple(lower), tuple(upper), float(voxel_size)),  # type: ignore[arg-type]
                     b.frame, b.layout, b.class_map, b.class_names, b.free_value, b.masks)
+
+
+GRID_NAMES = tuple(GRID_PRESETS)
+
+
+def grids_from_options(names: tuple[str, ...] = (), voxel_size: float | None = None,
+                       grid_range: tuple[float, ...] | None = None) -> tuple[GridSpec, ...]:
+    """The grids of `occdata labels --grid ... [--voxel-size V] [--range ...]`: the named presets, plus a
+    custom Occ3D-style grid when a voxel size or a range is given; Occ3D's alone when nothing is."""
+    try:
+        specs = [grid_preset(n) for n in dict.fromkeys(names)]
+        if voxel_size is not None or grid_range is not None:
+            occ = GRID_PRESETS["occ3d"].grid
+            lo, hi = (occ.lower, occ.upper) if grid_range is None else (tuple(grid_range[:3]), tuple(grid_range[3:]))
+            specs.append(custom_grid(occ.voxel_size if voxel_size is None else voxel_size, lo, hi))
+    except ValueError as exc:
+        raise OccDataError(str(exc)) from None
+    return tuple(specs) or (GRID_PRESETS["occ3d"],)

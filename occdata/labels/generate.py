@@ -1,8 +1,10 @@
-"""`occdata labels`: Occ3D-layout labels for every scene of a nuScenes-format tree.
+"""`occdata labels`: occupancy labels for every scene of a nuScenes-format tree, on one or more grids.
 
-Output: `<out>/<scene>/<sample_token>/labels.npz` (`semantics`, `mask_lidar`, `mask_camera`, uint8
+Output per grid (`occdata.grids`; one aggregation per scene serves them all): the Occ3D grid in
+`<out>/<scene>/<sample_token>/labels.npz` (`semantics`, `mask_lidar`, `mask_camera`, uint8
 (200, 200, 16), 17 = free), exactly Occ3D's layout, so `occdata build --gts <out>` and every peer
-codebase read it. A scene is one task: its files are written atomically, then its record
+codebase read it; every other grid in `<out>/<grid name>/` in its benchmark's own layout
+(`occdata.gridfiles`). A scene is one task: its files are written atomically, then its record
 `<out>/.scenes/<scene>.json` (the scene is finished only once that exists), and at the end the
 manifest `<out>/labels.json` is assembled from the records (idempotent). `--resume` skips scenes
 with a record. The same input gives byte-identical files.
@@ -19,16 +21,15 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from occdata.constants import CLASS_NAMES
 from occdata.errors import OccDataError
 from occdata.fileio import remove_stale_temps, write_atomic
+from occdata.gridfiles import LabelSite, write_grid_label
+from occdata.grids import GRID_PRESETS, GridSpec
 from occdata.labels.scene import LabelOptions, SceneInputs, label_scene
-from occdata.nuscenes import NuScenesDataset, find_version, load_nuscenes, validate_sample
+from occdata.nuscenes import NuScenesDataset, SampleRecord, find_version, load_nuscenes, validate_sample
 from occdata.nuscenes.annotations import load_annotations
 from occdata.nuscenes.lidarseg import lidarseg_index_names, load_lidarseg_index, occ3d_lut
-from occdata.occ3d import label_path, write_label
 from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks
 from occdata.runtime.lock import store_lock
 from occdata.runtime.tasks import StopCheck, no_stop
@@ -55,10 +56,19 @@ class LabelsConfig:
     resume: bool = False
     progress: bool = True
     cluster: ClusterConfig = ClusterConfig()
+    grids: tuple[GridSpec, ...] = (GRID_PRESETS["occ3d"],)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "root", Path(self.root))
         object.__setattr__(self, "out", Path(self.out))
+        names = [g.name for g in self.grids]
+        if not names or len(set(names)) != len(names):
+            raise ValueError(f"grids must be one or more distinct grids, got {names}")
+
+    def grid_root(self, spec: GridSpec) -> Path:
+        """Where `spec`'s files go: `out` itself for Occ3D's grid (what `occdata build --gts` reads),
+        `out/<grid name>` for the others."""
+        return self.out if spec.name == "occ3d" else self.out / spec.name
 
 
 @dataclass(frozen=True)
@@ -112,7 +122,23 @@ def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool) -> dict[str, 
                     f"points in a box: the box's category; static points: class {static}"),
         "layout": "<scene>/<sample_token>/labels.npz: semantics, mask_lidar, mask_camera; uint8 (200, 200, 16); "
                   "17 = free",
+        "grids": [{**spec.describe(), "folder": str(cfg.grid_root(spec).relative_to(cfg.out)),
+                   "files": _GRID_FILES[str(spec.layout)]} for spec in cfg.grids],
     }
+
+
+# The manifest's words for each layout (occdata.gridfiles has the details).
+_GRID_FILES = {
+    "occ3d": "<scene>/<sample_token>/labels.npz: semantics, mask_lidar, mask_camera, uint8 (X, Y, Z) in the key "
+             "ego frame; ids as 'classes' (17 = free); masks 0/1",
+    "openocc-v2": "<scene>/<sample_token>/labels.npz: semantics uint8 (X, Y, Z) in OpenOcc v2's ids (16 = free; "
+                  "our 'others' written as free), flow float32 (X, Y, Z, 2) (vx, vy) m/s in the key ego frame "
+                  "(zero where not computed), mask_lidar, mask_camera (extra keys its loader ignores)",
+    "surroundocc": "samples/<LIDAR_TOP file name>.npy: int64 (N, 4) [x, y, z, class] of the occupied voxels in the "
+                   "keyframe's LIDAR_TOP frame; class 0 = noise (our 'others'), absent voxels empty; no masks",
+    "openoccupancy": "scene_<scene token>/occupancy/<LIDAR_TOP sample_data token>.npy: int64 (N, 4) [z, y, x, "
+                     "class] of the occupied voxels in the LIDAR_TOP frame; class 0 = noise; no masks",
+}
 
 
 def _package_version() -> str:
@@ -122,11 +148,8 @@ def _package_version() -> str:
         return "unknown"
 
 
-def _write_scene(out: Path, scene: str, labels: dict[str, dict[str, np.ndarray]], record: dict[str, Any]) -> None:
-    """Each keyframe's file atomically, then the scene's record (its completion mark)."""
-    for token, arrays in labels.items():
-        write_label(label_path(out, scene, token), arrays)
-    write_atomic(scene_record_path(out, scene), json.dumps(record, indent=1, sort_keys=True).encode())
+def _site(sample: SampleRecord) -> LabelSite:
+    return LabelSite(sample.scene_name, sample.scene_token, sample.token, sample.lidar.token, sample.lidar.path.name)
 
 
 def _commit(out: Path, header: dict[str, Any], scenes: Iterable[str]) -> Path:
@@ -156,7 +179,7 @@ def _check_out(cfg: LabelsConfig, header: dict[str, Any]) -> None:
 
 def _settings(header: dict[str, Any]) -> dict[str, Any]:
     return {"algorithm_version": header["algorithm_version"], "options": header["options"],
-            "lidarseg": header["lidarseg"]}
+            "lidarseg": header["lidarseg"], "grids": [g["name"] for g in header["grids"]]}
 
 
 @dataclass(frozen=True)
@@ -185,11 +208,15 @@ class SceneJob:
         """Label the scene and write its files, then its record (idempotent: a rerun rewrites the same
         bytes). Returns the scene's counts."""
         scene = self.inputs.dataset.scenes[0]
-        labels = label_scene(self.inputs, scene, self.cfg.options, should_stop)
-        labels, counts = labels[0]["occ3d"], labels[1]
+        labels, counts = label_scene(self.inputs, scene, self.cfg.options, should_stop, self.cfg.grids)
         record = {"settings": json.loads(self.settings), "counts": dataclasses.asdict(counts),
-                  "samples": sorted(labels)}
-        _write_scene(self.cfg.out, scene.name, labels, record)
+                  "samples": sorted(labels[self.cfg.grids[0].name])}
+        sites = {s.token: _site(s) for s in self.inputs.dataset.samples if s.scene_token == scene.token}
+        for spec in self.cfg.grids:
+            for token, arrays in labels[spec.name].items():
+                write_grid_label(spec, self.cfg.grid_root(spec), sites[token], arrays)
+        write_atomic(scene_record_path(self.cfg.out, scene.name),
+                     json.dumps(record, indent=1, sort_keys=True).encode())
         return record["counts"]
 
 
