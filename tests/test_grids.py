@@ -202,3 +202,21 @@ def test_the_lidar_frame_grid_holds_the_same_surfaces_in_the_global_frame(world:
             pick = cls == c
             near[pick] = grown[tuple(o_idx[inside][pick].T)]
         assert near.mean() >= 0.97, near.mean()
+
+
+def test_train_on_a_store_of_another_grid_stops_at_start_in_one_line(synth_store: Path, tmp_path: Path) -> None:
+    import shutil
+
+    import zarr
+
+    from cli.fastocc_cli import main as fastocc_main
+
+    store = tmp_path / "other_grid.zarr"
+    shutil.copytree(synth_store, store)
+    group = zarr.open_group(str(store), mode="r+")
+    group.attrs["grid"] = {**group.attrs["grid"], "voxel_size": 0.2, "shape": [400, 400, 32]}
+    res = CliRunner().invoke(fastocc_main, ["train", "--store", str(store), "--out", str(tmp_path / "run"),
+                                            "--epochs", "1", "--no-progress"])
+    assert res.exit_code == 1, res.output
+    assert "labels are on a grid of shape (400, 400, 32), 0.2 m" in res.output
+    assert "Traceback" not in res.output

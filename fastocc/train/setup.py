@@ -165,8 +165,23 @@ def build_model(run: Run) -> nn.Module:
     return model.to(run.info.device)
 
 
+def check_store_grid(store: str | Path, model_cfg: ModelConfig) -> None:
+    """Stop at start, in one line, when the store's labels are on another grid than the model predicts
+    (rather than with a shape error deep in the loss)."""
+    from occdata.store.reader import open_store
+
+    g = open_store(store).attrs.get("grid", {})
+    want = model_cfg.fine_grid
+    got = (tuple(g.get("shape", ())), g.get("voxel_size"), tuple(g.get("lower", ())))
+    if got != (want.shape, want.voxel_size, tuple(want.lower)):
+        raise OccDataError(f"{store}: its labels are on a grid of shape {got[0]}, {got[1]} m voxels from {got[2]}; "
+                           f"this model predicts {want.shape} voxels of {want.voxel_size} m from {tuple(want.lower)} "
+                           "(Occ3D's grid): build the store from labels on that grid (occdata labels --grid occ3d)")
+
+
 def loss_config(run: Run) -> LossConfig:
     c, info = run.cfg, run.info
+    check_store_grid(c.store, run.model_cfg)
     weights = None
     if c.class_weights:
         counts = None
