@@ -26,6 +26,7 @@ __all__ = [
     "points_in_boxes",
     "points_in_boxes_reference",
     "majority",
+    "vote_sources",
     "vote_voxels",
     "vote_voxels_reference",
 ]
@@ -121,6 +122,36 @@ def majority(votes: list[np.ndarray], shape: tuple[int, int, int], n_classes: in
     out = np.full(int(np.prod(shape)), empty, np.uint8)
     out[voxel[first]] = cls[first]
     return out.reshape(shape)
+
+
+def vote_sources(votes: list[np.ndarray], semantics: np.ndarray, n_classes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Which vote list gave each voxel its class. `votes[s]` are source s's `vote_voxels` keys (source 0
+    the static scene, 1.. one placed box each); `semantics (X, Y, Z) uint8` is `majority`'s output.
+
+    Returns `voxel (V,) int64` flat indices of the voxels some source s >= 1 votes in, and `source (V,)
+    int64`: the source with the most votes there for the voxel's class, ties to the lowest s (so the
+    static scene wins a tie). Source 0's votes elsewhere are never sorted: a scene's static points
+    outnumber its boxes' by far."""
+    if len(votes) < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    cand = np.unique(np.concatenate([np.zeros(0, np.int64), *votes[1:]]) // n_classes)
+    winner_flat = semantics.reshape(-1)
+    vox_l, src_l = [], []
+    for s, keys in enumerate(votes):
+        vox, cls = np.divmod(keys, n_classes)
+        if s == 0 and len(cand):
+            pos = np.minimum(np.searchsorted(cand, vox), len(cand) - 1)
+            vox, cls = vox[cand[pos] == vox], cls[cand[pos] == vox]
+        keep = cls == winner_flat[vox]
+        vox_l.append(vox[keep])
+        src_l.append(np.full(int(keep.sum()), s, np.int64))
+    pair, counts = np.unique(np.concatenate(vox_l) * len(votes) + np.concatenate(src_l), return_counts=True)
+    vox, src = np.divmod(pair, len(votes))
+    order = np.lexsort((src, -counts, vox))  # per voxel: most votes first, then the lowest source
+    vox, src = vox[order], src[order]
+    first = np.ones(len(vox), bool)
+    first[1:] = vox[1:] != vox[:-1]
+    return vox[first], src[first]
 
 
 @njit(cache=True)

@@ -26,7 +26,7 @@ import numpy as np
 from occdata.constants import EGO_BOX, FREE_LABEL, NUM_CLASSES, OccGrid
 from occdata.geometry import invert_rigid, transform_points
 from occdata.grids import GRID_PRESETS, GridSpec, LabelFrame
-from occdata.labels.kernels import NO_LABEL, NearestIndex, majority, points_in_boxes, vote_voxels
+from occdata.labels.kernels import NO_LABEL, NearestIndex, majority, points_in_boxes, vote_sources, vote_voxels
 from occdata.nuscenes import LidarRecord, NuScenesDataset, SampleRecord, SceneRecord, load_lidar_points
 from occdata.nuscenes.annotations import Annotations, BoxRecord, boxes_for_lidar, moving_instances
 from occdata.nuscenes.lidarseg import DROP, OCC3D_FROM_LIDARSEG, read_lidarseg
@@ -268,20 +268,40 @@ def T_grid_from_keyego(sample: SampleRecord, spec: GridSpec) -> np.ndarray:
     return np.eye(4)
 
 
-def _semantics(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tuple[BoxRecord, ...],
-               T_grid_from_global: np.ndarray, grid: OccGrid) -> np.ndarray:
-    """`(X, Y, Z) uint8` majority Occ3D class per voxel of `grid` of the static points and each box's
-    instance points placed at that box's pose; FREE_LABEL where no point falls."""
+def _votes(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tuple[BoxRecord, ...],
+           T_grid_from_global: np.ndarray, grid: OccGrid) -> tuple[list[np.ndarray], list[int]]:
+    """`vote_voxels` keys on `grid` of the static points (first) and of each box's instance points placed
+    at that box's pose (then one list per box with points), and the index in `boxes` of each list
+    after the first."""
     shape = np.array(grid.shape, np.int64)
     lower = np.array(grid.lower, np.float64)
     n = NUM_CLASSES - 1
     votes = [vote_voxels(static[0], static[1], T_grid_from_global, lower, grid.voxel_size, shape, n)]
-    for box in boxes:  # (none placed in the control: it has no instance points)
+    box_of_vote = []
+    for b, box in enumerate(boxes):  # (none placed in the control: it has no instance points)
         pts, cls = cloud.instance(box.instance_token)
         if len(pts):
             T = T_grid_from_global @ box.T_global_from_box()
             votes.append(vote_voxels(np.ascontiguousarray(pts), cls, T, lower, grid.voxel_size, shape, n))
-    return majority(votes, grid.shape, n, FREE_LABEL)
+            box_of_vote.append(b)
+    return votes, box_of_vote
+
+
+def _flow(votes: list[np.ndarray], box_of_vote: list[int], semantics: np.ndarray, v_global: np.ndarray,
+          R_grid_from_global: np.ndarray) -> np.ndarray:
+    """`(X, Y, Z, 2) float32` m/s (vx, vy) in the grid's frame: per voxel, the ground velocity
+    `v_global (B, 3)` (NaN already 0) of the box whose placed points cast most of the votes for the
+    voxel's class (`vote_sources`: ties to the static scene, then to the lower box index); 0 where
+    the static scene won and in free space. vz is dropped before rotating: velocity over the ground."""
+    flow = np.zeros((semantics.size, 2), np.float32)
+    voxel, source = vote_sources(votes, semantics, NUM_CLASSES - 1)
+    on_box = source > 0
+    if on_box.any():
+        v_ground = np.asarray(v_global, np.float64).reshape(-1, 3) * (1.0, 1.0, 0.0)
+        v_grid = v_ground @ np.asarray(R_grid_from_global, np.float64).T
+        box = np.asarray(box_of_vote, np.int64)[source[on_box] - 1]
+        flow[voxel[on_box]] = v_grid[box, :2]
+    return flow.reshape(*semantics.shape, 2)
 
 
 def _masks(semantics: np.ndarray, sample: SampleRecord, rays: tuple[np.ndarray, np.ndarray],
@@ -303,15 +323,34 @@ def _masks(semantics: np.ndarray, sample: SampleRecord, rays: tuple[np.ndarray, 
 
 
 def _grid_labels(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tuple[BoxRecord, ...],
-                 sample: SampleRecord, rays: tuple[np.ndarray, np.ndarray], spec: GridSpec) -> dict[str, np.ndarray]:
+                 sample: SampleRecord, rays: tuple[np.ndarray, np.ndarray], spec: GridSpec,
+                 v_global: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """One keyframe on one grid: `semantics` in Occ3D classes (17 = free) and, where the grid's layout
-    has them, the masks; all `(X, Y, Z) uint8` in the grid's frame."""
+    has them, the masks; all `(X, Y, Z) uint8` in the grid's frame. With `v_global (B, 3)` (m/s, global,
+    one row per box of `boxes`, NaN as 0) also `flow (X, Y, Z, 2) float32` (`_flow`)."""
     T = T_grid_from_keyego(sample, spec) @ invert_rigid(sample.T_global_from_keyego)
-    semantics = _semantics(static, cloud, boxes, T, spec.grid)
-    if not spec.masks:
-        return {"semantics": semantics}
-    m_lidar, m_camera = _masks(semantics, sample, rays, spec)
-    return {"semantics": semantics, "mask_lidar": m_lidar, "mask_camera": m_camera}
+    votes, box_of_vote = _votes(static, cloud, boxes, T, spec.grid)
+    semantics = majority(votes, spec.grid.shape, NUM_CLASSES - 1, FREE_LABEL)
+    out = {"semantics": semantics}
+    if spec.masks:
+        out["mask_lidar"], out["mask_camera"] = _masks(semantics, sample, rays, spec)
+    if v_global is not None:
+        out["flow"] = _flow(votes, box_of_vote, semantics, v_global, T[:3, :3])
+    return out
+
+
+def _box_velocities(inputs: SceneInputs, keyframe_boxes: list[tuple[BoxRecord, ...]],
+                    held: list[tuple[BoxRecord, ...]]) -> list[np.ndarray]:
+    """Per keyframe, `v_global (B, 3) float64` m/s of its boxes then its held boxes: the devkit's
+    `box_velocity` of each annotated box (NaN, no usable neighbour: 0), 0 for a held (parked) one."""
+    by_token = inputs.annotations.box_velocities()
+    out = []
+    for boxes, parked in zip(keyframe_boxes, held, strict=True):
+        v = np.zeros((len(boxes) + len(parked), 3))
+        for b, box in enumerate(boxes):
+            v[b] = by_token.get(box.token, np.zeros(3))
+        out.append(np.nan_to_num(v, nan=0.0))
+    return out
 
 
 def _held_static(keyframe_boxes: list[tuple[BoxRecord, ...]], travel: float) -> list[tuple[BoxRecord, ...]]:
@@ -339,10 +378,11 @@ def _no_stop() -> None:
 
 def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions,
                 should_stop: Callable[[], None] = _no_stop, grids: tuple[GridSpec, ...] = (GRID_PRESETS["occ3d"],),
-                ) -> tuple[dict[str, dict[str, dict[str, np.ndarray]]], SceneCounts]:
+                flow: bool = False) -> tuple[dict[str, dict[str, dict[str, np.ndarray]]], SceneCounts]:
     """Labels of every keyframe of `scene` on each of `grids` from one aggregation: grid name -> sample
     token -> {"semantics"[, "mask_lidar", "mask_camera"]} `(X, Y, Z) uint8` in Occ3D classes (17 = free;
-    the writers map them to the grid's ids), and the scene's point counts.
+    the writers map them to the grid's ids), and the scene's point counts. With `flow`, each also holds
+    `flow (X, Y, Z, 2) float32`: the box velocity (m/s, grid frame) of its object voxels (`_flow`).
     `should_stop()` is called between frames (nothing is written here): it raises to stop the run."""
     ds = inputs.dataset
     indices = [ds.index_of(t) for t in scene.sample_tokens]
@@ -384,9 +424,11 @@ def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions,
     out: dict[str, dict[str, dict[str, np.ndarray]]] = {spec.name: {} for spec in grids}
     keyframe_boxes = [boxes_for_lidar(inputs.annotations, ds, i, ds.samples[i].lidar) for i in indices]
     held = _held_static(keyframe_boxes, opts.hold_static)
+    v_global = _box_velocities(inputs, keyframe_boxes, held) if flow else [None] * len(indices)
     for n, i in enumerate(indices):
         s = ds.samples[i]
         for spec in grids:
             should_stop()
-            out[spec.name][s.token] = _grid_labels(static, cloud, keyframe_boxes[n] + held[n], s, rays[s.token], spec)
+            out[spec.name][s.token] = _grid_labels(static, cloud, keyframe_boxes[n] + held[n], s, rays[s.token], spec,
+                                                   v_global[n])
     return out, counts

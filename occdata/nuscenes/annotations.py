@@ -26,8 +26,8 @@ from occdata.nuscenes.records import LidarRecord, NuScenesDataset
 from occdata.nuscenes.rows import RowProblem, field, floats, integer, ref, short
 from occdata.nuscenes.tables import iter_table_rows, load_table
 
-__all__ = ["MOVING_TRAVEL_M", "Annotations", "BoxRecord", "boxes_for_lidar", "load_annotations", "moving_instances",
-           "slerp_wxyz"]
+__all__ = ["MOVING_TRAVEL_M", "Annotations", "BoxRecord", "box_velocity", "boxes_for_lidar", "load_annotations",
+           "moving_instances", "slerp_wxyz"]
 
 
 @dataclass(frozen=True, eq=False, slots=True)
@@ -48,6 +48,8 @@ class BoxRecord:
     rotation_wxyz: np.ndarray
     timestamp: int
     num_lidar_pts: int
+    prev: str = ""  # sample_annotation token of the instance's previous box ("" at a track start)
+    next: str = ""  # ... and of its next box ("" at a track end)
 
     def T_global_from_box(self) -> np.ndarray:
         """`(4, 4) float64`: box frame (x forward along the length, y left, z up, origin at the
@@ -89,6 +91,37 @@ class Annotations:
         prev_of = {b.instance_token: b for b in self.boxes_by_sample.get(prev_sample_token, ())}  # last wins
         t = max(t0_us, min(t1_us, t_us))
         return tuple(_interpolated(prev_of.get(b.instance_token), b, t0_us, t1_us, t, t_us) for b in current)
+
+
+    def box_velocities(self, max_time_diff_s: float = 1.5) -> dict[str, np.ndarray]:
+        """sample_annotation token -> `v_global (3,) float64` m/s, `box_velocity` of every box with the
+        neighbours its prev / next name (a scene's slice holds its instances' whole tracks: an
+        instance never leaves its scene). NaN where the devkit gives NaN."""
+        by_token = {b.token: b for boxes in self.boxes_by_sample.values() for b in boxes}
+        return {tok: box_velocity(b, by_token.get(b.prev), by_token.get(b.next), max_time_diff_s)
+                for tok, b in by_token.items()}
+
+
+def box_velocity(box: BoxRecord, prev: BoxRecord | None, next_: BoxRecord | None,
+                 max_time_diff_s: float = 1.5) -> np.ndarray:
+    """`v_global (3,) float64` m/s of `box`, the devkit's `NuScenes.box_velocity`: the centre difference
+    between the instance's previous and next boxes (`box` itself standing in for a missing one) over
+    their sample timestamps. NaN x 3 with neither neighbour, or when the time span exceeds
+    `max_time_diff_s` (doubled when both neighbours exist, as the span is then two steps)."""
+    if prev is None and next_ is None:
+        return np.full(3, np.nan)
+    first = prev if prev is not None else box
+    last = next_ if next_ is not None else box
+    # Each timestamp in seconds first, then the difference: the devkit's rounding (~1e-7 relative), so
+    # that its values are met to the bit.
+    dt_s = 1e-6 * last.timestamp - 1e-6 * first.timestamp
+    if dt_s > (2 * max_time_diff_s if prev is not None and next_ is not None else max_time_diff_s):
+        return np.full(3, np.nan)
+    return (np.asarray(last.center_global, np.float64) - np.asarray(first.center_global, np.float64)) / dt_s
+
+
+def _link(token: Any) -> str:
+    return token if isinstance(token, str) else ""
 
 
 def _interpolated(prev: BoxRecord | None, cur: BoxRecord, t0: int, t1: int, t: int, t_us: int) -> BoxRecord:
@@ -200,7 +233,7 @@ def load_annotations(root: Path, version: str, sample_tokens: Collection[str] | 
             token=row.token, instance_token=row.instance, sample_token=row.sample,
             category=instance_category[row.instance], center_global=columns["translation"][i],
             size_wlh=columns["size"][i], rotation_wxyz=columns["rotation"][i], timestamp=timestamps[i],
-            num_lidar_pts=int(n_pts[i]),
+            num_lidar_pts=int(n_pts[i]), prev=_link(row.prev), next=_link(row.next),
         ))
     return Annotations(
         boxes_by_sample={tok: tuple(b) for tok, b in boxes.items()}, instance_category=instance_category

@@ -1,0 +1,204 @@
+"""Occupancy flow: the devkit's box velocity, which box a voxel takes it from, and its fidelity.
+
+Independent truth: hand-computed velocities, the official devkit's `NuScenes.box_velocity` (run in the
+devkit venv, OCCDATA_DEVKIT_PYTHON), the real scene-0916's boxes (containment computed here, not by the
+generator), and the synthetic world's actor motion (`occdata.synth`: constant speed along the road path,
+differentiated numerically at the keyframe time).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import REAL_SEQ, missing_fixture
+
+from occdata.constants import FREE_LABEL, NUM_CLASSES
+from occdata.geometry import invert_rigid, points_in_box, transform_points
+from occdata.grids import GRID_PRESETS
+from occdata.labels.kernels import majority, vote_sources
+from occdata.labels.scene import LabelOptions, _flow, _held_static, box_class, label_scene
+from occdata.nuscenes.annotations import Annotations, BoxRecord, box_velocity, load_annotations
+
+needs_devkit = pytest.mark.skipif(
+    not os.environ.get("OCCDATA_DEVKIT_PYTHON"),
+    reason="set OCCDATA_DEVKIT_PYTHON to a python with nuscenes-devkit (scripts/devkit_env.sh)",
+)
+N_CLS = NUM_CLASSES - 1
+
+
+def _box(tok: str, x: float, t_s: float, prev: str = "", next_: str = "", y: float = 0.0) -> BoxRecord:
+    return BoxRecord(tok, "inst", "s", "vehicle.car", np.array([x, y, 1.0]), np.array([2.0, 4.0, 1.5]),
+                     np.array([1.0, 0, 0, 0]), int(round(t_s * 1e6)), 10, prev, next_)
+
+
+# --- box_velocity: hand values ------------------------------------------------------------------------
+def test_box_velocity_hand_values() -> None:
+    a, b, c = _box("a", 0.0, 0.0), _box("b", 3.0, 0.5, y=1.0), _box("c", 10.0, 1.0, y=2.0)
+    np.testing.assert_allclose(box_velocity(b, a, c), [10.0, 2.0, 0.0])  # centred: (c - a) / 1 s
+    np.testing.assert_allclose(box_velocity(a, None, b), [6.0, 2.0, 0.0])  # one-sided at the start
+    np.testing.assert_allclose(box_velocity(c, b, None), [14.0, 2.0, 0.0])  # ... and at the end
+    assert np.isnan(box_velocity(a, None, None)).all()  # no neighbour
+    far = _box("f", 16.0, 2.0)
+    assert np.isnan(box_velocity(a, None, far)).all()  # one-sided over 2 s > 1.5 s
+    np.testing.assert_allclose(box_velocity(b, a, far), [8.0, 0.0, 0.0])  # centred over 2 s <= 3 s
+    assert np.isnan(box_velocity(b, a, _box("g", 0.0, 3.5))).all()  # centred over 3.5 s > 3 s
+    np.testing.assert_allclose(box_velocity(a, None, _box("h", 1.5, 1.5)), [1.0, 0.0, 0.0])  # 1.5 s: kept
+
+
+def test_annotations_follow_prev_next_links() -> None:
+    a, b, c = _box("a", 0.0, 0.0, next_="b"), _box("b", 3.0, 0.5, "a", "c"), _box("c", 10.0, 1.0, "b")
+    v = Annotations({"s0": (a,), "s1": (b,), "s2": (c,)}, {"inst": "vehicle.car"}).box_velocities()
+    np.testing.assert_allclose(v["a"], [6.0, 0, 0])
+    np.testing.assert_allclose(v["b"], [10.0, 0, 0])
+    np.testing.assert_allclose(v["c"], [14.0, 0, 0])
+
+
+DEVKIT_VELOCITY = r'''
+import json, sys
+from nuscenes import NuScenes
+nusc = NuScenes(version="v1.0-mini", dataroot=sys.argv[1], verbose=False)
+out = {a["token"]: [None if v != v else float(v) for v in nusc.box_velocity(a["token"])]
+       for a in nusc.sample_annotation}
+json.dump(out, open(sys.argv[2], "w"))
+'''
+
+
+@pytest.fixture(scope="module")
+def seq_root() -> Path:
+    if not (REAL_SEQ / "v1.0-mini" / "sample_annotation.json").is_file():
+        missing_fixture("real nuScenes scene", REAL_SEQ)
+    return REAL_SEQ
+
+
+@needs_devkit
+def test_box_velocity_matches_devkit_on_real_scene(seq_root: Path, tmp_path: Path) -> None:
+    res = subprocess.run([os.environ["OCCDATA_DEVKIT_PYTHON"], "-c", DEVKIT_VELOCITY, str(seq_root),
+                          str(tmp_path / "v.json")], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    devkit = json.loads((tmp_path / "v.json").read_text())
+    ours = load_annotations(seq_root, "v1.0-mini").box_velocities()
+    assert set(ours) == set(devkit) and len(ours) == 2424
+    want = np.array([[np.nan if v is None else v for v in devkit[t]] for t in sorted(devkit)])
+    got = np.array([ours[t] for t in sorted(devkit)])
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    np.testing.assert_allclose(got[~np.isnan(got)], want[~np.isnan(want)], rtol=0, atol=1e-12)
+    assert np.isnan(want[:, 0]).sum() < len(want)  # the scene has usable velocities
+
+
+# --- which box a voxel's flow comes from --------------------------------------------------------------
+def _keys(voxel_class: list[tuple[int, int]]) -> np.ndarray:
+    return np.array([v * N_CLS + c for v, c in voxel_class], np.int64)
+
+
+def test_vote_sources_most_votes_of_the_winning_class() -> None:
+    shape = (2, 2, 2)
+    static = _keys([(0, 15), (0, 15), (1, 4), (2, 11), (3, 4)])
+    box_a = _keys([(1, 4), (1, 4), (2, 4), (3, 4)])  # voxel 1: 2 car votes vs static's 1
+    box_b = _keys([(1, 4), (1, 7), (1, 7), (2, 4), (3, 4), (3, 4)])  # voxel 2: tie with box a; voxel 3: most
+    votes = [static, box_a, box_b]
+    sem = majority(votes, shape, N_CLS, FREE_LABEL)
+    assert sem.reshape(-1)[:4].tolist() == [15, 4, 4, 4]  # voxel 1: car 3 votes vs pedestrian 2
+    voxel, source = vote_sources(votes, sem, N_CLS)
+    # voxel 0: no box votes, not returned; 1: box a (2 car votes; box b's pedestrians do not count);
+    # 2: boxes a and b tie with 1 car vote each, the lower wins; 3: box b's 2 against 1 and 1.
+    assert dict(zip(voxel.tolist(), source.tolist(), strict=True)) == {1: 1, 2: 1, 3: 2}
+    tie_static = [_keys([(5, 4)]), _keys([(5, 4)])]
+    sem = majority(tie_static, shape, N_CLS, FREE_LABEL)
+    assert vote_sources(tie_static, sem, N_CLS)[1].tolist() == [0]  # the static scene wins a tie
+
+
+def test_flow_rotates_the_ground_velocity_into_the_grid() -> None:
+    shape = (2, 2, 2)
+    votes = [_keys([(0, 15)]), _keys([(1, 4)]), _keys([(2, 4)])]
+    sem = majority(votes, shape, N_CLS, FREE_LABEL)
+    yaw = np.pi / 2  # grid x = global y
+    R_grid_from_global = np.array([[np.cos(yaw), np.sin(yaw), 0], [-np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    v_global = np.array([[9.0, 9.0, 9.0], [3.0, 1.0, 5.0], [0.0, -2.0, 0.0]])  # box 0 has no points here
+    flow = _flow(votes, [1, 2], sem, v_global, R_grid_from_global)
+    assert flow.shape == (2, 2, 2, 2) and flow.dtype == np.float32
+    f = flow.reshape(-1, 2)
+    np.testing.assert_allclose(f[1], [1.0, -3.0], atol=1e-6)
+    np.testing.assert_allclose(f[2], [-2.0, 0.0], atol=1e-6)
+    assert not f[[0, *range(3, 8)]].any()
+
+
+# --- real scene-0916: each object voxel's flow is the velocity of the box that holds it ----------------
+@pytest.fixture(scope="module")
+def real_flow(seq_root: Path, tmp_path_factory: pytest.TempPathFactory):  # noqa: ANN201
+    from occdata.labels.generate import LabelsConfig, load_inputs
+
+    inputs, _ = load_inputs(LabelsConfig(root=seq_root, out=tmp_path_factory.mktemp("o"), progress=False))
+    scene = inputs.dataset.scenes[0]
+    scene_inputs = inputs.for_scene(scene)
+    with_flow, _ = label_scene(scene_inputs, scene, LabelOptions(), flow=True)
+    without, _ = label_scene(scene_inputs, scene, LabelOptions())
+    return scene_inputs, with_flow["occ3d"], without["occ3d"]
+
+
+def test_flow_off_changes_nothing_else(real_flow) -> None:  # noqa: ANN001
+    _, with_flow, without = real_flow
+    assert set(with_flow) == set(without)
+    for tok, labels in without.items():
+        assert "flow" not in labels and list(with_flow[tok]) == [*labels, "flow"]
+        for key, arr in labels.items():
+            assert arr.tobytes() == with_flow[tok][key].tobytes()
+
+
+def _voxel_centres(spec_grid, idx: np.ndarray) -> np.ndarray:  # noqa: ANN001
+    return np.asarray(spec_grid.lower) + (idx + 0.5) * spec_grid.voxel_size
+
+
+def real_flow_check(inputs, labels: dict) -> dict[str, int]:  # noqa: ANN001
+    """Counts over the scene's keyframes, for object voxels (classes 1-10; the scene has no lidarseg, so
+    its static points are class 0, as are boxes of "others" categories: class 0 enters the flowing
+    count only): those held by exactly one box of their class (the
+    box grown by the generator's 0.1 m margin and half a voxel diagonal; boxes of the keyframe, and the
+    parked boxes drawn where annotation stopped, velocity 0), those of them whose flow equals that box's
+    velocity rotated into key ego, and flowing voxels whose flow is no holding box's velocity."""
+    grid = GRID_PRESETS["occ3d"].grid
+    vel = inputs.annotations.box_velocities()
+    reach = 0.1 + np.sqrt(3) * grid.voxel_size / 2
+    keyframe_boxes = [inputs.annotations.boxes_by_sample.get(s.token, ()) for s in inputs.dataset.samples]
+    held = _held_static(keyframe_boxes, LabelOptions().hold_static)
+    n = {"held_by_one": 0, "equal": 0, "flowing": 0, "flowing_unexplained": 0}
+    for s, annotated, parked in zip(inputs.dataset.samples, keyframe_boxes, held, strict=True):
+        sem, flow = labels[s.token]["semantics"], labels[s.token]["flow"]
+        idx = np.argwhere(sem <= 10)
+        cls = sem[tuple(idx.T)]
+        R_keyego_from_global = invert_rigid(s.T_global_from_keyego)[:3, :3]
+        centres_global = transform_points(s.T_global_from_keyego, _voxel_centres(grid, idx))
+        boxes = annotated + parked
+        inside = np.zeros((len(idx), len(boxes)), bool)
+        v_grid = np.zeros((len(boxes), 2))
+        for b, box in enumerate(boxes):
+            half = np.array([box.size_wlh[1] / 2, box.size_wlh[0] / 2, box.size_wlh[2] / 2]) + reach
+            inside[:, b] = points_in_box(centres_global, invert_rigid(box.T_global_from_box()), half)
+            inside[:, b] &= cls == box_class(box)
+            if b < len(annotated):
+                v_grid[b] = (R_keyego_from_global @ np.nan_to_num(vel[box.token] * (1, 1, 0)))[:2]
+        f = flow[tuple(idx.T)].astype(np.float64)
+        one = (inside.sum(axis=1) == 1) & (cls >= 1)
+        n["held_by_one"] += int(one.sum())
+        own = v_grid[np.argmax(inside[one], axis=1)]
+        n["equal"] += int(np.all(np.abs(f[one] - own) < 1e-4, axis=1).sum())
+        moving = np.abs(f).max(axis=1) > 0
+        n["flowing"] += int(moving.sum())
+        for i in np.flatnonzero(moving):
+            if not np.any(np.all(np.abs(v_grid[inside[i]] - f[i]) < 1e-4, axis=1)):
+                n["flowing_unexplained"] += 1
+        assert not flow[sem > 10].any(), "free and stuff (ground, manmade, vegetation) voxels have no flow"
+    return n
+
+
+def test_real_scene_flow_is_the_holding_box_velocity(real_flow) -> None:  # noqa: ANN001
+    inputs, with_flow, _ = real_flow
+    n = real_flow_check(inputs, with_flow)
+    print(f"\nscene-0916 flow: {n}  equal share {n['equal'] / max(n['held_by_one'], 1):.4f}")
+    assert n["flowing"] > 100, "the scene must have moving objects for this test to mean anything"
+    assert n["flowing_unexplained"] == 0
+    assert n["equal"] / n["held_by_one"] >= 0.99
