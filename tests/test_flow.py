@@ -130,23 +130,27 @@ def test_flow_rotates_the_ground_velocity_into_the_grid() -> None:
 # --- real scene-0916: each object voxel's flow is the velocity of the box that holds it ----------------
 @pytest.fixture(scope="module")
 def real_flow(seq_root: Path, tmp_path_factory: pytest.TempPathFactory):  # noqa: ANN201
+    """scene-0916 labelled once on the occ3d grid (no flow) and on the openocc-v2 grid (the same grid,
+    with flow), keyframes only (the tree ships no sweep files)."""
     from occdata.labels.generate import LabelsConfig, load_inputs
 
     inputs, _ = load_inputs(LabelsConfig(root=seq_root, out=tmp_path_factory.mktemp("o"), progress=False))
     scene = inputs.dataset.scenes[0]
     scene_inputs = inputs.for_scene(scene)
-    with_flow, _ = label_scene(scene_inputs, scene, LabelOptions(), flow=True)
-    without, _ = label_scene(scene_inputs, scene, LabelOptions())
-    return scene_inputs, with_flow["occ3d"], without["occ3d"]
+    grids = (GRID_PRESETS["occ3d"], GRID_PRESETS["openocc-v2"])
+    labels, _ = label_scene(scene_inputs, scene, LabelOptions(), grids=grids, flow=("openocc-v2",))
+    return scene_inputs, labels["openocc-v2"], labels["occ3d"]
 
 
-def test_flow_off_changes_nothing_else(real_flow) -> None:  # noqa: ANN001
+@pytest.mark.slow
+def test_flow_is_per_grid_and_changes_nothing_else(real_flow) -> None:  # noqa: ANN001
     _, with_flow, without = real_flow
-    assert set(with_flow) == set(without)
+    assert set(with_flow) == set(without) and len(without) == 41
     for tok, labels in without.items():
         assert "flow" not in labels and list(with_flow[tok]) == [*labels, "flow"]
         for key, arr in labels.items():
             assert arr.tobytes() == with_flow[tok][key].tobytes()
+        assert with_flow[tok]["flow"].shape == (200, 200, 16, 2) and with_flow[tok]["flow"].dtype == np.float32
 
 
 def _voxel_centres(spec_grid, idx: np.ndarray) -> np.ndarray:  # noqa: ANN001
@@ -168,7 +172,7 @@ def real_flow_check(inputs, labels: dict) -> dict[str, int]:  # noqa: ANN001
     n = {"held_by_one": 0, "equal": 0, "flowing": 0, "flowing_unexplained": 0}
     for s, annotated, parked in zip(inputs.dataset.samples, keyframe_boxes, held, strict=True):
         sem, flow = labels[s.token]["semantics"], labels[s.token]["flow"]
-        idx = np.argwhere(sem <= 10)
+        idx = np.argwhere(((sem >= 1) & (sem <= 10)) | flow.any(axis=-1))
         cls = sem[tuple(idx.T)]
         R_keyego_from_global = invert_rigid(s.T_global_from_keyego)[:3, :3]
         centres_global = transform_points(s.T_global_from_keyego, _voxel_centres(grid, idx))
@@ -187,14 +191,16 @@ def real_flow_check(inputs, labels: dict) -> dict[str, int]:  # noqa: ANN001
         own = v_grid[np.argmax(inside[one], axis=1)]
         n["equal"] += int(np.all(np.abs(f[one] - own) < 1e-4, axis=1).sum())
         moving = np.abs(f).max(axis=1) > 0
+        explained = np.zeros(len(f), bool)
+        for b in range(len(boxes)):
+            explained |= inside[:, b] & np.all(np.abs(f - v_grid[b]) < 1e-4, axis=1)
         n["flowing"] += int(moving.sum())
-        for i in np.flatnonzero(moving):
-            if not np.any(np.all(np.abs(v_grid[inside[i]] - f[i]) < 1e-4, axis=1)):
-                n["flowing_unexplained"] += 1
+        n["flowing_unexplained"] += int((moving & ~explained).sum())
         assert not flow[sem > 10].any(), "free and stuff (ground, manmade, vegetation) voxels have no flow"
     return n
 
 
+@pytest.mark.slow
 def test_real_scene_flow_is_the_holding_box_velocity(real_flow) -> None:  # noqa: ANN001
     inputs, with_flow, _ = real_flow
     n = real_flow_check(inputs, with_flow)
@@ -202,3 +208,72 @@ def test_real_scene_flow_is_the_holding_box_velocity(real_flow) -> None:  # noqa
     assert n["flowing"] > 100, "the scene must have moving objects for this test to mean anything"
     assert n["flowing_unexplained"] == 0
     assert n["equal"] / n["held_by_one"] >= 0.99
+
+
+# --- synthetic world: flow against the actors' true velocity --------------------------------------------
+SYNTH = {"scenes": 1, "samples": 6, "seed": 11, "width": 320, "height": 180}  # as tests/test_labels.py
+BOX_KIND_CLASSES = (1, 2, 3, 4, 6, 7, 8, 10)  # barrier .. truck: the synthetic world's box kinds
+
+
+def synthetic_flow_errors(world_root: Path, labels: dict, samples) -> dict[str, np.ndarray]:  # noqa: ANN001
+    """Per correctly occupied object voxel (generated class = truth class, a box kind) that lies in exactly
+    one object's box (grown by half a voxel diagonal): `error` |flow - true velocity| (m/s, key ego) and
+    `moving` (the object moves), `speed` its true speed. The truth is the world's exact actor motion at the
+    keyframe time."""
+    from occdata.synth.annotations import object_boxes, object_velocities
+    from occdata.synth.pipeline import ego_transform, scene_world
+
+    world = scene_world(SYNTH["seed"], 0, SYNTH["samples"])
+    grid = GRID_PRESETS["occ3d"].grid
+    reach = np.sqrt(3) * grid.voxel_size / 2
+    err, moving, speed = [], [], []
+    for s in samples:
+        truth = np.load(world_root / "gts" / s.scene_name / s.token / "labels.npz")["semantics"]
+        sem, flow = labels[s.token]["semantics"], labels[s.token]["flow"]
+        idx = np.argwhere((sem == truth) & np.isin(sem, BOX_KIND_CLASSES))
+        T_global_from_keyego = ego_transform(world, s.timestamp)
+        boxes = object_boxes(world, s.timestamp)
+        v_keyego = object_velocities(world, s.timestamp) @ invert_rigid(T_global_from_keyego)[:3, :3].T
+        centres_global = transform_points(T_global_from_keyego, _voxel_centres(grid, idx))
+        inside = np.zeros((len(idx), len(boxes)), bool)
+        for b in range(len(boxes)):
+            c, si = np.cos(boxes.yaw[b]), np.sin(boxes.yaw[b])
+            T_global_from_box = np.array([[c, -si, 0, boxes.center[b, 0]], [si, c, 0, boxes.center[b, 1]],
+                                          [0, 0, 1, boxes.center[b, 2]], [0, 0, 0, 1]])
+            w, length, h = boxes.size_wlh[b]
+            half = np.array([length / 2, w / 2, h / 2]) + reach
+            inside[:, b] = points_in_box(centres_global, invert_rigid(T_global_from_box), half)
+        one = inside.sum(axis=1) == 1
+        owner = np.argmax(inside[one], axis=1)
+        f = flow[tuple(idx[one].T)].astype(np.float64)
+        err.append(np.linalg.norm(f - v_keyego[owner, :2], axis=1))
+        moving.append(boxes.speed[owner] > 0)
+        speed.append(np.linalg.norm(v_keyego[owner, :2], axis=1))
+    return {"error": np.concatenate(err), "moving": np.concatenate(moving), "speed": np.concatenate(speed)}
+
+
+@pytest.fixture(scope="module")
+def synth_flow(tmp_path_factory: pytest.TempPathFactory):  # noqa: ANN201
+    from occdata.labels.generate import LabelsConfig, load_inputs
+    from occdata.synth import SynthConfig, synthesize
+
+    root = synthesize(SynthConfig(out=tmp_path_factory.mktemp("flow") / "world", progress=False, **SYNTH))
+    opts = LabelOptions(lidar_sweeps=True)
+    inputs, _ = load_inputs(LabelsConfig(root=root, out=tmp_path_factory.mktemp("o"), options=opts, progress=False))
+    scene = inputs.dataset.scenes[0]
+    labels, _ = label_scene(inputs.for_scene(scene), scene, opts, flow=True)
+    return root, labels["occ3d"], inputs.dataset.samples
+
+
+@pytest.mark.slow
+def test_synthetic_flow_error_is_small(synth_flow) -> None:  # noqa: ANN001
+    root, labels, samples = synth_flow
+    e = synthetic_flow_errors(root, labels, samples)
+    err, moving = e["error"], e["moving"]
+    print(f"\nsynthetic flow error (m/s) over {len(err)} correct object voxels: median {np.median(err):.2e} "
+          f"p90 {np.percentile(err, 90):.2e} max {err.max():.2e}; moving ({moving.sum()} voxels, true speed "
+          f"{np.percentile(e['speed'][moving], [0, 50, 100]).round(2).tolist()} m/s): median "
+          f"{np.median(err[moving]):.2e} p90 {np.percentile(err[moving], 90):.2e} max {err[moving].max():.2e}")
+    assert moving.sum() > 100, "the world must have moving objects for this test to mean anything"
+    assert np.median(err) < 0.1
+    assert np.median(err[moving]) < 0.1

@@ -18,7 +18,7 @@
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -378,11 +378,13 @@ def _no_stop() -> None:
 
 def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions,
                 should_stop: Callable[[], None] = _no_stop, grids: tuple[GridSpec, ...] = (GRID_PRESETS["occ3d"],),
-                flow: bool = False) -> tuple[dict[str, dict[str, dict[str, np.ndarray]]], SceneCounts]:
+                flow: bool | Collection[str] = False,
+                ) -> tuple[dict[str, dict[str, dict[str, np.ndarray]]], SceneCounts]:
     """Labels of every keyframe of `scene` on each of `grids` from one aggregation: grid name -> sample
     token -> {"semantics"[, "mask_lidar", "mask_camera"]} `(X, Y, Z) uint8` in Occ3D classes (17 = free;
-    the writers map them to the grid's ids), and the scene's point counts. With `flow`, each also holds
-    `flow (X, Y, Z, 2) float32`: the box velocity (m/s, grid frame) of its object voxels (`_flow`).
+    the writers map them to the grid's ids), and the scene's point counts. `flow`: True for every grid,
+    or the names of the grids whose labels also hold `flow (X, Y, Z, 2) float32`, the box velocity (m/s,
+    grid frame) of their object voxels (`_flow`; X*Y*Z*8 bytes a keyframe: 84 MB at 512x512x40).
     `should_stop()` is called between frames (nothing is written here): it raises to stop the run."""
     ds = inputs.dataset
     indices = [ds.index_of(t) for t in scene.sample_tokens]
@@ -424,11 +426,13 @@ def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions,
     out: dict[str, dict[str, dict[str, np.ndarray]]] = {spec.name: {} for spec in grids}
     keyframe_boxes = [boxes_for_lidar(inputs.annotations, ds, i, ds.samples[i].lidar) for i in indices]
     held = _held_static(keyframe_boxes, opts.hold_static)
-    v_global = _box_velocities(inputs, keyframe_boxes, held) if flow else [None] * len(indices)
+    flow_names = {spec.name for spec in grids} if flow is True else set(flow or ())
+    v_global = _box_velocities(inputs, keyframe_boxes, held) if flow_names else []
     for n, i in enumerate(indices):
         s = ds.samples[i]
         for spec in grids:
             should_stop()
-            out[spec.name][s.token] = _grid_labels(static, cloud, keyframe_boxes[n] + held[n], s, rays[s.token], spec,
-                                                   v_global[n])
+            v = v_global[n] if spec.name in flow_names else None
+            boxes = keyframe_boxes[n] + held[n]
+            out[spec.name][s.token] = _grid_labels(static, cloud, boxes, s, rays[s.token], spec, v)
     return out, counts

@@ -34,6 +34,7 @@ __all__ = [
     "annotation_rows",
     "object_boxes",
     "object_parts",
+    "object_velocities",
     "points_in_boxes",
     "rays_hit_parts",
     "visibility_levels",
@@ -126,6 +127,20 @@ def object_boxes(world: SceneWorld, t_us: int) -> ObjectBoxes:
     size = np.array([r[1] for r in rows], np.float64).reshape(-1, 3)
     yaw = np.array([r[2] for r in rows], np.float64)
     return ObjectBoxes(tuple(keys), tuple(kinds), center, size, yaw, np.array(speed, np.float64))
+
+
+def object_velocities(world: SceneWorld, t_us: int, dt_us: int = 1000) -> np.ndarray:
+    """`v_global (B, 3) float64` m/s of the box centre of each object of `object_boxes(world, t_us)`, in
+    that order: the true, instantaneous velocity (a centre difference over +-`dt_us` of the actor's
+    exact pose along its path); 0 for static objects."""
+    out = [np.zeros(3) for _ in world.static_objects]
+    for a in world.actors:
+        if not a.in_world(world.path, t_us):
+            continue
+        c0 = _posed_box(a.parts, *a.pose_at(world.path, t_us - dt_us))[0]
+        c1 = _posed_box(a.parts, *a.pose_at(world.path, t_us + dt_us))[0]
+        out.append((c1 - c0) / (2e-6 * dt_us))
+    return np.array(out, np.float64).reshape(-1, 3)
 
 
 def object_parts(world: SceneWorld, key: str, t_us: int) -> np.ndarray:
