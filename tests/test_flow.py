@@ -316,3 +316,21 @@ def replace_center(box: BoxRecord, center_global: np.ndarray) -> BoxRecord:
     from dataclasses import replace
 
     return replace(box, center_global=np.asarray(center_global, np.float64))
+
+
+def test_vote_sources_agrees_with_brute_force() -> None:
+    """Random votes of a static scene and 6 boxes on a 4x4x3 grid against a per-voxel count in Python."""
+    rng = np.random.default_rng(0)
+    shape, n_vox = (4, 4, 3), 48
+    votes = [np.sort(rng.integers(0, n_vox, 300)) * N_CLS + rng.choice([4, 11, 15], 300)]
+    votes += [rng.integers(0, n_vox // 2, rng.integers(1, 40)) * N_CLS + rng.choice([4, 7], 1) for _ in range(6)]
+    votes = [v.astype(np.int64) for v in votes]
+    sem = majority(votes, shape, N_CLS, FREE_LABEL).reshape(-1)
+    voxel, source = vote_sources(votes, sem.reshape(shape), N_CLS)
+    want = {}
+    for v in range(n_vox):
+        counts = [int(np.sum(keys == v * N_CLS + int(sem[v]))) for keys in votes]
+        if any(np.any(keys // N_CLS == v) for keys in votes[1:]):
+            want[v] = int(np.argmax(counts))  # argmax: the first, i.e. the lowest source, on a tie
+    assert dict(zip(voxel.tolist(), source.tolist(), strict=True)) == want
+    assert len(want) > 10 and any(s > 0 for s in want.values()) and any(s == 0 for s in want.values())

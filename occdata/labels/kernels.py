@@ -4,6 +4,8 @@
 - `vote_voxels`: transform points into a voxel grid's frame, one (voxel, class) vote key per point
   (`majority` then takes the most voted class per voxel).
 - `nearest_labels`: the class of each query point's nearest labelled reference point within a radius.
+- `vote_sources` (numpy only): which vote list (static scene or one box) gave each voxel its class,
+  for occupancy flow.
 
 Boxes are given by `T_box_from_world (B, 4, 4) float64` and half extents `half_size (B, 3) float64`
 (box frame: x along the length, y along the width, z up, origin at the centre).

@@ -13,6 +13,8 @@
 4. Per keyframe: the static points plus each instance's points placed at that keyframe's box pose,
    cropped to the key-ego grid, majority vote per voxel; then `mask_lidar` / `mask_camera` from
    occdata.visibility.
+5. Optionally (`flow`), per voxel the ground velocity of the box whose points won its vote (the devkit's
+   `box_velocity`, rotated into the grid's frame); 0 for the static scene and free space.
 """
 
 from __future__ import annotations
