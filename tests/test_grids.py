@@ -146,10 +146,15 @@ def test_labels_writes_every_grid_and_says_so(world: Path, labelled: Path) -> No
     assert [g["name"] for g in manifest["grids"]] == ["occ3d", "surroundocc", "openocc-v2", "occ3d-0.2m"]
     assert [g["folder"] for g in manifest["grids"]] == [".", "surroundocc", "openocc-v2", "occ3d-0.2m"]
     assert manifest["grids"][1]["frame"] == "lidar" and manifest["grids"][1]["classes"]["noise"] == 0
+    moving = 0
     for s in _samples(world):
         assert (labelled / s.scene_name / s.token / "labels.npz").is_file()
         assert (labelled / "surroundocc" / "samples" / f"{s.lidar.path.name}.npy").is_file()
-        assert (labelled / "openocc-v2" / s.scene_name / s.token / "labels.npz").is_file()
+        f = np.load(labelled / "openocc-v2" / s.scene_name / s.token / "labels.npz")
+        speed = np.linalg.norm(f["flow"], axis=-1)
+        assert not speed[f["semantics"] >= 10].any()  # ground, buildings, vegetation, free: no flow
+        moving += int((speed > 0.5).sum())
+    assert moving > 50  # the world's driving actors carry their box velocity
     res = CliRunner().invoke(main, ["labels", "--root", str(world), "--out", str(labelled), "--resume",
                                     "--no-progress"])  # other grids than the run being resumed
     assert res.exit_code != 0 and "other settings" in res.output

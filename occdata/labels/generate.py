@@ -25,7 +25,7 @@ from occdata.constants import CLASS_NAMES
 from occdata.errors import OccDataError
 from occdata.fileio import remove_stale_temps, write_atomic
 from occdata.gridfiles import LabelSite, write_grid_label
-from occdata.grids import GRID_PRESETS, GridSpec
+from occdata.grids import GRID_PRESETS, GridSpec, LabelLayout
 from occdata.labels.scene import LabelOptions, SceneInputs, label_scene
 from occdata.nuscenes import NuScenesDataset, SampleRecord, find_version, load_nuscenes, validate_sample
 from occdata.nuscenes.annotations import load_annotations
@@ -208,7 +208,8 @@ class SceneJob:
         """Label the scene and write its files, then its record (idempotent: a rerun rewrites the same
         bytes). Returns the scene's counts."""
         scene = self.inputs.dataset.scenes[0]
-        labels, counts = label_scene(self.inputs, scene, self.cfg.options, should_stop, self.cfg.grids)
+        flow = [g.name for g in self.cfg.grids if g.layout is LabelLayout.OPENOCC_V2]  # the layout that holds flow
+        labels, counts = label_scene(self.inputs, scene, self.cfg.options, should_stop, self.cfg.grids, flow)
         record = {"settings": json.loads(self.settings), "counts": dataclasses.asdict(counts),
                   "samples": sorted(labels[self.cfg.grids[0].name])}
         sites = {s.token: _site(s) for s in self.inputs.dataset.samples if s.scene_token == scene.token}
