@@ -183,8 +183,9 @@ def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height
               "into the 16 height bins (channel-to-height).")
 @click.option("--temporal-fusion", "temporal_fusion", type=config_choice("fastocc.model.config:TemporalFusionKind"),
               default=None,
-              help="Models with history: concat (full maps in the queue, default) or cached (each frame reduced "
-              "once, when current; warp + small fusion per frame).")
+              help="Models with history: concat (full maps in the queue, default), cached (each frame reduced "
+              "once, when current; warp + small fusion per frame) or recurrent (one state carried forward: warp + "
+              "a gated update per frame; temporal_channels and temporal_unroll in the config file).")
 @click.option("--epochs", type=click.IntRange(min=1), default=None, help="Epochs over the training split.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=None,
               help="GLOBAL batch size (all processes); each process gets batch-size / world size.")
