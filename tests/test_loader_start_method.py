@@ -135,3 +135,33 @@ def test_forkserver_workers_ignore_sigint_and_the_parent_does_not(tmp_path: Path
     """, tmp_path)
     assert r.returncode == 0, r.stderr
     assert r.stdout.splitlines() == ["worker True", "parent False"]
+
+
+def test_a_sigterm_while_the_loader_starts_is_raised_after_it_started() -> None:
+    """SIGTERM (the CLI's handler raises SystemExit) arriving inside `iter(loader)` is held until the
+    iterator exists: torch's half-built iterator printed "no attribute '_workers_status'" on cleanup."""
+    import os
+    import signal
+
+    from fastocc.data.workers import start_iteration
+
+    events: list[str] = []
+
+    class Loader:
+        def __iter__(self):  # noqa: ANN204 - a loader whose start gets a SIGTERM half-way
+            os.kill(os.getpid(), signal.SIGTERM)
+            events.append("started")
+            return iter([1, 2])
+
+    def handler(signum: int, frame: object) -> None:
+        events.append("handler")
+        raise SystemExit(143)
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        with pytest.raises(SystemExit):
+            start_iteration(Loader())
+        assert events == ["started", "handler"]
+        assert signal.getsignal(signal.SIGTERM) is handler  # the caller's handler is back
+    finally:
+        signal.signal(signal.SIGTERM, old)

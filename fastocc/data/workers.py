@@ -97,27 +97,41 @@ def check_main_guard(context: Any) -> None:
 
 
 @contextlib.contextmanager
-def _sigint_deferred() -> Iterator[None]:
-    """Hold a Ctrl-C that arrives inside the block and raise it (KeyboardInterrupt) when the block ends."""
-    if threading.current_thread() is not threading.main_thread() or \
-            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
-        yield  # signals can only be handled in the main thread; keep any handler the caller installed
+def _signals_deferred() -> Iterator[None]:
+    """Hold a Ctrl-C or SIGTERM that arrives inside the block; when the block ends, hand it to the handler
+    it would have met (KeyboardInterrupt for Ctrl-C; the CLI's SIGTERM handler raises SystemExit(143)).
+
+    Ctrl-C is held only under Python's default handler, SIGTERM only under a Python handler the caller
+    installed (the default action, killing the process, stays as it is). Signals can only be handled
+    in the main thread: elsewhere the block runs as is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
         return
+    held: dict[int, Any] = {}
+    current = signal.getsignal(signal.SIGINT)
+    if current is signal.default_int_handler:
+        held[signal.SIGINT] = current
+    current = signal.getsignal(signal.SIGTERM)
+    if callable(current):
+        held[signal.SIGTERM] = current
     caught: list[int] = []
-    signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    for sig in held:
+        signal.signal(sig, lambda signum, frame: caught.append(signum))
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        for sig, handler in held.items():
+            signal.signal(sig, handler)
     if caught:
-        raise KeyboardInterrupt
+        held[caught[0]](caught[0], None)
 
 
 def start_iteration(loader: Iterable[T]) -> Iterator[T]:
-    """`iter(loader)` with Ctrl-C held back until the workers have started.
+    """`iter(loader)` with Ctrl-C and SIGTERM held back until the workers have started.
 
     Interrupted half-way, torch's iterator could not stop the workers it had already started; each
-    then found its parent's semaphores gone and printed a traceback of its own (FileNotFoundError).
+    then found its parent's semaphores gone and printed a traceback of its own (FileNotFoundError),
+    or the half-built iterator's own cleanup failed ("no attribute '_workers_status'").
     """
-    with _sigint_deferred():
+    with _signals_deferred():
         return iter(loader)
