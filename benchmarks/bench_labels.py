@@ -36,6 +36,9 @@ VARIANTS = {  # name: (extra CLI options, drop lidarseg)
     "control-sweeps": (["--lidar-sweeps", "--no-boxes"], False),
     "boxes-sweeps-noseg": (["--lidar-sweeps"], True),
     "control-sweeps-noseg": (["--lidar-sweeps", "--no-boxes"], True),
+    # Issue 32: every benchmark's grid from one aggregation (scored on the occ3d grid, which is the same)
+    "boxes-sweeps-4grids": (["--lidar-sweeps", "--grid", "occ3d", "--grid", "openocc-v2", "--grid", "surroundocc",
+                             "--grid", "openoccupancy"], False),
 }
 
 
