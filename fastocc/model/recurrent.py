@@ -120,7 +120,7 @@ class RecurrentFusion(nn.Module):
         aug = inputs.bev_aug
         s = self._begin(bev, pose, aug, inputs.seq_start)
         h, h_pose, h_aug = s["state"], s["pose"], s["aug"]
-        after_first = h
+        trail = []  # (state, pose, aug) after each window frame, then after this one
         for i in range(s["win_bev"].shape[1]):  # training: recompute the window with gradient
             ok = s["win_valid"][:, i]
             p_i, a_i = s["win_pose"][:, i], s["win_aug"][:, i]
@@ -128,30 +128,25 @@ class RecurrentFusion(nn.Module):
             h = torch.where(ok.view(B, 1, 1, 1), h_i, h)
             h_pose = torch.where(ok.view(B, 1, 1), p_i, h_pose)
             h_aug = torch.where(ok.view(B, 1, 1), a_i, h_aug)
-            if i == 0:
-                after_first = (h, h_pose, h_aug)
+            trail.append((h, h_pose, h_aug))
         h_new = self._step(bev, h, h_pose, h_aug, pose, aug)
-        self._advance(s, bev, h_new, pose, aug, after_first)
+        trail.append((h_new, pose, aug))
+        self._advance(s, bev, pose, aug, trail)
         return self.output(bev, h_new)
 
-    def _advance(self, s: dict[str, Tensor], bev: Tensor, h_new: Tensor, pose: Tensor, aug: Tensor,
-                 after_first: Tensor | tuple[Tensor, Tensor, Tensor]) -> None:
-        """Keep this frame: in training append it to the window (the oldest frame leaves it, its state
-        becomes the carried one); otherwise the new state is carried and the window stays empty."""
+    def _advance(self, s: dict[str, Tensor], bev: Tensor, pose: Tensor, aug: Tensor,
+                 trail: list[tuple[Tensor, Tensor, Tensor]]) -> None:
+        """Keep this frame. The window holds the last `unroll - 1` frames in training, none otherwise:
+        the frames that leave it (the oldest one, or this one at inference) hand on the state after
+        them (`trail`, one entry per window frame and this one), detached."""
         window = self.unroll - 1 if self.training else 0
-        if window == 0:
-            z = s["win_bev"][:, :0]
-            self._s = {"state": h_new.detach(), "pose": pose, "aug": aug, "win_bev": z,
-                       "win_pose": s["win_pose"][:, :0], "win_aug": s["win_aug"][:, :0],
-                       "win_valid": s["win_valid"][:, :0]}
-            return
-        win = {k: s[f"win_{k}"] for k in ("bev", "pose", "aug", "valid")}
-        new = {"bev": bev.detach(), "pose": pose, "aug": aug,
-               "valid": torch.ones(bev.shape[0], dtype=torch.bool, device=bev.device)}
-        win = {k: torch.cat([v, new[k][:, None]], dim=1) for k, v in win.items()}
-        state, st_pose, st_aug = s["state"], s["pose"], s["aug"]
-        if win["bev"].shape[1] > window:  # the oldest leaves: carry the state after it
-            state, st_pose, st_aug = after_first  # type: ignore[misc]
-            win = {k: v[:, 1:] for k, v in win.items()}
+        n_old = s["win_bev"].shape[1]
+        drop = max(0, n_old + 1 - window)  # frames leaving the window, this one last
+        state, st_pose, st_aug = (s["state"], s["pose"], s["aug"]) if drop == 0 else trail[drop - 1]
+        win = {k: s[f"win_{k}"][:, drop:] for k in ("bev", "pose", "aug", "valid")}
+        if drop <= n_old:  # this frame stays in the window (no copy of its map at inference)
+            new = {"bev": bev.detach(), "pose": pose, "aug": aug,
+                   "valid": torch.ones(bev.shape[0], dtype=torch.bool, device=bev.device)}
+            win = {k: torch.cat([v, new[k][:, None]], dim=1) for k, v in win.items()}
         self._s = {"state": state.detach(), "pose": st_pose, "aug": st_aug,
                    **{f"win_{k}": v for k, v in win.items()}}
