@@ -37,11 +37,11 @@ def warp_bev(feat_prev: Tensor, T_curaug_from_prevaug: Tensor, grid: OccGrid) ->
 
 def warp_bev_inverse(feat_prev: Tensor, T_prevaug_from_curaug: Tensor, grid: OccGrid) -> Tensor:
     """`warp_bev` given the inverse transform `(B, 4, 4)` (no matrix inverse in the graph: ONNX export)."""
-    centres = voxel_centres(grid, feat_prev.device)[:, :, 0, :2]
+    centres = voxel_centres(grid, feat_prev.device)[:, :, 0, :2].to(feat_prev.dtype)  # float64 features: float64
     pts = torch.cat([centres, torch.zeros_like(centres[..., :1]), torch.ones_like(centres[..., :1])], dim=-1)
     prev = torch.einsum("bij,xyj->bxyi", T_prevaug_from_curaug, pts)[..., :2]  # (B, X, Y, 2) metres
-    lo = torch.tensor(grid.lower[:2], device=prev.device)
-    hi = torch.tensor(grid.upper[:2], device=prev.device)
+    lo = torch.tensor(grid.lower[:2], dtype=prev.dtype, device=prev.device)
+    hi = torch.tensor(grid.upper[:2], dtype=prev.dtype, device=prev.device)
     norm = (prev - lo) / (hi - lo) * 2 - 1  # align_corners=False: cell centres at their normalised spots
     # grid_sample indexes (W, H) = (Y, X) of a (B, C, X, Y) tensor: swap to (y, x)
     return F.grid_sample(feat_prev, norm.flip(-1), mode="bilinear", padding_mode="zeros", align_corners=False)
