@@ -115,15 +115,22 @@ def vote_voxels_reference(
 def majority(votes: list[np.ndarray], shape: tuple[int, int, int], n_classes: int, empty: int) -> np.ndarray:
     """`(X, Y, Z) uint8`: per voxel the class with the most votes among the keys of `votes` (each
     `vote_voxels`' output), ties to the lowest class index; `empty` where a voxel has no vote."""
-    keys, counts = np.unique(np.concatenate([np.zeros(0, np.int64), *votes]), return_counts=True)
-    voxel, cls = np.divmod(keys, n_classes)
-    order = np.lexsort((cls, -counts, voxel))  # per voxel: most votes first, then the lowest class
-    voxel, cls = voxel[order], cls[order]
-    first = np.ones(len(voxel), bool)
-    first[1:] = voxel[1:] != voxel[:-1]
+    voxel, cls = _most_voted(np.concatenate([np.zeros(0, np.int64), *votes]), n_classes)
     out = np.full(int(np.prod(shape)), empty, np.uint8)
-    out[voxel[first]] = cls[first]
+    out[voxel] = cls
     return out.reshape(shape)
+
+
+def _most_voted(keys: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Keys `group * n + item` `(M,) int64`, one per vote -> per group (ascending) the item with the most
+    votes, ties to the lowest item: `group (G,)`, `item (G,)` int64."""
+    keys, counts = np.unique(keys, return_counts=True)
+    group, item = np.divmod(keys, n)
+    order = np.lexsort((item, -counts, group))
+    group, item = group[order], item[order]
+    first = np.ones(len(group), bool)
+    first[1:] = group[1:] != group[:-1]
+    return group[first], item[first]
 
 
 def vote_sources(votes: list[np.ndarray], semantics: np.ndarray, n_classes: int) -> tuple[np.ndarray, np.ndarray]:
@@ -147,13 +154,7 @@ def vote_sources(votes: list[np.ndarray], semantics: np.ndarray, n_classes: int)
         keep = cls == winner_flat[vox]
         vox_l.append(vox[keep])
         src_l.append(np.full(int(keep.sum()), s, np.int64))
-    pair, counts = np.unique(np.concatenate(vox_l) * len(votes) + np.concatenate(src_l), return_counts=True)
-    vox, src = np.divmod(pair, len(votes))
-    order = np.lexsort((src, -counts, vox))  # per voxel: most votes first, then the lowest source
-    vox, src = vox[order], src[order]
-    first = np.ones(len(vox), bool)
-    first[1:] = vox[1:] != vox[:-1]
-    return vox[first], src[first]
+    return _most_voted(np.concatenate(vox_l) * len(votes) + np.concatenate(src_l), len(votes))
 
 
 @njit(cache=True)
