@@ -1,14 +1,6 @@
-"""Label files of every grid layout: where they go, writing them, and reading them as each benchmark's
-own loader does (docs/labels.md, "Grids"; the formats were checked against each benchmark's code).
-
-- occ3d: `<root>/<scene name>/<sample token>/labels.npz`, dense `(X, Y, Z) uint8` `semantics`,
-  `mask_lidar`, `mask_camera` (occdata.occ3d).
-- openocc-v2: the same path and arrays with OpenOcc v2's class ids (free 16) and `flow`
-  `(X, Y, Z, 2) float32` (vx, vy) m/s; its loader reads `semantics` and `flow` only.
-- surroundocc: `<root>/samples/<LIDAR_TOP file name>.npy`, sparse `(N, 4) int64` [x, y, z, class] of
-  the occupied voxels (class 0 = noise, read as ignore; absent voxels are empty).
-- openoccupancy: `<root>/scene_<scene token>/occupancy/<LIDAR_TOP sample_data token>.npy`, sparse
-  `(N, 4) int64` [z, y, x, class] (class 0 = noise).
+"""Label files of every grid layout: where they go (`LAYOUT_FILES` says it in words, for manifests),
+writing them, and reading them as each benchmark's own loader does (docs/labels.md, "Grids"; the
+formats were checked against each benchmark's code, docs/label_formats.md).
 """
 
 from __future__ import annotations
@@ -24,9 +16,24 @@ from occdata.errors import OccDataError
 from occdata.fileio import npz_bytes, write_atomic
 from occdata.grids import GridSpec, LabelLayout
 
-__all__ = ["IGNORE", "LabelSite", "grid_label_path", "read_grid_label", "write_grid_label"]
+__all__ = ["IGNORE", "LAYOUT_FILES", "LabelSite", "grid_label_path", "read_grid_label", "write_grid_label"]
 
 IGNORE = 255  # what the sparse layouts' loaders turn noise (class 0) into
+
+# Each layout's files in words (the manifest's "files"; the writer below is the definition).
+LAYOUT_FILES: dict[LabelLayout, str] = {
+    LabelLayout.OCC3D: "<scene>/<sample_token>/labels.npz: semantics, mask_lidar, mask_camera, uint8 (X, Y, Z) in "
+                       "the key ego frame; ids as 'classes' (17 = free); masks 0/1",
+    LabelLayout.OPENOCC_V2: "<scene>/<sample_token>/labels.npz: semantics uint8 (X, Y, Z) in OpenOcc v2's ids (16 = "
+                            "free; our 'others' written as free), flow float32 (X, Y, Z, 2) (vx, vy) m/s in the key "
+                            "ego frame (zero where not computed), mask_lidar, mask_camera (extra keys its loader "
+                            "ignores)",
+    LabelLayout.SURROUNDOCC: "samples/<LIDAR_TOP file name>.npy: int64 (N, 4) [x, y, z, class] of the occupied voxels "
+                             "in the keyframe's LIDAR_TOP frame; class 0 = noise (our 'others'), absent voxels "
+                             "empty; no masks",
+    LabelLayout.OPENOCCUPANCY: "scene_<scene token>/occupancy/<LIDAR_TOP sample_data token>.npy: int64 (N, 4) [z, y, "
+                               "x, class] of the occupied voxels in the LIDAR_TOP frame; class 0 = noise; no masks",
+}
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from typing import Any
 from occdata.constants import CLASS_NAMES
 from occdata.errors import OccDataError
 from occdata.fileio import remove_stale_temps, write_atomic
-from occdata.gridfiles import LabelSite, write_grid_label
+from occdata.gridfiles import LAYOUT_FILES, LabelSite, write_grid_label
 from occdata.grids import GRID_PRESETS, GridSpec, LabelLayout
 from occdata.labels.scene import LabelOptions, SceneInputs, label_scene
 from occdata.nuscenes import NuScenesDataset, SampleRecord, find_version, load_nuscenes, validate_sample
@@ -123,22 +123,8 @@ def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool) -> dict[str, 
         "layout": "<scene>/<sample_token>/labels.npz: semantics, mask_lidar, mask_camera; uint8 (200, 200, 16); "
                   "17 = free",
         "grids": [{**spec.describe(), "folder": str(cfg.grid_root(spec).relative_to(cfg.out)),
-                   "files": _GRID_FILES[str(spec.layout)]} for spec in cfg.grids],
+                   "files": LAYOUT_FILES[spec.layout]} for spec in cfg.grids],
     }
-
-
-# The manifest's words for each layout (occdata.gridfiles has the details).
-_GRID_FILES = {
-    "occ3d": "<scene>/<sample_token>/labels.npz: semantics, mask_lidar, mask_camera, uint8 (X, Y, Z) in the key "
-             "ego frame; ids as 'classes' (17 = free); masks 0/1",
-    "openocc-v2": "<scene>/<sample_token>/labels.npz: semantics uint8 (X, Y, Z) in OpenOcc v2's ids (16 = free; "
-                  "our 'others' written as free), flow float32 (X, Y, Z, 2) (vx, vy) m/s in the key ego frame "
-                  "(zero where not computed), mask_lidar, mask_camera (extra keys its loader ignores)",
-    "surroundocc": "samples/<LIDAR_TOP file name>.npy: int64 (N, 4) [x, y, z, class] of the occupied voxels in the "
-                   "keyframe's LIDAR_TOP frame; class 0 = noise (our 'others'), absent voxels empty; no masks",
-    "openoccupancy": "scene_<scene token>/occupancy/<LIDAR_TOP sample_data token>.npy: int64 (N, 4) [z, y, x, "
-                     "class] of the occupied voxels in the LIDAR_TOP frame; class 0 = noise; no masks",
-}
 
 
 def _package_version() -> str:
@@ -212,7 +198,7 @@ class SceneJob:
         labels, counts = label_scene(self.inputs, scene, self.cfg.options, should_stop, self.cfg.grids, flow)
         record = {"settings": json.loads(self.settings), "counts": dataclasses.asdict(counts),
                   "samples": sorted(labels[self.cfg.grids[0].name])}
-        sites = {s.token: _site(s) for s in self.inputs.dataset.samples if s.scene_token == scene.token}
+        sites = {s.token: _site(s) for s in self.inputs.dataset.samples}  # the scene's slice: its samples
         for spec in self.cfg.grids:
             for token, arrays in labels[spec.name].items():
                 write_grid_label(spec, self.cfg.grid_root(spec), sites[token], arrays)
