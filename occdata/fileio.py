@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import re
 import tempfile
 import zipfile
 from collections.abc import Iterator
@@ -24,6 +25,9 @@ __all__ = ["TMP_SUFFIX", "atomic_open", "copy_atomic", "current_umask", "is_temp
            "replace_synced", "write_atomic"]
 
 TMP_SUFFIX = ".tmp"
+# zarr's LocalStore writes `<key>.<uuid4 hex>.partial` and renames it; it removes the file on an
+# Exception but not when the process is killed or leaves through SystemExit (our SIGTERM handler).
+_ZARR_PARTIAL = re.compile(r"\.[0-9a-f]{32}\.partial$")
 
 
 def current_umask() -> int:
@@ -85,20 +89,21 @@ def copy_atomic(src: str | Path, dst: str | Path) -> None:
 
 
 def is_temp_name(key: str) -> bool:
-    """Whether a file name (or the last part of a store key) is one of `atomic_open`'s temporaries."""
+    """Whether a file name (or the last part of a store key) is a temporary: one of `atomic_open`'s
+    (`.<name>.<random>.tmp`) or one of zarr LocalStore's (`<name>.<uuid hex>.partial`)."""
     name = key.rsplit("/", 1)[-1]
-    return name.startswith(".") and name.endswith(TMP_SUFFIX)
+    return (name.startswith(".") and name.endswith(TMP_SUFFIX)) or bool(_ZARR_PARTIAL.search(name))
 
 
 def remove_stale_temps(folder: str | Path, recursive: bool = False) -> list[Path]:
-    """Delete the temporary files `atomic_open` leaves when its process is killed (`.<name>.<random>.tmp`),
-    in `folder` (and below it with `recursive`).
+    """Delete the temporary files a killed writer leaves (`is_temp_name`: ours and zarr's), in `folder`
+    (and below it with `recursive`).
 
     Only call this while holding the folder's writer lock: another writer's temporaries are live."""
     removed = []
     folder = Path(folder)
-    for p in folder.rglob(f".*{TMP_SUFFIX}") if recursive else folder.glob(f".*{TMP_SUFFIX}"):
-        if p.is_file():
+    for p in folder.rglob("*") if recursive else folder.glob("*"):
+        if is_temp_name(p.name) and p.is_file():
             p.unlink(missing_ok=True)
             removed.append(p)
     return removed

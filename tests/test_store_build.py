@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -173,6 +174,25 @@ def test_existing_store_needs_resume_and_same_inputs(tree, tree_store) -> None:
     code, text = _cli("build", "--root", str(tree), "--gts", str(tree / "gts"), "--out", str(tree_store),
                       "--block-samples", "4", "--resume", "--no-progress")
     assert code == 0 and "0 processed" in text
+
+
+def test_resume_removes_a_killed_writers_temporaries(tree, tree_store, tmp_path) -> None:
+    """Was: SIGTERM while zarr's LocalStore wrote a chunk left `<chunk>.<uuid hex>.partial` for good, and
+    the chunk listing took it for a chunk. Both kinds of leftovers are ignored, and removed on --resume."""
+    copy = tmp_path / "t.zarr"
+    shutil.copytree(tree_store, copy)
+    chunk_dir = next(p.parent for p in sorted((copy / "images/jpeg").rglob("*")) if p.is_file() and "/c/" in str(p))
+    hex32 = "a05beeca6d4f4a738453cbd0f03dd535"
+    planted = [chunk_dir / f"1.{hex32}.partial", copy / f"zarr.{hex32}.partial", chunk_dir / ".0.k2j3h4.tmp"]
+    for p in planted:
+        p.write_bytes(b"half a chunk")
+    keep = chunk_dir.parent / "notes.partial"  # not a temporary's name: left alone
+    keep.write_bytes(b"x")
+    assert store_digest(copy) == store_digest(tree_store)
+    code, text = _cli("build", "--root", str(tree), "--gts", str(tree / "gts"), "--out", str(copy),
+                      "--block-samples", "4", "--resume", "--no-progress")
+    assert code == 0, text
+    assert not any(p.exists() for p in planted) and keep.exists()
 
 
 @pytest.mark.parametrize("workers", [1, 2])

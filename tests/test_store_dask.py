@@ -27,6 +27,7 @@ from test_store_build import store_digest
 
 from cli.occdata_cli import main
 from occdata.errors import OccDataError
+from occdata.fileio import is_temp_name
 from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks
 from occdata.store.build import BuildConfig, build_store
 from occdata.store.plan import block_spans, plan_regions, relocate
@@ -220,6 +221,7 @@ def test_sigterm_stops_then_resume(tree, reference, tmp_path, target: str) -> No
     assert zarr.open_group(str(out), mode="r").attrs.get("complete") is not True
     _resume_served(root, out, gate)
     assert store_digest(out) == reference
+    assert not [p for p in out.rglob("*") if is_temp_name(p.name)]  # a killed write's temporary is gone
 
 
 # --- schedulers that cannot be reached or go away ----------------------------------------------------
