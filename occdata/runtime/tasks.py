@@ -8,7 +8,8 @@
   the task's result, or a `TaskFailed` value for the task's own exception: Dask then never carries
   a task error, so whatever error reaches the client is the cluster's (a lost scheduler, ...).
 - `worker_setup(threads)`: every thread limit in one place (numba, OpenCV, the BLAS/OpenMP
-  environment), idempotent, for LocalCluster workers, `--scheduler` workers and in-process runs.
+  environment) and the allocator (`occdata.runtime.allocator`), idempotent, for LocalCluster
+  workers, `--scheduler` workers and in-process runs.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ import os
 import pickle
 from collections.abc import Callable
 from typing import Any, NoReturn, Protocol, TypeVar
+
+from occdata.runtime.allocator import tune_allocator
 
 __all__ = ["StopCheck", "Task", "TaskFailed", "no_stop", "run_on_worker", "worker_setup"]
 
@@ -76,6 +79,8 @@ def worker_setup(threads: int | None) -> None:
     Idempotent and cheap: called before every task, since numba's setting is per thread."""
     global _process_threads
     import numba
+
+    tune_allocator()  # once per process: keeps freed sample buffers instead of faulting pages back in
 
     # `set_num_threads` only, never the NUMBA_NUM_THREADS variable: numba re-reads it at every compile
     # and refuses a value other than its pool's size, so a later change to the environment broke
