@@ -48,3 +48,22 @@ def test_worker_setup_keeps_large_freed_buffers() -> None:
     # 10 fresh 40 MiB buffers fault in 102,400 pages of 4 KiB (fewer where the kernel gives huge pages)
     assert default >= 200, default  # the churn the settings remove (the control)
     assert tuned < default / 10, (tuned, default)
+
+
+def _worker_env() -> dict[str, str]:
+    import os
+
+    return {k: v for k, v in os.environ.items() if k.startswith("MALLOC_")}
+
+
+def test_localcluster_workers_start_with_one_arena() -> None:
+    """A Dask worker's task thread takes a heap of its own unless the process starts with one arena;
+    Dask's own MALLOC_TRIM_THRESHOLD_ (65536) is replaced, its thread settings are kept."""
+    from occdata.runtime.allocator import ALLOCATOR_ENV
+    from occdata.runtime.cluster import ClusterConfig, cluster_client
+
+    with cluster_client(ClusterConfig(workers=2)) as client:  # 1 runs in this process
+        env = next(iter(client.run(_worker_env).values()))
+        threads = next(iter(client.run(lambda: __import__("os").environ.get("OMP_NUM_THREADS")).values()))
+    assert env == ALLOCATOR_ENV and env["MALLOC_ARENA_MAX"] == "1"
+    assert threads == "1"

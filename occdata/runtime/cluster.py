@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from tqdm import tqdm
 
 from occdata.errors import OccDataError
+from occdata.runtime.allocator import ALLOCATOR_ENV
 from occdata.runtime.tasks import Task, TaskFailed, run_on_worker, worker_setup
 
 if TYPE_CHECKING:  # distributed is imported lazily: `occdata` commands that do not run tasks stay light
@@ -103,7 +104,9 @@ def cluster_client(config: ClusterConfig) -> Iterator[Client | None]:
 
     _quiet_dask()
     address = config.address()
-    with dask.config.set({"logging.distributed": "critical"}):
+    # Workers start with the allocator settings (one arena: see occdata.runtime.allocator).
+    spawn_env = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **ALLOCATOR_ENV}
+    with dask.config.set({"logging.distributed": "critical", "distributed.nanny.pre-spawn-environ": spawn_env}):
         if address is not None:
             try:
                 timeout = {} if config.connect_timeout_s is None else {"timeout": config.connect_timeout_s}
