@@ -49,21 +49,32 @@ def main() -> None:
                    "nuScenes-size tree for memory and start-up measurements.")
 @click.option("--table-only-samples", default=40, show_default=True, type=click.IntRange(min=1), metavar="M",
               help="Keyframes per table-only scene (nuScenes has about 40).")
+@click.option("--grid", "grids", multiple=True, type=click.Choice(list(GRID_NAMES)),
+              help="Also write the truth on a benchmark's grid, in its frame and layout, under gts/<grid>/ "
+                   "(repeatable; occ3d's truth is always gts/ itself). As `occdata labels --grid`.")
+@click.option("--voxel-size", type=click.FloatRange(0.05, 2.0), default=None,
+              help="Also write the truth on a custom Occ3D-style grid of this voxel size (m), in gts/occ3d-<size>m/.")
+@click.option("--range", "grid_range", type=float, nargs=6, default=None, metavar="XMIN YMIN ZMIN XMAX YMAX ZMAX",
+              help="The custom grid's range in metres (key ego; default Occ3D's -40 -40 -1 40 40 5.4).")
 @progress_option()
 @friendly_errors
 def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: int, table_only_scenes: int,
-          table_only_samples: int, progress: bool) -> None:
+          table_only_samples: int, grids: tuple[str, ...], voxel_size: float | None,
+          grid_range: tuple[float, ...] | None, progress: bool) -> None:
     """Write a synthetic nuScenes-format world with Occ3D labels and exact depth maps.
 
     Tables (v1.0-mini), 6 ray-cast camera images, a 32-beam LiDAR sweep per keyframe and 9
     LiDAR sweeps (20 Hz) between keyframes under sweeps/LIDAR_TOP, gts/<scene>/<sample>/labels.npz
-    and depth/<sample_data_token>.npy. See docs/synth.md.
+    and depth/<sample_data_token>.npy; with --grid / --voxel-size, the truth on other benchmarks'
+    grids too. See docs/synth.md.
     """
     from occdata.synth import SynthConfig, synthesize
 
+    specs = grids_from_options(grids, voxel_size, grid_range)
     root = synthesize(SynthConfig(out=local_path(out, "--out"), scenes=scenes, samples=samples, seed=seed,
                                   width=width, height=height, progress=progress,
-                                  table_only_scenes=table_only_scenes, table_only_samples=table_only_samples))
+                                  table_only_scenes=table_only_scenes, table_only_samples=table_only_samples,
+                                  grids=specs))
     extra = f" (+ {table_only_scenes} table-only scenes)" if table_only_scenes else ""
     click.echo(f"wrote {scenes} scenes x {samples} samples{extra} to {root}")
 

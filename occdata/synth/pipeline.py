@@ -12,9 +12,11 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from occdata.constants import CAMERA_ORDER, GRID, LIDAR_CHANNEL
+from occdata.constants import CAMERA_ORDER, GRID, LIDAR_CHANNEL, OccGrid
 from occdata.errors import OccDataError
 from occdata.geometry import invert_rigid, quaternion_wxyz_from_matrix, transform_points
+from occdata.gridfiles import LabelSite, write_grid_label
+from occdata.grids import GridSpec, LabelFrame
 from occdata.occ3d import label_path, write_label
 from occdata.synth import render
 from occdata.synth.annotations import (
@@ -25,6 +27,7 @@ from occdata.synth.annotations import (
     annotation_rows,
     object_boxes,
 )
+from occdata.synth.gridtruth import grid_semantics
 from occdata.synth.labels import world_semantics
 from occdata.synth.rig import CAMERA_TIME_OFFSETS_US, RIG, camera_K
 from occdata.synth.tables import make_token, static_tables, write_atomic, write_tables
@@ -81,6 +84,7 @@ class SynthConfig:
     progress: bool = True
     table_only_scenes: int = 0  # extra scenes written as table rows alone (`_write_table_only_scene`)
     table_only_samples: int = 40  # keyframes per table-only scene (nuScenes: 34,149 / 850 = 40.2)
+    grids: tuple[GridSpec, ...] = ()  # more truth grids, gts/<grid>/ in their layouts (occ3d's is always written)
 
 
 @dataclass(frozen=True, eq=False)
@@ -215,17 +219,15 @@ class SensorFrame:
 def _render_keyframe(
     out: Path, world: SceneWorld, scene_name: str, t_lidar: int, sd_tokens: dict[str, str], width: int, height: int,
     extra_lidar_times: tuple[int, ...] = (),
-) -> tuple[list[SensorFrame], dict[str, np.ndarray], KeyframeLidar]:
+) -> tuple[list[SensorFrame], dict[str, np.ndarray], KeyframeLidar, _Rays]:
     """Render and write the 6 camera images (+ depth maps) and the LiDAR sweep of the keyframe at
-    `t_lidar`; returns the written frames, the Occ3D labels (key ego = ego at `t_lidar`) and the
-    LiDAR sweep with its per-point lidarseg labels.
+    `t_lidar`; returns the written frames, the Occ3D labels (key ego = ego at `t_lidar`), the
+    LiDAR sweep with its per-point lidarseg labels and the rays behind the masks.
     `mask_lidar` also counts the returns of sweeps at `extra_lidar_times` (not written)."""
-    lower = np.asarray(GRID.lower, np.float64)
     T_global_from_keyego = ego_transform(world, t_lidar)
     T_keyego_from_global = invert_rigid(T_global_from_keyego)
     wg_lidar = WorldGrid.build(world, t_lidar)
     semantics = world_semantics(world.ground, wg_lidar.prims, T_global_from_keyego)
-    mask_lidar = np.zeros(GRID.shape, np.uint8)
     cam_K, cam_T = [], []
     frames = []
     for ch in (*CAMERA_ORDER, LIDAR_CHANNEL):
@@ -261,12 +263,44 @@ def _render_keyframe(
                 p_keyego = transform_points(T_keyego_from_other, other[:, :3])
                 origins.append(p_keyego)
                 ends.append(p_keyego)
-            mask_lidar = lidar_mask(semantics, np.concatenate(origins), np.concatenate(ends), lower, GRID.voxel_size)
+            rays = _Rays(np.concatenate(origins), np.concatenate(ends), np.stack(cam_K), np.stack(cam_T),
+                         np.array([[width, height]] * len(cam_K)))
         frames.append(SensorFrame(ch, int(ts), rel, T_global_from_ego))
-    # Occ3D semantics: the camera mask lies within the LiDAR mask (DESIGN §5.3, docs/visibility.md).
-    mask_camera = camera_mask(semantics, mask_lidar, np.stack(cam_K), np.stack(cam_T),
-                              np.array([[width, height]] * len(cam_K)), lower, GRID.voxel_size)
-    return frames, {"semantics": semantics, "mask_lidar": mask_lidar, "mask_camera": mask_camera}, key_lidar
+    return frames, _masked(semantics, rays, GRID), key_lidar, rays
+
+
+@dataclass(frozen=True)
+class _Rays:
+    """What a keyframe's masks are made of, in key ego: the LiDAR rays `origins`, `ends` `(N, 3)
+    float64`, and the cameras `K (C, 3, 3)`, `T_cam_from_keyego (C, 4, 4)`, `image_size (C, 2)`."""
+
+    origins: np.ndarray
+    ends: np.ndarray
+    K: np.ndarray
+    T_cam_from_keyego: np.ndarray
+    image_size: np.ndarray
+
+
+def _masked(semantics: np.ndarray, rays: _Rays, grid: OccGrid) -> dict[str, np.ndarray]:
+    """Occ3D-style labels of a key-ego grid: the semantics with the LiDAR mask of the rays and the
+    camera mask, which lies within it (DESIGN §5.3, docs/visibility.md)."""
+    lower = np.asarray(grid.lower, np.float64)
+    mask_lidar = lidar_mask(semantics, rays.origins, rays.ends, lower, grid.voxel_size)
+    mask_camera = camera_mask(semantics, mask_lidar, rays.K, rays.T_cam_from_keyego, rays.image_size, lower,
+                              grid.voxel_size)
+    return {"semantics": semantics, "mask_lidar": mask_lidar, "mask_camera": mask_camera}
+
+
+def _grid_truth(world: SceneWorld, t_lidar: int, rays: _Rays, spec: GridSpec) -> dict[str, np.ndarray]:
+    """The keyframe's truth on `spec`, in its frame (key ego, or LIDAR_TOP at `t_lidar`); masks for
+    the layouts that have them (key-ego grids only)."""
+    T_global_from_grid = ego_transform(world, t_lidar)
+    if spec.frame is LabelFrame.LIDAR:
+        T_global_from_grid = T_global_from_grid @ RIG[LIDAR_CHANNEL].T_ego_from_sensor
+    semantics = grid_semantics(world.ground, world.primitives_at(t_lidar), T_global_from_grid, spec.grid)
+    if spec.masks and spec.frame is LabelFrame.KEY_EGO:
+        return _masked(semantics, rays, spec.grid)
+    return {"semantics": semantics}
 
 
 def _sample_file(scene_name: str, channel: str, t_us: int) -> str:
@@ -382,6 +416,7 @@ class _Scene:
     key_times: list[int]
     lidar_chain: list[tuple[str, int, int]]
     link: dict[str, tuple[str, str]]
+    grids: tuple[GridSpec, ...] = ()
 
 
 def _keyframe_sample_data(sc: _Scene, f: Any, k: int) -> dict[str, Any]:
@@ -422,15 +457,19 @@ def _write_keyframe(sc: _Scene, tables: dict[str, list], k: int, scene_tok: str)
     tables["sample"].append(_sample_row(sc, k, scene_tok))
     window = range(max(0, k - MASK_SWEEP_RADIUS), min(sc.samples, k + MASK_SWEEP_RADIUS + 1))
     near = [sc.key_times[j] for j in window if j != k]
-    frames, labels, key_lidar = _render_keyframe(sc.out, sc.world, sc.name, t_lidar,
-                                                 {ch: sc.sd_toks[ch][k] for ch in channels}, sc.width, sc.height,
-                                                 tuple(near))
+    frames, labels, key_lidar, rays = _render_keyframe(sc.out, sc.world, sc.name, t_lidar,
+                                                       {ch: sc.sd_toks[ch][k] for ch in channels}, sc.width,
+                                                       sc.height, tuple(near))
     tables["lidarseg"].append(_write_lidarseg(sc.out, sc.sd_toks[LIDAR_CHANNEL][k], key_lidar))
     annotation = _annotate(sc.world, t_lidar, key_lidar)
     sweeps = [(tok, _write_sweep(sc.out, sc.world, sc.name, t)) for tok, t, kk in sc.lidar_chain
               if kk == k and t != t_lidar]
     _add_sensor_rows(sc, tables, k, frames, sweeps)
     write_label(label_path(sc.out / "gts", sc.name, s_tok), labels)
+    lidar_file = Path(next(f.filename for f in frames if f.channel == LIDAR_CHANNEL)).name
+    site = LabelSite(sc.name, scene_tok, s_tok, sc.sd_toks[LIDAR_CHANNEL][k], lidar_file)
+    for spec in sc.grids:
+        write_grid_label(spec, sc.out / "gts" / spec.name, site, _grid_truth(sc.world, t_lidar, rays, spec))
     return annotation
 
 
@@ -460,6 +499,7 @@ def _begin_scene(config: SynthConfig, si: int, tables: dict[str, list], sensor_t
         cs_tok={ch: row["token"] for ch, row in cs_rows.items()}, key_times=key_times, lidar_chain=chain,
         link={tok: (chain[n - 1][0] if n else "", chain[n + 1][0] if n + 1 < len(chain) else "")
               for n, (tok, _, _) in enumerate(chain)},
+        grids=tuple(g for g in config.grids if g.name != "occ3d"),  # occ3d's truth is gts/ itself
     )
     return sc, scene_tok
 
