@@ -3,9 +3,9 @@
 `world_semantics` (occdata.synth.labels) voxelises the world in a frame related to global by a yaw
 alone, the key ego of the Occ3D grid. A LiDAR-frame grid (SurroundOcc, OpenOccupancy) is tilted
 against the road: the rig's LIDAR_TOP (nuScenes' calibration) leans 1.4 deg, which moves a voxel
-1.2 m up or down at 50 m, so its voxels are not boxes of the yaw-only frame. Here each voxel centre is taken into the "level"
-frame (the grid's origin and heading, z up) and tested against the primitives there with the
-voxel's level-frame bounding box: the same rule as `world_semantics` (a voxel takes the
+1.2 m up or down at 50 m, so its voxels are not boxes of the yaw-only frame. Here each voxel centre
+is taken into the "level" frame (the grid's origin and heading, z up) and tested against the
+primitives there with the voxel's level-frame bounding box: the same rule as `world_semantics` (a voxel takes the
 highest-priority primitive whose closed volume touches it; the ground plane fills what touches
 z = 0), exact for a level grid (tested: equal to `world_semantics` on the Occ3D grid and on a 0.2 m
 one) and, for a tilted grid, a superset by at most the bounding box's growth, `h * (sum |R| - 1)`

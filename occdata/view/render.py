@@ -173,11 +173,13 @@ def render_voxels(
     return img
 
 
-def bev_top_view(labels: np.ndarray, mask: np.ndarray | None = None, cell_px: int = 2) -> np.ndarray:
+def bev_top_view(labels: np.ndarray, mask: np.ndarray | None = None, cell_px: int = 2,
+                 voxel_size: float | None = GRID.voxel_size) -> np.ndarray:
     """Top view `(X*cell_px, Y*cell_px, 3) uint8` RGB: per column the colour of the highest non-free
     label (white where the column is free), x (forward) up, y (left) to the left, ego at the centre
-    (black outline). With `mask` (0/1 per voxel), columns with no visible voxel are greyed (free ones
-    plain grey, occupied ones a greyed class colour)."""
+    (black outline, drawn for `voxel_size` m voxels; None: no outline, e.g. a grid in another frame).
+    With `mask` (0/1 per voxel), columns with no visible voxel are greyed (free ones plain grey,
+    occupied ones a greyed class colour)."""
     lab = np.asarray(labels)
     X, Y, Z = lab.shape
     occ = lab < FREE_LABEL
@@ -191,9 +193,11 @@ def bev_top_view(labels: np.ndarray, mask: np.ndarray | None = None, cell_px: in
         rgb[~seen & (col_lab == FREE_LABEL)] = _UNSEEN
     img = np.ascontiguousarray(rgb[::-1, ::-1].astype(np.uint8))  # rows: +x first; cols: +y first
     img = cv2.resize(img, (Y * cell_px, X * cell_px), interpolation=cv2.INTER_NEAREST)
+    if voxel_size is None:
+        return img
     # Ego box, 4.4 x 2 m at the grid centre.
     cx, cy = X * cell_px / 2, Y * cell_px / 2
-    px_per_m = cell_px / GRID.voxel_size
+    px_per_m = cell_px / voxel_size
     cv2.rectangle(img, (int(cy - 1.0 * px_per_m), int(cx - 2.2 * px_per_m)),
                   (int(cy + 1.0 * px_per_m), int(cx + 2.2 * px_per_m)), (0, 0, 0), 1)
     return img
