@@ -130,8 +130,9 @@ def test_flow_rotates_the_ground_velocity_into_the_grid() -> None:
 # --- real scene-0916: each object voxel's flow is the velocity of the box that holds it ----------------
 @pytest.fixture(scope="module")
 def real_flow(seq_root: Path, tmp_path_factory: pytest.TempPathFactory):  # noqa: ANN201
-    """scene-0916 labelled once on the occ3d grid (no flow) and on the openocc-v2 grid (the same grid,
-    with flow), keyframes only (the tree ships no sweep files)."""
+    """scene-0916 labelled on the occ3d grid (no flow) and the openocc-v2 grid (the same grid, with flow)
+    in one run, which voxelises them once, and on the occ3d grid alone; keyframes only (the tree ships
+    no sweep files)."""
     from occdata.labels.generate import LabelsConfig, load_inputs
 
     inputs, _ = load_inputs(LabelsConfig(root=seq_root, out=tmp_path_factory.mktemp("o"), progress=False))
@@ -139,17 +140,18 @@ def real_flow(seq_root: Path, tmp_path_factory: pytest.TempPathFactory):  # noqa
     scene_inputs = inputs.for_scene(scene)
     grids = (GRID_PRESETS["occ3d"], GRID_PRESETS["openocc-v2"])
     labels, _ = label_scene(scene_inputs, scene, LabelOptions(), grids=grids, flow=("openocc-v2",))
-    return scene_inputs, labels["openocc-v2"], labels["occ3d"]
+    alone, _ = label_scene(scene_inputs, scene, LabelOptions(), grids=grids[:1])
+    return scene_inputs, labels["openocc-v2"], labels["occ3d"], alone["occ3d"]
 
 
 @pytest.mark.slow
 def test_flow_is_per_grid_and_changes_nothing_else(real_flow) -> None:  # noqa: ANN001
-    _, with_flow, without = real_flow
-    assert set(with_flow) == set(without) and len(without) == 41
-    for tok, labels in without.items():
-        assert "flow" not in labels and list(with_flow[tok]) == [*labels, "flow"]
-        for key, arr in labels.items():
-            assert arr.tobytes() == with_flow[tok][key].tobytes()
+    _, with_flow, without, alone = real_flow
+    assert set(with_flow) == set(without) == set(alone) and len(without) == 41
+    for tok, labels in alone.items():
+        assert "flow" not in labels and "flow" not in without[tok] and list(with_flow[tok]) == [*labels, "flow"]
+        for key, arr in labels.items():  # the shared run equals a run of the occ3d grid alone, without flow
+            assert arr.tobytes() == with_flow[tok][key].tobytes() == without[tok][key].tobytes()
         assert with_flow[tok]["flow"].shape == (200, 200, 16, 2) and with_flow[tok]["flow"].dtype == np.float32
 
 
@@ -202,7 +204,7 @@ def real_flow_check(inputs, labels: dict) -> dict[str, int]:  # noqa: ANN001
 
 @pytest.mark.slow
 def test_real_scene_flow_is_the_holding_box_velocity(real_flow) -> None:  # noqa: ANN001
-    inputs, with_flow, _ = real_flow
+    inputs, with_flow, _, _ = real_flow
     n = real_flow_check(inputs, with_flow)
     print(f"\nscene-0916 flow: {n}  equal share {n['equal'] / max(n['held_by_one'], 1):.4f}")
     assert n["flowing"] > 100, "the scene must have moving objects for this test to mean anything"

@@ -326,15 +326,15 @@ def _masks(semantics: np.ndarray, sample: SampleRecord, rays: tuple[np.ndarray, 
 
 def _grid_labels(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tuple[BoxRecord, ...],
                  sample: SampleRecord, rays: tuple[np.ndarray, np.ndarray], spec: GridSpec,
-                 v_global: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                 v_global: np.ndarray | None = None, masks: bool | None = None) -> dict[str, np.ndarray]:
     """One keyframe on one grid: `semantics` in Occ3D classes (17 = free) and, where the grid's layout
-    has them, the masks; all `(X, Y, Z) uint8` in the grid's frame. With `v_global (B, 3)` (m/s, global,
-    one row per box of `boxes`, NaN as 0) also `flow (X, Y, Z, 2) float32` (`_flow`)."""
+    has them (or `masks`), the masks; all `(X, Y, Z) uint8` in the grid's frame. With `v_global (B, 3)`
+    (m/s, global, one row per box of `boxes`, NaN as 0) also `flow (X, Y, Z, 2) float32` (`_flow`)."""
     T = T_grid_from_keyego(sample, spec) @ invert_rigid(sample.T_global_from_keyego)
     votes, box_of_vote = _votes(static, cloud, boxes, T, spec.grid)
     semantics = majority(votes, spec.grid.shape, NUM_CLASSES - 1, FREE_LABEL)
     out = {"semantics": semantics}
-    if spec.masks:
+    if spec.masks if masks is None else masks:
         out["mask_lidar"], out["mask_camera"] = _masks(semantics, sample, rays, spec)
     if v_global is not None:
         out["flow"] = _flow(votes, box_of_vote, semantics, v_global, T[:3, :3])
@@ -430,11 +430,21 @@ def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions,
     held = _held_static(keyframe_boxes, opts.hold_static)
     flow_names = {spec.name for spec in grids} if flow is True else set(flow or ())
     v_global = _box_velocities(inputs, keyframe_boxes, held) if flow_names else []
+    # Grids that differ only in classes and layout (occ3d and openocc-v2) share one voxelisation:
+    # the stored ids are mapped when written. Computed once per keyframe, with what any of them needs.
+    groups: dict[tuple[object, ...], list[GridSpec]] = {}
+    for spec in grids:
+        groups.setdefault((spec.grid, spec.frame), []).append(spec)
     for n, i in enumerate(indices):
         s = ds.samples[i]
-        for spec in grids:
+        boxes = keyframe_boxes[n] + held[n]
+        for members in groups.values():
             should_stop()
-            v = v_global[n] if spec.name in flow_names else None
-            boxes = keyframe_boxes[n] + held[n]
-            out[spec.name][s.token] = _grid_labels(static, cloud, boxes, s, rays[s.token], spec, v)
+            any_flow = any(g.name in flow_names for g in members)
+            shared = _grid_labels(static, cloud, boxes, s, rays[s.token], members[0],
+                                  v_global[n] if any_flow else None, masks=any(g.masks for g in members))
+            for spec in members:
+                keep = {"semantics", *(("mask_lidar", "mask_camera") if spec.masks else ()),
+                        *(("flow",) if spec.name in flow_names else ())}
+                out[spec.name][s.token] = {k: v for k, v in shared.items() if k in keep}
     return out, counts
