@@ -187,3 +187,17 @@ def test_densify_fills_a_closed_box_surface_not_what_rays_crossed() -> None:
     assert (out2[4:7, 5, 2] == F).all(), "voxels a ray crossed are never filled"
     assert out2[3, 5, 2] == F
     assert (out2[inner & (crossed == 0)] == 4).all()
+
+
+def test_ground_hole_is_refused_only_by_a_ray_below_it() -> None:
+    """Road (11) in layer z = 1 with a hole at (3, 3, 1), 1 m voxels, no boxes. A ray that grazes the road
+    through the hole (at z = 1.5, ending at x = 7.5) does not stop the fill: the ground is a height field
+    and a ray above it says nothing of its lower part. A ray under it (z = 0.5) does."""
+    sem = _grid((8, 8, 3))
+    sem[:, :, 1] = 11
+    sem[3, 3, 1] = F
+    none = (np.zeros((0, 4, 4)), np.zeros((0, 3)), np.zeros(0, np.uint8))
+    over = densify(sem, np.array([0.5, 3.5, 1.5]), np.array([[7.5, 3.5, 1.5]]), *none, LOWER, 1.0)[0]
+    assert over[3, 3, 1] == 11 and (over != sem).sum() == 1
+    under = densify(sem, np.array([0.5, 3.5, 0.5]), np.array([[7.5, 3.5, 0.5]]), *none, LOWER, 1.0)[0]
+    assert (under == sem).all()

@@ -15,7 +15,8 @@ ray crossed. Only free voxels are filled; an observed voxel keeps its class.
 - `close_holes`: a free voxel with occupied voxels on both sides within `gap` voxels along at least
   two of the three axes lies in a surface (a hole in the road, a facade): it takes the most common
   class of those neighbours. An L-shaped corner (wall on ground) has them along one axis only, and
-  the gap between two parallel surfaces along one axis, so neither is filled.
+  the gap between two parallel surfaces along one axis, so neither is filled. Holes among ground
+  classes are refused by a ray through the voxel below instead (`densify`: the ground is a height field).
 
 Grids are `(X, Y, Z) uint8` semantics (17 = free) in the grid frame, `lower (3,) float64` its lower
 corner, cubic voxels of `voxel_size` metres. Every numba kernel has a plain numpy twin.
@@ -29,7 +30,7 @@ from numba import njit
 from occdata.constants import FREE_LABEL, NUM_CLASSES
 from occdata.geometry import points_in_box
 from occdata.sensors.raycast import segment_advance, segment_setup
-from occdata.visibility import MAX_OCCLUDERS
+from occdata.visibility import GROUND_CLASSES, MAX_OCCLUDERS
 
 __all__ = ["FREE_MARGIN", "GAP", "SOLID_STATIC", "close_holes", "close_holes_reference", "densify", "fill_behind",
            "fill_behind_reference", "fill_boxes", "fill_boxes_reference", "seen_free", "seen_free_reference"]
@@ -309,28 +310,37 @@ def close_holes_reference(semantics: np.ndarray, free: np.ndarray, eligible: np.
 
 
 def densify(semantics: np.ndarray, origin: np.ndarray, endpoints: np.ndarray, T_box_from_grid: np.ndarray,
-            half_size: np.ndarray, box_classes: np.ndarray, lower: np.ndarray,
-            voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
-    """`semantics (X, Y, Z) uint8` with the three fills (module docstring): boxes first, then behind
-    solid static surfaces, then holes; each fills only voxels that are free in the input and that the
-    rays from `origin (3,)` to `endpoints (N, 3)` (the keyframe's LiDAR returns; float64, grid frame) did
-    not see free. Boxes: `T_box_from_grid (B, 4, 4)`, `half_size (B, 3)` (length, width, height halves),
-    `box_classes (B,) uint8` (the objects whose points are in the labels). Returns the new semantics
-    and `(X, Y, Z) int32` the box that filled each voxel (-1: none)."""
+            half_size: np.ndarray, box_classes: np.ndarray, lower: np.ndarray, voxel_size: float,
+            static_rays: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """`semantics (X, Y, Z) uint8` with the fills of the module docstring: boxes first, then behind
+    solid static surfaces, then holes. Evidence: the keyframe's rays from `origin (3,)` to `endpoints
+    (N, 3)` (float64, grid frame), and for the static scene also `static_rays` (origins (M, 3), endpoints
+    (M, 3): other keyframes' rays; the static scene does not move, objects may). Boxes: `T_box_from_grid
+    (B, 4, 4)`, `half_size (B, 3)` (length, width, height halves), `box_classes (B,) uint8` (the objects
+    whose points are in the labels). Returns the new semantics and `(X, Y, Z) int32` the box that filled
+    each voxel (-1: none)."""
     lower = np.asarray(lower, np.float64)
     shape = np.asarray(semantics.shape, np.int64)
     ends = np.ascontiguousarray(endpoints, np.float64).reshape(-1, 3)
     origins = np.ascontiguousarray(np.broadcast_to(np.asarray(origin, np.float64), ends.shape))
     free = seen_free(origins, ends, lower, float(voxel_size), shape, FREE_MARGIN)
+    free_static = free
+    if static_rays is not None and len(static_rays[1]):
+        more = [np.ascontiguousarray(a, np.float64).reshape(-1, 3) for a in static_rays]
+        free_static = free | seen_free(more[0], more[1], lower, float(voxel_size), shape, FREE_MARGIN)
     owner = fill_boxes(semantics, free, np.ascontiguousarray(T_box_from_grid, np.float64).reshape(-1, 4, 4),
                        np.ascontiguousarray(half_size, np.float64).reshape(-1, 3), lower, float(voxel_size))
     cls = np.append(np.asarray(box_classes, np.uint8).reshape(-1), np.uint8(FREE_LABEL))  # owner -1: free
     out = np.where(owner >= 0, cls[owner], semantics).astype(np.uint8)
-    solid = np.zeros(NUM_CLASSES, bool)
-    solid[list(SOLID_STATIC)] = True
-    behind = fill_behind(semantics, free, solid, np.asarray(origin, np.float64)[:2].copy(), DEPTH, lower,
-                         float(voxel_size))
+    behind = fill_behind(semantics, free_static, np.isin(np.arange(NUM_CLASSES), SOLID_STATIC),
+                         np.asarray(origin, np.float64)[:2].copy(), DEPTH, lower, float(voxel_size))
     out = np.where(out == FREE_LABEL, behind, out)
-    eligible = np.arange(NUM_CLASSES) != FREE_LABEL
-    holes = close_holes(semantics, free, eligible, GAP)
-    return np.where(out == FREE_LABEL, holes, out), owner
+    ground_cls = np.isin(np.arange(NUM_CLASSES), GROUND_CLASSES)
+    holes = close_holes(semantics, free, (np.arange(NUM_CLASSES) != FREE_LABEL) & ~ground_cls, GAP)
+    out = np.where(out == FREE_LABEL, holes, out)
+    # The ground is a height field: a ray grazing it crosses its voxels just above the surface and proves
+    # nothing; only a ray through the voxel below shows the ground is not in this layer.
+    below = np.zeros_like(free_static)
+    below[:, :, 1:] = free_static[:, :, :-1]
+    ground = close_holes(semantics, below, ground_cls, GAP)
+    return np.where(out == FREE_LABEL, ground, out), owner

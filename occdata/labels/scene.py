@@ -37,6 +37,8 @@ from occdata.visibility import GROUND_CLASSES, camera_mask, lidar_mask
 
 __all__ = ["LabelOptions", "SceneCounts", "SceneInputs", "label_scene"]
 
+# Densification casts about this many keyframes' worth of other keyframes' rays (`_static_rays`).
+STATIC_RAY_FRAMES = 8
 # Occ3D classes that are never an object's own points (ground, buildings, vegetation).
 _STUFF = np.array(sorted({*GROUND_CLASSES, 15, 16}), np.uint8)
 
@@ -332,34 +334,37 @@ def _masks(semantics: np.ndarray, sample: SampleRecord, rays: tuple[np.ndarray, 
 
 
 def _densify(semantics: np.ndarray, votes: list[np.ndarray], box_of_vote: list[int], boxes: tuple[BoxRecord, ...],
-             rays: tuple[np.ndarray, np.ndarray], T_grid_from_global: np.ndarray,
-             grid: OccGrid) -> tuple[np.ndarray, np.ndarray]:
+             rays: tuple[np.ndarray, np.ndarray], T_grid_from_global: np.ndarray, grid: OccGrid,
+             static_rays: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """`densify` of one keyframe's `semantics` with its rays (global) and the boxes whose instance votes
-    in this grid (an object is filled only where its points are seen): the new semantics, and `(X, Y, Z)
+    in this grid (an object is filled only where its points are seen), and `static_rays` (global; other
+    keyframes' rays, `_static_rays`) as evidence for the static scene: the new semantics, and `(X, Y, Z)
     int64` the index in `boxes` of the box that filled each voxel (-1: none)."""
     seen = [box_of_vote[m] for m in range(len(box_of_vote)) if len(votes[m + 1])]
     T = np.array([invert_rigid(T_grid_from_global @ boxes[b].T_global_from_box()) for b in seen]).reshape(-1, 4, 4)
     half = np.array([[boxes[b].size_wlh[1] / 2, boxes[b].size_wlh[0] / 2, boxes[b].size_wlh[2] / 2] for b in seen])
     cls = np.array([box_class(boxes[b]) for b in seen], np.uint8)
     origin = transform_points(T_grid_from_global, rays[0][None])[0]
+    more = tuple(transform_points(T_grid_from_global, a) for a in static_rays)
     dense, owner = densify(semantics, origin, transform_points(T_grid_from_global, rays[1]), T, half.reshape(-1, 3),
-                           cls, np.array(grid.lower, np.float64), grid.voxel_size)
+                           cls, np.array(grid.lower, np.float64), grid.voxel_size, more)
     return dense, np.where(owner >= 0, np.append(np.asarray(seen, np.int64), -1)[owner], -1)
 
 
 def _grid_labels(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tuple[BoxRecord, ...],
                  sample: SampleRecord, rays: tuple[np.ndarray, np.ndarray], spec: GridSpec,
-                 v_global: np.ndarray | None = None, dense: bool = False) -> dict[str, np.ndarray]:
+                 v_global: np.ndarray | None = None,
+                 static_rays: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """One keyframe on one grid: `semantics` in Occ3D classes (17 = free) and, where the grid's layout
     has them, the masks; all `(X, Y, Z) uint8` in the grid's frame. With `v_global (B, 3)` (m/s, global,
-    one row per box of `boxes`, NaN as 0) also `flow (X, Y, Z, 2) float32` (`_flow`). `dense`: `_densify` the
-    semantics before the masks (a voxel a box filled takes that box's flow)."""
+    one row per box of `boxes`, NaN as 0) also `flow (X, Y, Z, 2) float32` (`_flow`). With `static_rays`
+    (`_static_rays`), `_densify` the semantics before the masks (a voxel a box filled takes its flow)."""
     T = T_grid_from_keyego(sample, spec) @ invert_rigid(sample.T_global_from_keyego)
     votes, box_of_vote = _votes(static, cloud, boxes, T, spec.grid)
     semantics = majority(votes, spec.grid.shape, NUM_CLASSES - 1, FREE_LABEL)
     filled_by = None
-    if dense:
-        semantics, filled_by = _densify(semantics, votes, box_of_vote, boxes, rays, T, spec.grid)
+    if static_rays is not None:
+        semantics, filled_by = _densify(semantics, votes, box_of_vote, boxes, rays, T, spec.grid, static_rays)
     out = {"semantics": semantics}
     if spec.masks:
         out["mask_lidar"], out["mask_camera"] = _masks(semantics, sample, rays, spec)
@@ -380,6 +385,20 @@ def _box_velocities(inputs: SceneInputs, keyframe_boxes: list[tuple[BoxRecord, .
             v[b] = by_token.get(box.token, np.zeros(3))
         out.append(np.nan_to_num(v, nan=0.0))
     return out
+
+
+def _static_rays(rays: list[tuple[np.ndarray, np.ndarray]], n: int,
+                 budget: int = STATIC_RAY_FRAMES) -> tuple[np.ndarray, np.ndarray]:
+    """Densification's evidence for the static scene at keyframe `n`: the rays (origin `(3,)`, points
+    `(N, 3)`, global) of the scene's other keyframes, each thinned to every `s`-th ray (offset by `n`) so
+    that about `budget` keyframes' worth are cast: more viewpoints, bounded cost. Returns origins and
+    endpoints `(M, 3) float64`."""
+    stride = max(1, -(-len(rays) // budget))
+    picked = [(m, pts[(m + n) % stride::stride]) for m, (_, pts) in enumerate(rays) if m != n]
+    if not picked:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    origins = np.concatenate([np.broadcast_to(rays[m][0], p.shape) for m, p in picked])
+    return origins, np.concatenate([p for _, p in picked])
 
 
 def _held_static(keyframe_boxes: list[tuple[BoxRecord, ...]], travel: float) -> list[tuple[BoxRecord, ...]]:
@@ -457,11 +476,13 @@ def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions,
     held = _held_static(keyframe_boxes, opts.hold_static)
     flow_names = {spec.name for spec in grids} if flow is True else set(flow or ())
     v_global = _box_velocities(inputs, keyframe_boxes, held) if flow_names else []
+    ray_list = [rays[ds.samples[i].token] for i in indices]
     for n, i in enumerate(indices):
         s = ds.samples[i]
+        more = _static_rays(ray_list, n) if opts.densify else None
         for spec in grids:
             should_stop()
             v = v_global[n] if spec.name in flow_names else None
             boxes = keyframe_boxes[n] + held[n]
-            out[spec.name][s.token] = _grid_labels(static, cloud, boxes, s, rays[s.token], spec, v, opts.densify)
+            out[spec.name][s.token] = _grid_labels(static, cloud, boxes, s, rays[s.token], spec, v, more)
     return out, counts
