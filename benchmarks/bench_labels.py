@@ -3,8 +3,10 @@
 For each variant (boxes vs the naive global-aggregation control; keyframes only vs + sweeps; with vs
 without lidarseg) it generates the labels in a child process (seconds and peak RSS per scene), then
 scores them against the world's truth: precision of the generated occupied voxels, recall of the
-truth's observable surface, semantic agreement, moving instances' share of voxels inside their box,
-and `occdata eval` mIoU (camera mask) of the generated labels as predictions.
+truth's observable surface (also its camera-visible part, and every camera-visible occupied voxel,
+overall and per band of distance from the ego: 0-20, 20-40, 40+ m), semantic agreement, moving
+instances' share of voxels inside their box, and `occdata eval` mIoU (camera mask) of the generated
+labels as predictions, with its per-class IoU. `boxes-sweeps-densify` is `--densify`.
 
     python -m benchmarks.bench_labels [--scenes 1 --samples 40 --seed 11] [--json out.json]
 """
@@ -21,9 +23,13 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from benchmarks.common import write_json
 from benchmarks.provenance import REPO, machine
+from occdata.constants import CLASS_NAMES, FREE_LABEL
 from occdata.eval.evaluate import EvalConfig, evaluate_predictions
+from occdata.labels.fidelity import BANDS
 from occdata.labels.score import score_tree
 from occdata.store.build import BuildConfig, build_store
 from occdata.synth import SynthConfig, synthesize
@@ -35,6 +41,7 @@ VARIANTS = {  # name: (extra CLI options, drop lidarseg)
     "boxes-sweeps": (["--lidar-sweeps"], False),
     "control-sweeps": (["--lidar-sweeps", "--no-boxes"], False),
     "boxes-sweeps-noseg": (["--lidar-sweeps"], True),
+    "boxes-sweeps-densify": (["--lidar-sweeps", "--densify"], False),
     "control-sweeps-noseg": (["--lidar-sweeps", "--no-boxes"], True),
     # Issue 32: every benchmark's grid from one aggregation (scored on the occ3d grid, which is the same)
     "boxes-sweeps-4grids": (["--lidar-sweeps", "--grid", "occ3d", "--grid", "openocc-v2", "--grid", "surroundocc",
@@ -58,10 +65,18 @@ def _generate(root: Path, out: Path, extra: list[str]) -> dict[str, float]:
 
 
 def _score(root: Path, gen: Path, truth: Path) -> dict[str, float]:
+    """The fidelity figures, overall and per distance band (`band_<lo>-<hi>_...`: precision, recall of the
+    camera-visible observable surface, recall of every camera-visible occupied voxel)."""
     t = score_tree(root, gen, truth)
-    return {"precision": t.voxels.precision, "surface_recall": t.voxels.recall,
-            "semantic_agreement": t.voxels.semantic_agreement, "moving_inside": t.moving_fraction,
-            "moving_inside_worst_instance": t.worst_instance, "moving_voxels": t.moving_total}
+    row = {"precision": t.voxels.precision, "surface_recall": t.voxels.recall,
+           "visible_surface_recall": t.voxels.visible_surface_recall, "visible_recall": t.voxels.visible_recall,
+           "semantic_agreement": t.voxels.semantic_agreement, "moving_inside": t.moving_fraction,
+           "moving_inside_worst_instance": t.worst_instance, "moving_voxels": t.moving_total}
+    for (lo, hi), band in zip(BANDS, t.bands, strict=True):
+        name = f"band_{lo:g}-{hi:g}"
+        row |= {f"{name}_precision": band.precision, f"{name}_visible_surface_recall": band.visible_surface_recall,
+                f"{name}_visible_recall": band.visible_recall, f"{name}_visible_surface_voxels": band.visible_surface}
+    return row
 
 
 def main() -> None:
@@ -103,6 +118,8 @@ def main() -> None:
         for split in ("train", "val") if a.scenes > 1 else ("train",):
             rep = evaluate_predictions(EvalConfig(pred=out, store=store, split=split, rayiou=False, progress=False))
             row[f"eval_miou_camera_{split}"] = float(rep.miou.miou)
+            row |= {f"eval_iou_{CLASS_NAMES[c]}_{split}": float(v) for c, v in enumerate(rep.miou.per_class_iou)
+                    if c != FREE_LABEL and np.isfinite(v)}
         rows[name] = row
         print(name, json.dumps({k: round(v, 4) for k, v in row.items()}), flush=True)
     result = {"machine": record, "world": vars(a) | {"json": None, "keep": None}, "rows": rows}

@@ -190,6 +190,9 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
               help="Metres within which a sweep point takes the class of the nearest labelled keyframe point.")
 @click.option("--no-boxes", is_flag=True,
               help="The control: aggregate every point in the global frame, ignoring boxes (moving objects smear).")
+@click.option("--densify", is_flag=True,
+              help="Fill what surfaces imply where no LiDAR ray saw free space: objects' boxes, a few voxels "
+                   "behind buildings and vegetation, holes in surfaces (docs/labels.md, 'Densification').")
 @click.option("--grid", "grids", multiple=True, type=click.Choice(list(GRID_NAMES)),
               help="A benchmark's grid to write (repeatable; one aggregation serves all): occ3d (default; 0.4 m, "
                    "key ego, OUT/<scene>/<token>/labels.npz), openocc-v2 (its classes + flow), surroundocc (0.5 m, "
@@ -206,7 +209,8 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
 @progress_option()
 @friendly_errors
 def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], scenes: tuple[str, ...],
-           lidar_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, grids: tuple[str, ...],
+           lidar_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, densify: bool,
+           grids: tuple[str, ...],
            voxel_size: float | None, grid_range: tuple[float, ...] | None, cluster: ClusterConfig,
            resume: bool, progress: bool) -> None:
     """Generate occupancy labels from LiDAR and 3D boxes (and lidarseg when present), on the grid of
@@ -226,7 +230,7 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
             root=local_path(root, "--root"), out=out_path, version=version, splits=splits or None,
             scenes=scenes or None, resume=resume, progress=progress,
             options=LabelOptions(lidar_sweeps=lidar_sweeps, static_class=static_class, knn_radius=knn_radius,
-                                 use_boxes=not no_boxes),
+                                 use_boxes=not no_boxes, densify=densify),
             cluster=cluster, grids=specs,
         ))
     seg = "lidarseg classes" if report.with_lidarseg else f"no lidarseg: static points are class {static_class}"

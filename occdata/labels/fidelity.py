@@ -1,14 +1,16 @@
 """How close generated labels are to a known truth (the synthetic world's exact labels).
 
 Pure functions over `(X, Y, Z) uint8` grids (17 = free): precision of the generated occupied voxels,
-recall of the truth's observable surface, semantic agreement, and for moving objects the share of
-an instance's generated voxels that lie in its box at that keyframe. Used by the tests and by
+recall of the truth's observable surface (and of its camera-visible part, and of every camera-visible
+occupied voxel, what `occdata eval` scores), semantic agreement, each also per band of distance from
+the ego (`BANDS`), and for moving objects the share of an instance's generated voxels that lie in its
+box at that keyframe. Used by the tests and by
 `benchmarks/bench_labels.py`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -16,8 +18,11 @@ from occdata.constants import FREE_LABEL, GRID
 from occdata.geometry import invert_rigid, points_in_box
 from occdata.nuscenes.annotations import moving_instances
 
-__all__ = ["Fidelity", "SceneScore", "instance_containment", "moving_containment",
+__all__ = ["BANDS", "Fidelity", "SceneScore", "band_regions", "instance_containment", "moving_containment",
            "observable_surface", "score_scene", "voxel_fidelity"]
+
+# Bands of horizontal distance (m) from the key-ego origin to a voxel's centre: [lo, hi).
+BANDS: tuple[tuple[float, float], ...] = ((0.0, 20.0), (20.0, 40.0), (40.0, np.inf))
 
 
 @dataclass
@@ -29,6 +34,10 @@ class Fidelity:
     surface: int = 0  # truth's observable surface voxels
     surface_found: int = 0  # ... generated occupied
     same_class: int = 0  # generated occupied, truly occupied, same class
+    visible_surface: int = 0  # observable surface voxels in the truth's camera mask
+    visible_surface_found: int = 0  # ... generated occupied
+    visible: int = 0  # truth-occupied voxels in the truth's camera mask (what `occdata eval` scores)
+    visible_found: int = 0  # ... generated occupied
 
     def add(self, other: Fidelity) -> None:
         for k, v in vars(other).items():
@@ -45,6 +54,24 @@ class Fidelity:
     @property
     def semantic_agreement(self) -> float:
         return self.same_class / max(self.true_positive, 1)
+
+    @property
+    def visible_surface_recall(self) -> float:
+        return self.visible_surface_found / max(self.visible_surface, 1)
+
+    @property
+    def visible_recall(self) -> float:
+        return self.visible_found / max(self.visible, 1)
+
+
+def band_regions(shape: tuple[int, int, int] = GRID.shape) -> list[np.ndarray]:
+    """Per band of `BANDS`, `(X, Y, Z) bool`: the voxels of Occ3D's grid whose centre's horizontal
+    distance from the key-ego origin lies in the band."""
+    centres = GRID.voxel_centers()
+    if centres.shape[:3] != tuple(shape):
+        raise ValueError(f"bands are defined on Occ3D's grid {GRID.shape}, not {shape}")
+    r = np.hypot(centres[..., 0], centres[..., 1])
+    return [(r >= lo) & (r < hi) for lo, hi in BANDS]
 
 
 def observable_surface(truth: np.ndarray, mask_lidar: np.ndarray) -> np.ndarray:
@@ -64,16 +91,26 @@ def observable_surface(truth: np.ndarray, mask_lidar: np.ndarray) -> np.ndarray:
     return occ & seen & near
 
 
-def voxel_fidelity(generated: np.ndarray, truth: np.ndarray, truth_mask_lidar: np.ndarray) -> Fidelity:
-    """Counts for one keyframe's generated semantics against the truth's semantics and LiDAR mask."""
-    gen_occ = generated != FREE_LABEL
+def voxel_fidelity(generated: np.ndarray, truth: np.ndarray, truth_mask_lidar: np.ndarray,
+                   truth_mask_camera: np.ndarray | None = None, region: np.ndarray | None = None) -> Fidelity:
+    """Counts for one keyframe's generated semantics against the truth's semantics and LiDAR mask (and
+    camera mask: without one the `visible` counts stay 0), within `region (X, Y, Z) bool` (None: all)."""
+    region = np.ones(truth.shape, bool) if region is None else region
+    gen_occ = (generated != FREE_LABEL) & region
     true_occ = truth != FREE_LABEL
-    surface = observable_surface(truth, truth_mask_lidar)
+    surface = observable_surface(truth, truth_mask_lidar) & region
     both = gen_occ & true_occ
-    return Fidelity(
+    out = Fidelity(
         generated=int(gen_occ.sum()), true_positive=int(both.sum()), surface=int(surface.sum()),
         surface_found=int((surface & gen_occ).sum()), same_class=int((both & (generated == truth)).sum()),
     )
+    if truth_mask_camera is not None:
+        cam = truth_mask_camera != 0
+        out.visible_surface = int((surface & cam).sum())
+        out.visible_surface_found = int((surface & cam & gen_occ).sum())
+        out.visible = int((true_occ & cam & region).sum())
+        out.visible_found = int((true_occ & cam & gen_occ).sum())
+    return out
 
 
 def _in_box(centers: np.ndarray, T_keyego_from_box: np.ndarray, size_wlh: np.ndarray, dilate: int) -> np.ndarray:
@@ -111,6 +148,7 @@ class SceneScore:
 
     voxels: Fidelity
     moving: dict[str, tuple[int, int]]
+    bands: list[Fidelity] = field(default_factory=list)  # per band of `BANDS`
 
     def moving_fraction(self) -> float:
         """Share of all moving instances' generated voxels that lie in their box (pooled)."""
@@ -148,12 +186,17 @@ def moving_containment(generated: list[np.ndarray], T_keyego_from_global: list[n
     return out
 
 
-def score_scene(generated: list[np.ndarray], truth: list[tuple[np.ndarray, np.ndarray]],
+def score_scene(generated: list[np.ndarray], truth: list[tuple[np.ndarray, ...]],
                 T_keyego_from_global: list[np.ndarray], boxes_by_keyframe: list[list],
                 class_of: dict[str, int]) -> SceneScore:
-    """Score one scene's keyframes: `generated[k]`, `truth[k] = (semantics, mask_lidar)` and the
-    arguments of `moving_containment`."""
+    """Score one scene's keyframes: `generated[k]`, `truth[k] = (semantics, mask_lidar[, mask_camera])`
+    and the arguments of `moving_containment`; also per band of `BANDS` (Occ3D's grid only)."""
     total = Fidelity()
-    for gen, (sem, mask) in zip(generated, truth, strict=True):
-        total.add(voxel_fidelity(gen, sem, mask))
-    return SceneScore(total, moving_containment(generated, T_keyego_from_global, boxes_by_keyframe, class_of))
+    regions = band_regions(generated[0].shape) if generated and generated[0].shape == GRID.shape else []
+    bands = [Fidelity() for _ in regions]
+    for gen, masks in zip(generated, truth, strict=True):
+        total.add(voxel_fidelity(gen, *masks))
+        for band, region in zip(bands, regions, strict=True):
+            band.add(voxel_fidelity(gen, *masks, region=region))
+    moving = moving_containment(generated, T_keyego_from_global, boxes_by_keyframe, class_of)
+    return SceneScore(total, moving, bands)

@@ -28,6 +28,7 @@ import numpy as np
 from occdata.constants import EGO_BOX, FREE_LABEL, NUM_CLASSES, OccGrid
 from occdata.geometry import invert_rigid, transform_points
 from occdata.grids import GRID_PRESETS, GridSpec, LabelFrame
+from occdata.labels.densify import densify
 from occdata.labels.kernels import NO_LABEL, NearestIndex, majority, points_in_boxes, vote_sources, vote_voxels
 from occdata.nuscenes import LidarRecord, NuScenesDataset, SampleRecord, SceneRecord, load_lidar_points
 from occdata.nuscenes.annotations import Annotations, BoxRecord, boxes_for_lidar, moving_instances
@@ -36,6 +37,8 @@ from occdata.visibility import GROUND_CLASSES, camera_mask, lidar_mask
 
 __all__ = ["LabelOptions", "SceneCounts", "SceneInputs", "label_scene"]
 
+# Densification casts about this many keyframes' worth of other keyframes' rays (`_static_rays`).
+STATIC_RAY_FRAMES = 8
 # Occ3D classes that are never an object's own points (ground, buildings, vegetation).
 _STUFF = np.array(sorted({*GROUND_CLASSES, 15, 16}), np.uint8)
 
@@ -53,7 +56,8 @@ class LabelOptions:
     lidarseg its boxes still give their points' classes. hold_static: an instance whose box centre
     spans less than this many metres in x and y over the scene is parked (`moving_instances`): at
     keyframes where it has no box (annotation stops once an object is out of sight) it is drawn at
-    its nearest annotated pose (0: never)."""
+    its nearest annotated pose (0: never). densify: fill the insides of objects' boxes and of solid
+    static surfaces, and holes in surfaces, where no ray saw free space (`occdata.labels.densify`)."""
 
     lidar_sweeps: bool = False
     knn_radius: float = 0.5
@@ -62,6 +66,7 @@ class LabelOptions:
     static_class: int = 0
     hold_static: float = 1.0
     use_boxes: bool = True  # False: naive global aggregation, the smearing control
+    densify: bool = False
 
     def __post_init__(self) -> None:
         if not 0 < self.knn_radius <= 5:
@@ -290,19 +295,23 @@ def _votes(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tuple[Bo
 
 
 def _flow(votes: list[np.ndarray], box_of_vote: list[int], semantics: np.ndarray, v_global: np.ndarray,
-          R_grid_from_global: np.ndarray) -> np.ndarray:
+          R_grid_from_global: np.ndarray, filled_by: np.ndarray | None = None) -> np.ndarray:
     """`(X, Y, Z, 2) float32` m/s (vx, vy) in the grid's frame: per voxel, the ground velocity
     `v_global (B, 3)` (NaN already 0) of the box whose placed points cast most of the votes for the
     voxel's class (`vote_sources`: ties to the static scene, then to the lower box index); 0 where
-    the static scene won and in free space. vz is dropped before rotating: velocity over the ground."""
+    the static scene won and in free space. vz is dropped before rotating: velocity over the ground.
+    `filled_by (X, Y, Z)`: the box (index in `v_global`) whose densification filled a voxel, -1 none."""
     flow = np.zeros((semantics.size, 2), np.float32)
     voxel, source = vote_sources(votes, semantics, NUM_CLASSES - 1)
     on_box = source > 0
+    v_ground = np.asarray(v_global, np.float64).reshape(-1, 3) * (1.0, 1.0, 0.0)
+    v_grid = v_ground @ np.asarray(R_grid_from_global, np.float64).T
     if on_box.any():
-        v_ground = np.asarray(v_global, np.float64).reshape(-1, 3) * (1.0, 1.0, 0.0)
-        v_grid = v_ground @ np.asarray(R_grid_from_global, np.float64).T
         box = np.asarray(box_of_vote, np.int64)[source[on_box] - 1]
         flow[voxel[on_box]] = v_grid[box, :2]
+    if filled_by is not None:
+        filled = np.flatnonzero(filled_by.reshape(-1) >= 0)
+        flow[filled] = v_grid[filled_by.reshape(-1)[filled], :2]
     return flow.reshape(*semantics.shape, 2)
 
 
@@ -324,20 +333,44 @@ def _masks(semantics: np.ndarray, sample: SampleRecord, rays: tuple[np.ndarray, 
                                 spec.grid.voxel_size)
 
 
+def _densify(semantics: np.ndarray, votes: list[np.ndarray], box_of_vote: list[int], boxes: tuple[BoxRecord, ...],
+             rays: tuple[np.ndarray, np.ndarray], T_grid_from_global: np.ndarray, grid: OccGrid,
+             static_rays: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """`densify` of one keyframe's `semantics` with its rays (global) and the boxes whose instance votes
+    in this grid (an object is filled only where its points are seen), and `static_rays` (global; other
+    keyframes' rays, `_static_rays`) as evidence for the static scene: the new semantics, and `(X, Y, Z)
+    int64` the index in `boxes` of the box that filled each voxel (-1: none)."""
+    seen = [box_of_vote[m] for m in range(len(box_of_vote)) if len(votes[m + 1])]
+    T = np.array([invert_rigid(T_grid_from_global @ boxes[b].T_global_from_box()) for b in seen]).reshape(-1, 4, 4)
+    half = np.array([[boxes[b].size_wlh[1] / 2, boxes[b].size_wlh[0] / 2, boxes[b].size_wlh[2] / 2] for b in seen])
+    cls = np.array([box_class(boxes[b]) for b in seen], np.uint8)
+    origin = transform_points(T_grid_from_global, rays[0][None])[0]
+    more = tuple(transform_points(T_grid_from_global, a) for a in static_rays)
+    dense, owner = densify(semantics, origin, transform_points(T_grid_from_global, rays[1]), T, half.reshape(-1, 3),
+                           cls, np.array(grid.lower, np.float64), grid.voxel_size, more)
+    return dense, np.where(owner >= 0, np.append(np.asarray(seen, np.int64), -1)[owner], -1)
+
+
 def _grid_labels(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tuple[BoxRecord, ...],
                  sample: SampleRecord, rays: tuple[np.ndarray, np.ndarray], spec: GridSpec,
-                 v_global: np.ndarray | None = None, masks: bool | None = None) -> dict[str, np.ndarray]:
+                 v_global: np.ndarray | None = None, masks: bool | None = None,
+                 static_rays: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """One keyframe on one grid: `semantics` in Occ3D classes (17 = free) and, where the grid's layout
     has them (or `masks`), the masks; all `(X, Y, Z) uint8` in the grid's frame. With `v_global (B, 3)`
-    (m/s, global, one row per box of `boxes`, NaN as 0) also `flow (X, Y, Z, 2) float32` (`_flow`)."""
+    (m/s, global, one row per box of `boxes`, NaN as 0) also `flow (X, Y, Z, 2) float32` (`_flow`). With
+    `static_rays` (`_static_rays`), `_densify` the semantics before the masks (a voxel a box filled takes
+    its flow)."""
     T = T_grid_from_keyego(sample, spec) @ invert_rigid(sample.T_global_from_keyego)
     votes, box_of_vote = _votes(static, cloud, boxes, T, spec.grid)
     semantics = majority(votes, spec.grid.shape, NUM_CLASSES - 1, FREE_LABEL)
+    filled_by = None
+    if static_rays is not None:
+        semantics, filled_by = _densify(semantics, votes, box_of_vote, boxes, rays, T, spec.grid, static_rays)
     out = {"semantics": semantics}
     if spec.masks if masks is None else masks:
         out["mask_lidar"], out["mask_camera"] = _masks(semantics, sample, rays, spec)
     if v_global is not None:
-        out["flow"] = _flow(votes, box_of_vote, semantics, v_global, T[:3, :3])
+        out["flow"] = _flow(votes, box_of_vote, semantics, v_global, T[:3, :3], filled_by)
     return out
 
 
@@ -353,6 +386,20 @@ def _box_velocities(inputs: SceneInputs, keyframe_boxes: list[tuple[BoxRecord, .
             v[b] = by_token.get(box.token, np.zeros(3))
         out.append(np.nan_to_num(v, nan=0.0))
     return out
+
+
+def _static_rays(rays: list[tuple[np.ndarray, np.ndarray]], n: int,
+                 budget: int = STATIC_RAY_FRAMES) -> tuple[np.ndarray, np.ndarray]:
+    """Densification's evidence for the static scene at keyframe `n`: the rays (origin `(3,)`, points
+    `(N, 3)`, global) of the scene's other keyframes, each thinned to every `s`-th ray (offset by `n`) so
+    that about `budget` keyframes' worth are cast: more viewpoints, bounded cost. Returns origins and
+    endpoints `(M, 3) float64`."""
+    stride = max(1, -(-len(rays) // budget))
+    picked = [(m, pts[(m + n) % stride::stride]) for m, (_, pts) in enumerate(rays) if m != n]
+    if not picked:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    origins = np.concatenate([np.broadcast_to(rays[m][0], p.shape) for m, p in picked])
+    return origins, np.concatenate([p for _, p in picked])
 
 
 def _held_static(keyframe_boxes: list[tuple[BoxRecord, ...]], travel: float) -> list[tuple[BoxRecord, ...]]:
@@ -435,14 +482,17 @@ def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions,
     groups: dict[tuple[object, ...], list[GridSpec]] = {}
     for spec in grids:
         groups.setdefault((spec.grid, spec.frame), []).append(spec)
+    ray_list = [rays[ds.samples[i].token] for i in indices]
     for n, i in enumerate(indices):
         s = ds.samples[i]
         boxes = keyframe_boxes[n] + held[n]
+        more = _static_rays(ray_list, n) if opts.densify else None
         for members in groups.values():
             should_stop()
             any_flow = any(g.name in flow_names for g in members)
             shared = _grid_labels(static, cloud, boxes, s, rays[s.token], members[0],
-                                  v_global[n] if any_flow else None, masks=any(g.masks for g in members))
+                                  v_global[n] if any_flow else None, masks=any(g.masks for g in members),
+                                  static_rays=more)
             for spec in members:
                 keep = {"semantics", *(("mask_lidar", "mask_camera") if spec.masks else ()),
                         *(("flow",) if spec.name in flow_names else ())}

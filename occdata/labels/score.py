@@ -26,6 +26,7 @@ class TreeScore:
     moving_inside: int
     moving_total: int
     worst_instance: float  # lowest per-instance share (instances with >= 20 voxels)
+    bands: tuple[Fidelity, ...] = ()  # per band of `occdata.labels.fidelity.BANDS`
 
     @property
     def moving_fraction(self) -> float:
@@ -43,14 +44,18 @@ def score_tree(root: Path, generated: Path, truth: Path) -> TreeScore:
     ann = load_annotations(root, ds.version)
     class_of = {b.instance_token: box_class(b) for bs in ann.boxes_by_sample.values() for b in bs}
     voxels, inside, total, worst = Fidelity(), 0, 0, 1.0
+    bands: list[Fidelity] = []
     for sc in ds.scenes:
         toks = sc.sample_tokens
         gens = [_arrays(generated, sc.name, t, "semantics")[0] for t in toks]
-        truths = [_arrays(truth, sc.name, t, "semantics", "mask_lidar") for t in toks]
+        truths = [_arrays(truth, sc.name, t, "semantics", "mask_lidar", "mask_camera") for t in toks]
         Ts = [invert_rigid(ds.sample(t).T_global_from_keyego) for t in toks]
         score = score_scene(gens, truths, Ts, [list(ann.boxes_by_sample.get(t, ())) for t in toks], class_of)
         voxels.add(score.voxels)
+        bands = bands or [Fidelity() for _ in score.bands]
+        for band, more in zip(bands, score.bands, strict=True):
+            band.add(more)
         inside += sum(v[0] for v in score.moving.values())
         total += sum(v[1] for v in score.moving.values())
         worst = min(worst, score.worst_instance())
-    return TreeScore(voxels, inside, total, worst)
+    return TreeScore(voxels, inside, total, worst, tuple(bands))

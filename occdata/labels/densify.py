@@ -1,0 +1,346 @@
+"""Densification of generated labels: fill what LiDAR surfaces imply but no point landed in.
+
+Generated labels hold the voxels that points fell in, so a solid is its observed skin. Three fills,
+each limited by free-space evidence (`seen_free`: voxels a LiDAR ray passed through on its way to a
+return, the last `FREE_MARGIN` metres before the return left out) so that a fill never claims space a
+ray crossed. Only free voxels are filled; an observed voxel keeps its class.
+
+- `fill_boxes`: an annotated object whose points are in the labels is a solid: the voxels whose
+  centre lies in its box take its class.
+- `fill_behind`: behind an observed voxel of a solid static class (manmade, vegetation, others), on
+  the horizontal line from the sensor through it, the next `depth` voxels take its class, up to the
+  first voxel a ray saw free. Buildings and tree crowns are solids the LiDAR sees the front of;
+  `depth` defaults to the camera mask's `MAX_OCCLUDERS`, the depth to which Occ3D's camera mask
+  scores an object's inside (docs/visibility.md): deeper fill would not be scored, only risked.
+- `close_holes`: a free voxel with occupied voxels on both sides within `gap` voxels along at least
+  two of the three axes lies in a surface (a hole in the road, a facade): it takes the most common
+  class of those neighbours. An L-shaped corner (wall on ground) has them along one axis only, and
+  the gap between two parallel surfaces along one axis, so neither is filled. Holes among ground
+  classes are refused by a ray through the voxel below instead (`densify`: the ground is a height field).
+
+Grids are `(X, Y, Z) uint8` semantics (17 = free) in the grid frame, `lower (3,) float64` its lower
+corner, cubic voxels of `voxel_size` metres. Every numba kernel has a plain numpy twin.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from occdata.constants import FREE_LABEL, NUM_CLASSES
+from occdata.geometry import points_in_box
+from occdata.sensors.raycast import segment_advance, segment_setup
+from occdata.visibility import GROUND_CLASSES, MAX_OCCLUDERS
+
+__all__ = ["FREE_MARGIN", "GAP", "SOLID_STATIC", "close_holes", "close_holes_reference", "densify", "fill_behind",
+           "fill_behind_reference", "fill_boxes", "fill_boxes_reference", "seen_free", "seen_free_reference"]
+
+# Metres of each ray before its return that count as no evidence: a ray that grazes a surface crosses
+# the voxels of that surface next to its return (the road in front of a ground return).
+FREE_MARGIN = 0.4
+GAP = 2  # voxels: widest hole `close_holes` bridges
+DEPTH = MAX_OCCLUDERS
+# Occ3D classes that are solids whose inside no LiDAR sees: others, manmade, vegetation.
+SOLID_STATIC = (0, 15, 16)
+
+
+@njit(cache=True)
+def seen_free(origins: np.ndarray, endpoints: np.ndarray, lower: np.ndarray, voxel_size: float, shape: np.ndarray,
+              margin: float) -> np.ndarray:
+    """`(X, Y, Z) uint8` 0/1: voxels crossed by rays `origins (N, 3) -> endpoints (N, 3)` (float64, grid
+    frame) cut `margin` metres short of their endpoint, never the voxel holding the endpoint."""
+    out = np.zeros((shape[0], shape[1], shape[2]), np.uint8)
+    idx = np.empty(3, np.int64)
+    step = np.empty(3, np.int64)
+    t_next = np.empty(3)
+    t_delta = np.empty(3)
+    for n in range(origins.shape[0]):
+        a, e = origins[n], endpoints[n]
+        length = np.sqrt(((e - a) ** 2).sum())
+        if length <= margin:
+            continue
+        b = a + (e - a) * (1.0 - margin / length)
+        ok, t_end = segment_setup(a, b, lower, voxel_size, shape, idx, step, t_next, t_delta)
+        if not ok:
+            continue
+        end = np.floor((e - lower) / voxel_size)
+        while True:
+            if idx[0] != end[0] or idx[1] != end[1] or idx[2] != end[2]:
+                out[idx[0], idx[1], idx[2]] = 1
+            if segment_advance(idx, step, t_next, t_delta, shape) > t_end:
+                break
+    return out
+
+
+def _segment_hits_boxes(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Whether segment a->b meets each closed box `lo, hi (M, 3)`: `(M,) bool` (slab test)."""
+    d = b - a
+    t0, t1 = np.zeros(len(lo)), np.ones(len(lo))
+    for k in range(3):
+        if abs(d[k]) < 1e-15:
+            inside = (a[k] >= lo[:, k]) & (a[k] <= hi[:, k])
+            t1 = np.where(inside, t1, -1.0)
+            continue
+        ta, tb = (lo[:, k] - a[k]) / d[k], (hi[:, k] - a[k]) / d[k]
+        t0 = np.maximum(t0, np.minimum(ta, tb))
+        t1 = np.minimum(t1, np.maximum(ta, tb))
+    return t0 <= t1
+
+
+def seen_free_reference(origins: np.ndarray, endpoints: np.ndarray, lower: np.ndarray, voxel_size: float,
+                        shape: np.ndarray, margin: float) -> np.ndarray:
+    """Numpy twin of `seen_free`: every cut ray tested against every voxel's box."""
+    shape = tuple(int(s) for s in shape)
+    grid = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1).reshape(-1, 3)
+    lo = lower + grid * voxel_size
+    out = np.zeros(len(grid), bool)
+    for a, e in zip(np.asarray(origins, np.float64), np.asarray(endpoints, np.float64), strict=True):
+        length = np.linalg.norm(e - a)
+        if length <= margin:
+            continue
+        hit = _segment_hits_boxes(a, a + (e - a) * (1 - margin / length), lo, lo + voxel_size)
+        end = np.floor((e - lower) / voxel_size).astype(np.int64)
+        hit &= ~(grid == end).all(axis=1)
+        out |= hit
+    return out.reshape(shape).astype(np.uint8)
+
+
+@njit(cache=True)
+def fill_boxes(semantics: np.ndarray, free: np.ndarray, T_box_from_grid: np.ndarray, half_size: np.ndarray,
+               lower: np.ndarray, voxel_size: float) -> np.ndarray:
+    """`(X, Y, Z) int32`: for each voxel free in `semantics` and not seen free (`free`) whose centre lies
+    in a box (closed; `T_box_from_grid (B, 4, 4)`, half extents `half_size (B, 3)`: length, width, height
+    halves), the index of the first such box; -1 elsewhere."""
+    X, Y, Z = semantics.shape
+    out = np.full((X, Y, Z), -1, np.int32)
+    for b in range(T_box_from_grid.shape[0]):
+        T = T_box_from_grid[b]
+        lo = np.empty(3)
+        hi = np.empty(3)
+        for a in range(3):  # the box's axis-aligned bounds in the grid frame, as voxel indices
+            centre = -(T[0, a] * T[0, 3] + T[1, a] * T[1, 3] + T[2, a] * T[2, 3])
+            reach = abs(T[0, a]) * half_size[b, 0] + abs(T[1, a]) * half_size[b, 1] + abs(T[2, a]) * half_size[b, 2]
+            lo[a] = np.floor((centre - reach - lower[a]) / voxel_size - 0.5)
+            hi[a] = np.ceil((centre + reach - lower[a]) / voxel_size - 0.5)
+        for i in range(max(int(lo[0]), 0), min(int(hi[0]), X - 1) + 1):
+            x = lower[0] + (i + 0.5) * voxel_size
+            for j in range(max(int(lo[1]), 0), min(int(hi[1]), Y - 1) + 1):
+                y = lower[1] + (j + 0.5) * voxel_size
+                for k in range(max(int(lo[2]), 0), min(int(hi[2]), Z - 1) + 1):
+                    if out[i, j, k] >= 0 or semantics[i, j, k] != FREE_LABEL or free[i, j, k] != 0:
+                        continue
+                    z = lower[2] + (k + 0.5) * voxel_size
+                    if (abs(T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]) <= half_size[b, 0]
+                            and abs(T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]) <= half_size[b, 1]
+                            and abs(T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]) <= half_size[b, 2]):
+                        out[i, j, k] = b
+    return out
+
+
+def fill_boxes_reference(semantics: np.ndarray, free: np.ndarray, T_box_from_grid: np.ndarray,
+                         half_size: np.ndarray, lower: np.ndarray, voxel_size: float) -> np.ndarray:
+    """Numpy twin of `fill_boxes`: every voxel centre tested against every box, the last box first."""
+    out = np.full(semantics.shape, -1, np.int32)
+    centres = lower + (np.argwhere(np.ones(semantics.shape, bool)) + 0.5) * voxel_size
+    for b in range(len(T_box_from_grid) - 1, -1, -1):
+        inside = points_in_box(centres, T_box_from_grid[b], half_size[b]).reshape(semantics.shape)
+        out[inside & (semantics == FREE_LABEL) & (free == 0)] = b
+    return out
+
+
+@njit(cache=True)
+def fill_behind(semantics: np.ndarray, free: np.ndarray, solid: np.ndarray, origin_xy: np.ndarray, depth: int,
+                lower: np.ndarray, voxel_size: float) -> np.ndarray:
+    """A copy of `semantics` where, from each voxel whose class `c` has `solid[c]` (`solid (18,) bool`),
+    the voxels on the horizontal line from `origin_xy (2,)` (the sensor, grid frame) through the voxel's
+    centre, beyond it, are visited in order (2D DDA in the voxel's layer) up to `depth` of them: a free
+    voxel not seen free takes class `c`; the walk stops at a voxel seen free, at one of another class in
+    `semantics`, or at the grid's edge. Sources are the input's voxels only; where walks meet, the first
+    source in (x, y, z) order wins."""
+    X, Y, Z = semantics.shape
+    out = semantics.copy()
+    for i in range(X):
+        for j in range(Y):
+            for k in range(Z):
+                c = semantics[i, j, k]
+                if not solid[c]:
+                    continue
+                px = lower[0] + (i + 0.5) * voxel_size
+                py = lower[1] + (j + 0.5) * voxel_size
+                dx, dy = px - origin_xy[0], py - origin_xy[1]
+                norm = np.sqrt(dx * dx + dy * dy)
+                if norm == 0.0:
+                    continue
+                dx, dy = dx / norm, dy / norm
+                si = 1 if dx > 0 else -1
+                sj = 1 if dy > 0 else -1
+                # ray from the centre: t to the next x / y face, and per voxel
+                tx = 0.5 * voxel_size / abs(dx) if dx != 0 else np.inf
+                ty = 0.5 * voxel_size / abs(dy) if dy != 0 else np.inf
+                ddx = voxel_size / abs(dx) if dx != 0 else np.inf
+                ddy = voxel_size / abs(dy) if dy != 0 else np.inf
+                a, b = i, j
+                for _ in range(depth):
+                    if tx < ty:
+                        a += si
+                        tx += ddx
+                    else:
+                        b += sj
+                        ty += ddy
+                    if a < 0 or a >= X or b < 0 or b >= Y or free[a, b, k] != 0:
+                        break
+                    s = semantics[a, b, k]
+                    if s == FREE_LABEL:
+                        if out[a, b, k] == FREE_LABEL:
+                            out[a, b, k] = c
+                    elif s != c:
+                        break
+    return out
+
+
+def fill_behind_reference(semantics: np.ndarray, free: np.ndarray, solid: np.ndarray, origin_xy: np.ndarray,
+                          depth: int, lower: np.ndarray, voxel_size: float) -> np.ndarray:
+    """Numpy twin of `fill_behind`: the voxels of each walk found by sampling its line finely (every
+    1/512 voxel) instead of a DDA."""
+    X, Y, Z = semantics.shape
+    out = semantics.copy()
+    fine = np.arange(1, 512 * (depth + 2)) / 512 * voxel_size
+    for i, j, k in np.argwhere(np.asarray(solid)[semantics]):
+        c = semantics[i, j, k]
+        p = lower[:2] + (np.array([i, j]) + 0.5) * voxel_size
+        d = p - origin_xy
+        if not np.any(d):
+            continue
+        cells = np.floor((p + fine[:, None] * d / np.linalg.norm(d) - lower[:2]) / voxel_size).astype(np.int64)
+        keep = np.ones(len(cells), bool)
+        keep[1:] = (cells[1:] != cells[:-1]).any(axis=1)
+        cells = cells[keep]
+        cells = cells[(cells != (i, j)).any(axis=1)][:depth]
+        for a, b in cells:
+            if not (0 <= a < X and 0 <= b < Y) or free[a, b, k]:
+                break
+            if semantics[a, b, k] == FREE_LABEL:
+                if out[a, b, k] == FREE_LABEL:
+                    out[a, b, k] = c
+            elif semantics[a, b, k] != c:
+                break
+    return out
+
+
+@njit(cache=True)
+def close_holes(semantics: np.ndarray, free: np.ndarray, eligible: np.ndarray, gap: int) -> np.ndarray:
+    """A copy of `semantics` where each free voxel not seen free (`free`) that has, along at least two of
+    the axes x, y, z, a voxel of an `eligible (18,) bool` class within `gap` voxels on both sides (the
+    nearest on each side) takes the most common class of those nearest neighbours (ties: the lower
+    class). Sources are the input's voxels only."""
+    X, Y, Z = semantics.shape
+    shape = (X, Y, Z)
+    out = semantics.copy()
+    counts = np.zeros(NUM_CLASSES, np.int64)
+    for i in range(X):
+        for j in range(Y):
+            for k in range(Z):
+                if semantics[i, j, k] != FREE_LABEL or free[i, j, k] != 0:
+                    continue
+                counts[:] = 0
+                axes = 0
+                for ax in range(3):
+                    found = 0
+                    s1 = s2 = 0
+                    for sign in (-1, 1):
+                        for g in range(1, gap + 1):
+                            a, b, c = i, j, k
+                            if ax == 0:
+                                a += sign * g
+                            elif ax == 1:
+                                b += sign * g
+                            else:
+                                c += sign * g
+                            pos = (a, b, c)[ax]
+                            if pos < 0 or pos >= shape[ax]:
+                                break
+                            s = semantics[a, b, c]
+                            if s != FREE_LABEL:
+                                if eligible[s]:
+                                    found += 1
+                                    s1, s2 = s2, s
+                                break
+                    if found == 2:
+                        axes += 1
+                        counts[s1] += 1
+                        counts[s2] += 1
+                if axes >= 2:
+                    out[i, j, k] = np.argmax(counts)
+    return out
+
+
+def close_holes_reference(semantics: np.ndarray, free: np.ndarray, eligible: np.ndarray, gap: int) -> np.ndarray:
+    """Numpy twin of `close_holes`: per axis and side, the nearest occupied voxel within `gap` found by
+    shifting whole grids."""
+    occ = semantics != FREE_LABEL
+    counts = np.zeros((NUM_CLASSES, *semantics.shape), np.int64)
+    axes = np.zeros(semantics.shape, np.int64)
+    for ax in range(3):
+        both = np.ones(semantics.shape, bool)
+        side_cls = []
+        for sign in (-1, 1):
+            cls = np.full(semantics.shape, FREE_LABEL, np.int64)
+            for g in range(gap, 0, -1):  # nearer overwrites farther
+                shifted = np.full(semantics.shape, FREE_LABEL, np.int64)
+                src = [slice(None)] * 3
+                dst = [slice(None)] * 3
+                n = semantics.shape[ax]
+                if sign > 0:
+                    src[ax], dst[ax] = slice(g, n), slice(0, n - g)
+                else:
+                    src[ax], dst[ax] = slice(0, n - g), slice(g, n)
+                shifted[tuple(dst)] = semantics[tuple(src)]
+                cls = np.where(shifted != FREE_LABEL, shifted, cls)
+            ok = (cls != FREE_LABEL) & np.asarray(eligible)[np.minimum(cls, FREE_LABEL)]
+            both &= ok
+            side_cls.append(cls)
+        axes += both
+        for cls in side_cls:
+            for c in range(NUM_CLASSES):
+                counts[c] += both & (cls == c)
+    take = ~occ & (free == 0) & (axes >= 2)
+    out = semantics.copy()
+    out[take] = np.argmax(counts, axis=0)[take]
+    return out
+
+
+def densify(semantics: np.ndarray, origin: np.ndarray, endpoints: np.ndarray, T_box_from_grid: np.ndarray,
+            half_size: np.ndarray, box_classes: np.ndarray, lower: np.ndarray, voxel_size: float,
+            static_rays: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """`semantics (X, Y, Z) uint8` with the fills of the module docstring: boxes first, then behind
+    solid static surfaces, then holes. Evidence: the keyframe's rays from `origin (3,)` to `endpoints
+    (N, 3)` (float64, grid frame), and for the static scene also `static_rays` (origins (M, 3), endpoints
+    (M, 3): other keyframes' rays; the static scene does not move, objects may). Boxes: `T_box_from_grid
+    (B, 4, 4)`, `half_size (B, 3)` (length, width, height halves), `box_classes (B,) uint8` (the objects
+    whose points are in the labels). Returns the new semantics and `(X, Y, Z) int32` the box that filled
+    each voxel (-1: none)."""
+    lower = np.asarray(lower, np.float64)
+    shape = np.asarray(semantics.shape, np.int64)
+    ends = np.ascontiguousarray(endpoints, np.float64).reshape(-1, 3)
+    origins = np.ascontiguousarray(np.broadcast_to(np.asarray(origin, np.float64), ends.shape))
+    free = seen_free(origins, ends, lower, float(voxel_size), shape, FREE_MARGIN)
+    free_static = free
+    if static_rays is not None and len(static_rays[1]):
+        more = [np.ascontiguousarray(a, np.float64).reshape(-1, 3) for a in static_rays]
+        free_static = free | seen_free(more[0], more[1], lower, float(voxel_size), shape, FREE_MARGIN)
+    owner = fill_boxes(semantics, free, np.ascontiguousarray(T_box_from_grid, np.float64).reshape(-1, 4, 4),
+                       np.ascontiguousarray(half_size, np.float64).reshape(-1, 3), lower, float(voxel_size))
+    cls = np.append(np.asarray(box_classes, np.uint8).reshape(-1), np.uint8(FREE_LABEL))  # owner -1: free
+    out = np.where(owner >= 0, cls[owner], semantics).astype(np.uint8)
+    behind = fill_behind(semantics, free_static, np.isin(np.arange(NUM_CLASSES), SOLID_STATIC),
+                         np.asarray(origin, np.float64)[:2].copy(), DEPTH, lower, float(voxel_size))
+    out = np.where(out == FREE_LABEL, behind, out)
+    ground_cls = np.isin(np.arange(NUM_CLASSES), GROUND_CLASSES)
+    holes = close_holes(semantics, free, (np.arange(NUM_CLASSES) != FREE_LABEL) & ~ground_cls, GAP)
+    out = np.where(out == FREE_LABEL, holes, out)
+    # The ground is a height field: a ray grazing it crosses its voxels just above the surface and proves
+    # nothing; only a ray through the voxel below shows the ground is not in this layer.
+    below = np.zeros_like(free_static)
+    below[:, :, 1:] = free_static[:, :, :-1]
+    ground = close_holes(semantics, below, ground_cls, GAP)
+    return np.where(out == FREE_LABEL, ground, out), owner
