@@ -107,7 +107,9 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
               help="Occ3D-nuScenes labels folder: <gts>/<scene>/<sample_token>/labels.npz or the flat "
                    "<gts>/<sample_token>/labels.npz. Default: <root>/gts if it exists. Samples without a "
                    "label file are stored without labels (e.g. the test split); an explicit --gts in "
-                   "which no sample finds its file is an error.")
+                   "which no sample finds its file is an error. An OpenOcc v2 tree (files with 'flow', e.g. "
+                   "`occdata labels --grid openocc-v2` output) is read in its class ids and its flow is stored "
+                   "(labels/flow); a tree must hold one format.")
 @click.option("--split", "splits", multiple=True,
               help="Keep only scenes of this split (repeatable): train, val, test, mini_train, mini_val, ...")
 @cluster_options()
@@ -158,6 +160,7 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
     click.echo(
         f"{report.store}: {report.n_done}/{report.n_samples} samples done, {report.n_errors} errors, "
         f"{report.n_labelled} labelled ({report.processed_now} processed in this run)"
+        + ("; OpenOcc v2 labels: classes mapped to Occ3D ids, flow stored in labels/flow" if report.flow else "")
     )
     if report.n_errors:
         click.echo("errors are recorded in the store: see `occdata info --store ...`", err=True)
@@ -347,6 +350,8 @@ def info(store: str, as_json: bool) -> None:
                f"pending {summary['pending']}); labelled {summary['labelled']}; "
                f"with visibility {summary['with_visibility']}; scenes {summary['scenes']}")
     click.echo(f"  images: {a['images']}")
+    click.echo("  flow: labels/flow, (vx, vy) m/s from OpenOcc v2 labels (schema v3)" if summary["flow"] else
+               "  flow: none (labels without flow)")
     click.echo("  arrays:")
     for name, spec in summary["arrays"].items():
         shards = f" shards {tuple(spec['shards'])}" if spec["shards"] else ""
