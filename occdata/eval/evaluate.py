@@ -195,10 +195,14 @@ def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
     miou = MIoUAccumulator()
     ray = (RayFlowAccumulator() if with_flow else RayIoUAccumulator()) if cfg.rayiou else None
     names = ("labels/semantics",) + ((_MASK_ARRAY[cfg.mask],) if cfg.mask != "none" else ())
-    names += ("labels/flow",) if with_flow else ()
     t0 = time.perf_counter()
     bar = tqdm(total=len(indices), desc=f"eval {cfg.split}", unit="sample", disable=not cfg.progress)
-    samples = ((i, arrays, read_prediction_flow(files[store_tokens[i]], cfg.pred_classes))
+    flow_arr = reader.array("labels/flow") if with_flow else None  # per sample: a block of flow is 164 MB
+
+    def with_flow_row(i: int, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        return arrays if flow_arr is None else arrays | {"labels/flow": np.asarray(flow_arr[i])}
+
+    samples = ((i, with_flow_row(i, arrays), read_prediction_flow(files[store_tokens[i]], cfg.pred_classes))
                for i, arrays in _iter_label_blocks(reader, indices, names))
     for i, arrays, (pred, pred_flow) in _read_ahead(samples):
         path = files[store_tokens[i]]
