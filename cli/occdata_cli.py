@@ -522,7 +522,8 @@ def check_projection(store: str, index: int, out: str) -> None:
 @click.option("--scene", default=None, help="Scene to show first (the one exported with --export).")
 @click.option("--split", default=None, help="Only the scenes of this split (default: all).")
 @click.option("--view", "view_name", type=config_choice("occdata.view.config:VIEWS"), default=None,
-              help="Initial view (default: side with --pred, else label).")
+              help="Initial view (default: side with --pred, else label). speed: the labels coloured by "
+                   "|flow| (stores with flow).")
 @click.option("--mask", default="none", show_default=True, type=config_choice("occdata.view.config:MASK_CHOICES"),
               help="Voxels outside this mask are grey (camera: what mIoU scores).")
 @click.option("--style", type=config_choice("occdata.view.config:STYLES"), default="flat", show_default=True,
