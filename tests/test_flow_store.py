@@ -226,7 +226,10 @@ def test_without_flow_mave_is_not_available(flow_store: Path, synth_root: Path, 
 
 def test_predictions_mixing_flow_and_none_are_one_error(flow_store: Path, labelled: Path, tmp_path: Path) -> None:
     odd = _mixed(labelled, tmp_path / "pred", "openocc-v2")
-    code, text = _cli("eval", "--pred", str(tmp_path / "pred"), "--store", str(flow_store), "--split", "train",
+    reader = open_store(flow_store)
+    i = next(i for i in range(reader.n_samples) if reader.token(i) == odd.parent.name)
+    split = reader.attrs["splits"][int(reader.small("sample/split")[i])]  # the odd file's split is scored
+    code, text = _cli("eval", "--pred", str(tmp_path / "pred"), "--store", str(flow_store), "--split", split,
                       "--pred-classes", "openocc-v2", "--no-progress")
     assert code != 0 and "give every prediction a flow, or none" in text and str(odd) in text
 
