@@ -69,16 +69,42 @@ def write_truth_tree(world_root: Path, out: Path, seed: int, n_samples: int) -> 
 
 
 def _eval(store: Path, pred: Path) -> dict[str, Any]:
-    from occdata.eval.evaluate import EvalConfig, evaluate_predictions, results_dict
+    """Per split: samples, mIoU and RayIoU (percent), mAVE (m/s, unrounded), OccScore (percent), AVE per
+    moving class (m/s; None: no true-positive ray)."""
+    from occdata.constants import CLASS_NAMES
+    from occdata.eval.evaluate import EvalConfig, evaluate_predictions
+    from occdata.eval.flow import MOVING_CLASSES
 
     out = {}
     for split in ("train", "val"):
         r = evaluate_predictions(EvalConfig(pred=pred, store=store, split=split, mask="none", progress=False,
                                             pred_classes="openocc-v2"))
-        d = results_dict(r.miou, r.rayiou, n_samples=r.n_samples)
-        out[split] = {k: d.get(k) for k in ("n_samples", "miou", "rayiou", "mave", "occ_score")}
-        out[split]["ave"] = {c: row["ave"] for c, row in d["per_class"].items() if "ave" in row}
+        q = r.rayiou
+        out[split] = {"n_samples": r.n_samples, "miou": round(100 * r.miou.miou, 2),
+                      "rayiou": round(100 * q.rayiou, 2), "mave": float(f"{q.mave:.3g}"),
+                      "occ_score": round(100 * q.occ_score, 2),
+                      "ave": {CLASS_NAMES[c]: None if np.isnan(a) else float(f"{a:.3g}")
+                              for c, a in ((c, q.ave_per_class[c]) for c in MOVING_CLASSES)}}
     return out
+
+
+def zero_flow_copy(src: Path, dst: Path) -> Path:
+    """The control: the same prediction files with their flow zeroed (mAVE = the truth's own speeds)."""
+    for f in src.glob("*/*/labels.npz"):
+        with np.load(f) as d:
+            arrays = dict(d)
+        arrays["flow"] = np.zeros_like(arrays["flow"])
+        out = dst / f.relative_to(src)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(out, **arrays)
+    return dst
+
+
+def truth_speeds(tree: Path) -> dict[str, float]:
+    sp = np.concatenate([np.linalg.norm(np.load(f)["flow"], axis=-1).ravel() for f in tree.glob("*/*/labels.npz")])
+    moving = sp[sp >= 0.1]
+    return {"moving_voxels": int(moving.size), "speed_median": round(float(np.median(moving)), 2),
+            "speed_max": round(float(moving.max()), 2)}
 
 
 def main() -> None:
@@ -100,8 +126,11 @@ def main() -> None:
     for name, gts in (("truth", args.out / "truth"), ("self", gen / "openocc-v2")):
         build_store(BuildConfig(root=world, out=args.out / f"{name}.zarr", gts=gts, progress=False))
     result = {"keyframes": n, "world": {"scenes": args.scenes, "samples": args.samples, "seed": args.seed},
+              "truth_flow": truth_speeds(args.out / "truth"),
               "generated_vs_truth": _eval(args.out / "truth.zarr", gen / "openocc-v2"),
-              "generated_vs_itself": _eval(args.out / "self.zarr", gen / "openocc-v2")}
+              "generated_vs_itself": _eval(args.out / "self.zarr", gen / "openocc-v2"),
+              "zero_flow_control_vs_truth": _eval(args.out / "truth.zarr",
+                                                  zero_flow_copy(gen / "openocc-v2", args.out / "zero_flow"))}
     print(json.dumps(result, indent=1) if args.json else result)
 
 
