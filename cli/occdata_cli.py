@@ -118,7 +118,9 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
               help="Occ3D-nuScenes labels folder: <gts>/<scene>/<sample_token>/labels.npz or the flat "
                    "<gts>/<sample_token>/labels.npz. Default: <root>/gts if it exists. Samples without a "
                    "label file are stored without labels (e.g. the test split); an explicit --gts in "
-                   "which no sample finds its file is an error.")
+                   "which no sample finds its file is an error. An OpenOcc v2 tree (files with 'flow', e.g. "
+                   "`occdata labels --grid openocc-v2` output) is read in its class ids and its flow is stored "
+                   "(labels/flow); a tree must hold one format.")
 @click.option("--split", "splits", multiple=True,
               help="Keep only scenes of this split (repeatable): train, val, test, mini_train, mini_val, ...")
 @cluster_options()
@@ -169,6 +171,7 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
     click.echo(
         f"{report.store}: {report.n_done}/{report.n_samples} samples done, {report.n_errors} errors, "
         f"{report.n_labelled} labelled ({report.processed_now} processed in this run)"
+        + ("; OpenOcc v2 labels: classes mapped to Occ3D ids, flow stored in labels/flow" if report.flow else "")
     )
     if report.n_errors:
         click.echo("errors are recorded in the store: see `occdata info --store ...`", err=True)
@@ -362,6 +365,8 @@ def info(store: str, as_json: bool) -> None:
                f"pending {summary['pending']}); labelled {summary['labelled']}; "
                f"with visibility {summary['with_visibility']}; scenes {summary['scenes']}")
     click.echo(f"  images: {a['images']}")
+    click.echo("  flow: labels/flow, (vx, vy) m/s from OpenOcc v2 labels (schema v3)" if summary["flow"] else
+               "  flow: none (labels without flow)")
     click.echo("  arrays:")
     for name, spec in summary["arrays"].items():
         shards = f" shards {tuple(spec['shards'])}" if spec["shards"] else ""
@@ -443,7 +448,11 @@ def baseline(store: str, train_split: str, split: str, as_json: bool) -> None:
 @main.command("eval")
 @click.option("--pred", required=True, metavar="DIR",
               help="Predictions: <scene>/<token>/labels.npz (key 'semantics', the Occ3D layout) or <token>.npz "
-                   "(key 'semantics' or 'pred'); uint8 (200, 200, 16), 17 = free.")
+                   "(key 'semantics' or 'pred'); uint8 (200, 200, 16), 17 = free; optional 'flow' (200, 200, "
+                   "16, 2) float (vx, vy) m/s for mAVE / OccScore.")
+@click.option("--pred-classes", type=click.Choice(["occ3d", "openocc-v2"]), default="occ3d", show_default=True,
+              help="The predictions' label ids: occ3d (17 = free) or openocc-v2 (OpenOcc v2's order, 16 = free; "
+                   "e.g. `occdata labels --grid openocc-v2` output).")
 @store_option(help="The occdata store holding the ground truth and poses (a folder or an fsspec URL).")
 @click.option("--split", default="val", show_default=True, help="Split to score (every labelled sample of it).")
 @click.option("--mask", type=config_choice("occdata.eval.evaluate:MaskName"), default="camera", show_default=True,
@@ -452,28 +461,41 @@ def baseline(store: str, train_split: str, split: str, as_json: bool) -> None:
 @json_option("Print the results as JSON (percent; null = class absent).")
 @progress_option()
 @friendly_errors
-def eval_cmd(pred: str, store: str, split: str, mask: str, no_rayiou: bool, as_json: bool, progress: bool) -> None:
-    """Score saved predictions: Occ3D mIoU (+ geometry IoU) and RayIoU@1/2/4 m, on the CPU.
+def eval_cmd(pred: str, pred_classes: str, store: str, split: str, mask: str, no_rayiou: bool, as_json: bool,
+             progress: bool) -> None:
+    """Score saved predictions: Occ3D mIoU (+ geometry IoU) and RayIoU@1/2/4 m, on the CPU; and
+    OpenOcc v2's mAVE and OccScore when the store has flow and the predictions carry it.
 
     mIoU: one confusion matrix over the split, voxels inside the mask, mean over the 17 semantic
     classes (classes absent from truth and prediction are skipped). RayIoU: the SparseOcc protocol
     (14,040 LiDAR-like rays from up to 8 origins of the sample's scene, first-hit class and
-    distance). See docs/metrics.md.
+    distance). mAVE: mean over the 8 moving classes of the velocity error on the true-positive rays
+    at 2 m; OccScore = 0.9 RayIoU + 0.1 max(1 - mAVE, 0). See docs/metrics.md.
     """
-    from occdata.eval.evaluate import EvalConfig, evaluate_predictions, format_table, results_dict, summary_line
+    from occdata.eval.evaluate import (
+        EvalConfig,
+        evaluate_predictions,
+        flow_line,
+        format_table,
+        results_dict,
+        summary_line,
+    )
 
     report = evaluate_predictions(EvalConfig(pred=local_path(pred, "--pred"), store=store, split=split, mask=mask,  # type: ignore[arg-type]
-                                             rayiou=not no_rayiou, progress=progress))
+                                             rayiou=not no_rayiou, progress=progress, pred_classes=pred_classes))
     if as_json:
+        extra = {} if report.flow_note is None else {"mave": None, "occ_score": None, "flow_note": report.flow_note}
         click.echo(json.dumps(results_dict(report.miou, report.rayiou, split=report.split, mask=report.mask,
                                            n_samples=report.n_samples,
                                            unlabelled_skipped=report.n_unlabelled_skipped,
-                                           seconds=round(report.seconds, 3)), indent=2))
+                                           seconds=round(report.seconds, 3), **extra), indent=2))
         return
     click.echo(format_table(report.miou, report.rayiou))
     if report.n_unlabelled_skipped:
         click.echo(f"({report.n_unlabelled_skipped} unlabelled '{split}' samples skipped)")
     click.echo(summary_line(report))
+    if flow_line(report):
+        click.echo(flow_line(report))
 
 
 @main.command()
@@ -515,7 +537,8 @@ def check_projection(store: str, index: int, out: str) -> None:
 @click.option("--scene", default=None, help="Scene to show first (the one exported with --export).")
 @click.option("--split", default=None, help="Only the scenes of this split (default: all).")
 @click.option("--view", "view_name", type=config_choice("occdata.view.config:VIEWS"), default=None,
-              help="Initial view (default: side with --pred, else label).")
+              help="Initial view (default: side with --pred, else label). speed: the labels coloured by "
+                   "|flow| (stores with flow).")
 @click.option("--mask", default="none", show_default=True, type=config_choice("occdata.view.config:MASK_CHOICES"),
               help="Voxels outside this mask are grey (camera: what mIoU scores).")
 @click.option("--style", type=config_choice("occdata.view.config:STYLES"), default="flat", show_default=True,

@@ -1,9 +1,12 @@
-"""Score prediction files against a store's labels: `occdata eval` (Occ3D mIoU + RayIoU, no torch).
+"""Score prediction files against a store's labels: `occdata eval` (Occ3D mIoU + RayIoU, and OpenOcc
+v2's mAVE + OccScore when the store and the predictions carry flow; no torch).
 
 Predictions are `uint8` label grids `(200, 200, 16)` (x, y, z; 17 = free) in either layout:
 - Occ3D: `PRED/<scene>/<token>/labels.npz` with key `semantics`;
-- flat: `PRED/<token>.npz` with key `semantics` or `pred`.
-Ground truth, masks and poses come from the store. Samples are streamed one at a time (constant
+- flat: `PRED/<token>.npz` with key `semantics` or `pred`;
+optionally with `flow` `(200, 200, 16, 2)` float (vx, vy) m/s. With `pred_classes="openocc-v2"` the
+labels are OpenOcc v2 ids (free 16; e.g. `occdata labels --grid openocc-v2` output).
+Ground truth, masks, flow and poses come from the store. Samples are streamed one at a time (constant
 memory); the table helpers are shared with `fastocc eval`.
 """
 
@@ -22,15 +25,17 @@ import numpy as np
 
 from occdata.constants import CLASS_NAMES, FREE_LABEL
 from occdata.errors import OccDataError
+from occdata.eval.flow import MOVING_CLASSES, RayFlowAccumulator
 from occdata.eval.metrics import MIoUAccumulator, MIoUResult, RayIoUAccumulator, RayIoUResult
 from occdata.eval.rays import scene_ray_origins
-from occdata.occ3d import LABEL_FILE, list_label_files, read_prediction
+from occdata.occ3d import LABEL_FILE, label_keys, list_label_files, read_prediction_flow
 
 __all__ = [
     "EvalConfig",
     "EvalReport",
     "evaluate_predictions",
     "find_predictions",
+    "flow_line",
     "format_table",
     "results_dict",
     "summary_line",
@@ -51,6 +56,7 @@ class EvalConfig:
     mask: MaskName = "camera"
     rayiou: bool = True
     progress: bool = True
+    pred_classes: str = "occ3d"  # or "openocc-v2": the prediction files' label ids (occdata.occ3d)
 
 
 @dataclass(frozen=True)
@@ -62,6 +68,7 @@ class EvalReport:
     miou: MIoUResult
     rayiou: RayIoUResult | None
     seconds: float
+    flow_note: str | None = None  # why mAVE / OccScore are not available (None: they are scored)
 
 
 def find_predictions(pred: Path) -> dict[str, Path]:
@@ -183,19 +190,28 @@ def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
                            f"e.g. {store_tokens[i]} (expected {cfg.pred}/{scene}/{store_tokens[i]}/labels.npz "
                            f"or {cfg.pred}/{store_tokens[i]}.npz)")
 
+    flow_note = _flow_note(reader, cfg, [files[store_tokens[i]] for i in indices])
+    with_flow = flow_note is None
     miou = MIoUAccumulator()
-    ray = RayIoUAccumulator() if cfg.rayiou else None
+    ray = (RayFlowAccumulator() if with_flow else RayIoUAccumulator()) if cfg.rayiou else None
     names = ("labels/semantics",) + ((_MASK_ARRAY[cfg.mask],) if cfg.mask != "none" else ())
     t0 = time.perf_counter()
     bar = tqdm(total=len(indices), desc=f"eval {cfg.split}", unit="sample", disable=not cfg.progress)
-    samples = ((i, arrays, read_prediction(files[store_tokens[i]]))
+    flow_arr = reader.array("labels/flow") if with_flow else None  # per sample: a block of flow is 164 MB
+
+    def with_flow_row(i: int, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        return arrays if flow_arr is None else arrays | {"labels/flow": np.asarray(flow_arr[i])}
+
+    samples = ((i, with_flow_row(i, arrays), read_prediction_flow(files[store_tokens[i]], cfg.pred_classes))
                for i, arrays in _iter_label_blocks(reader, indices, names))
-    for i, arrays, pred in _read_ahead(samples):
+    for i, arrays, (pred, pred_flow) in _read_ahead(samples):
         path = files[store_tokens[i]]
         gt = arrays["labels/semantics"]
         try:
             miou.update(gt, pred, arrays.get(_MASK_ARRAY.get(cfg.mask, "")))
-            if ray is not None:
+            if isinstance(ray, RayFlowAccumulator):
+                ray.update(gt, pred, scene_ray_origins(reader, i), arrays["labels/flow"], pred_flow)
+            elif ray is not None:
                 ray.update(gt, pred, scene_ray_origins(reader, i))
         except OccDataError as exc:
             raise OccDataError(f"{path}: {exc}") from None
@@ -203,7 +219,26 @@ def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
     bar.close()
     return EvalReport(split=cfg.split, mask=cfg.mask, n_samples=len(indices), n_unlabelled_skipped=n_unlabelled,
                       miou=miou.result(), rayiou=ray.result() if ray else None,
-                      seconds=time.perf_counter() - t0)
+                      seconds=time.perf_counter() - t0, flow_note=flow_note)
+
+
+def _flow_note(reader: Any, cfg: EvalConfig, paths: list[Path]) -> str | None:
+    """None when mAVE is scored (the store has flow and every prediction carries it), else why not.
+    Predictions that mix files with and without flow are one error (scored with flow for all or none);
+    only each file's zip directory is read here."""
+    if not cfg.rayiou:
+        return "mAVE is scored on RayIoU's rays (--no-rayiou)"
+    has = [("flow" in (label_keys(p) or ())) for p in paths]
+    with_flow = [p for p, h in zip(paths, has, strict=True) if h]
+    if with_flow and len(with_flow) < len(paths):
+        without = paths[has.index(False)]
+        raise OccDataError(f"{len(with_flow)} of {len(paths)} predictions carry 'flow' (e.g. {with_flow[0]}) and "
+                           f"the others do not (e.g. {without}): give every prediction a flow, or none")
+    if not reader.has_flow:
+        return "the store has no flow (build it with --gts from OpenOcc v2 labels)"
+    if not with_flow:
+        return "the predictions carry no 'flow' array"
+    return None
 
 
 def _pct(x: float) -> float | None:
@@ -213,15 +248,23 @@ def _pct(x: float) -> float | None:
 def results_dict(miou: MIoUResult, rayiou: RayIoUResult | None, **extra: Any) -> dict[str, Any]:
     """JSON-ready summary, values in PERCENT (null where a class is absent: 0/0)."""
     out: dict[str, Any] = {"unit": "percent", **extra, "miou": _pct(miou.miou), "geo_iou": _pct(miou.geo_iou)}
+    flow = rayiou is not None and rayiou.ave_per_class is not None
     if rayiou is not None:
         out["rayiou"] = _pct(rayiou.rayiou)
         out["rayiou_at"] = {f"{t:g}": _pct(v) for t, v in rayiou.rayiou_at.items()}
+    if flow:
+        out["mave"] = None if math.isnan(rayiou.mave) else round(float(rayiou.mave), 6)
+        out["mave_unit"] = "m/s"
+        out["occ_score"] = _pct(rayiou.occ_score)
     per = {}
     for c, name in enumerate(CLASS_NAMES[:FREE_LABEL]):
         row: dict[str, float | None] = {"iou": _pct(miou.per_class_iou[c])}
         if rayiou is not None:
             for j, t in enumerate(rayiou.rayiou_at):
                 row[f"rayiou@{t:g}"] = _pct(rayiou.per_class[j, c])
+        if flow and c in MOVING_CLASSES:
+            ave = rayiou.ave_per_class[c]
+            row["ave"] = None if math.isnan(ave) else round(float(ave), 6)  # m/s
         per[name] = row
     out["per_class"] = per
     return out
@@ -233,18 +276,27 @@ def format_table(miou: MIoUResult, rayiou: RayIoUResult | None) -> str:
     def f(x: float) -> str:
         return f"{100 * x:8.2f}" if not math.isnan(x) else f"{'-':>8}"
 
+    def mps(x: float) -> str:
+        return f"{x:11.3f}" if not math.isnan(x) else f"{'-':>11}"
+
     taus = list(rayiou.rayiou_at) if rayiou is not None else []
+    ave = rayiou.ave_per_class if rayiou is not None else None
     head = f"{'class':22s}{'IoU':>8}" + "".join(f"{'RayIoU@' + format(t, 'g'):>11}" for t in taus)
+    head += f"{'AVE m/s':>11}" if ave is not None else ""
     lines = [head, "-" * len(head)]
     for c, name in enumerate(CLASS_NAMES[:FREE_LABEL]):
         row = f"{name:22s}{f(miou.per_class_iou[c])}"
         if rayiou is not None:
             row += "".join(f"   {f(rayiou.per_class[j, c])}" for j in range(len(taus)))
+        if ave is not None:
+            row += mps(ave[c]) if c in MOVING_CLASSES else f"{'':11}"
         lines.append(row)
     lines.append("-" * len(head))
     mean = f"{'mean':22s}{f(miou.miou)}"
     if rayiou is not None:
         mean += "".join(f"   {f(v)}" for v in rayiou.rayiou_at.values())
+    if ave is not None and rayiou is not None:
+        mean += mps(rayiou.mave)
     lines.append(mean)
     return "\n".join(lines)
 
@@ -255,4 +307,13 @@ def summary_line(report: EvalReport) -> str:
     if report.rayiou is not None:
         at = ", ".join(f"@{t:g} {100 * v:.2f}" for t, v in report.rayiou.rayiou_at.items())
         s += f", RayIoU {100 * report.rayiou.rayiou:.2f} ({at})"
+        if report.rayiou.ave_per_class is not None:
+            s += (f", mAVE {report.rayiou.mave:.3f} m/s, OccScore {100 * report.rayiou.occ_score:.2f}"
+                  if not math.isnan(report.rayiou.mave) else
+                  ", mAVE n/a (no true-positive ray of a moving class), OccScore n/a")
     return s + f"; {report.n_samples / max(report.seconds, 1e-9):.1f} samples/s"
+
+
+def flow_line(report: EvalReport) -> str | None:
+    """The one line that says mAVE / OccScore are not available and why (None: scored, or not asked)."""
+    return None if report.flow_note is None else f"mAVE, OccScore: not available ({report.flow_note})"

@@ -25,6 +25,7 @@ __all__ = [
     "first_hits",
     "first_hits_reference",
     "lidar_ray_directions",
+    "march_reference",
     "ray_counts",
     "ray_origins_keyego",
     "ray_pitches",
@@ -125,10 +126,10 @@ def _ray_setup(origins_keyego: np.ndarray, directions: np.ndarray, grid: OccGrid
 
 @njit(cache=True, inline="always")
 def _cast_one(labels: np.ndarray, free_label: int, ox: float, oy: float, oz: float,
-              ex: float, ey: float, ez: float) -> tuple[float, int]:
+              ex: float, ey: float, ez: float) -> tuple[float, int, int]:
     """First occupied voxel along the ray from o towards e (voxel units, float64 values of the
-    reference's float32 inputs). Returns (distance where the ray leaves that voxel, its label), or
-    (nan, free_label) if the ray leaves the grid without a hit."""
+    reference's float32 inputs). Returns (distance where the ray leaves that voxel, its label, its
+    flat index `(x * Y + y) * Z + z`), or (nan, free_label, -1) if the ray leaves the grid without a hit."""
     X, Y, Z = labels.shape
     rx, ry, rz = ex - ox, ey - oy, ez - oz
     n = math.sqrt(rx * rx + ry * ry + rz * rz)
@@ -161,7 +162,7 @@ def _cast_one(labels: np.ndarray, free_label: int, ox: float, oy: float, oz: flo
         else:
             t = tz
         if lab != free_label:
-            return t, int(lab)
+            return t, int(lab), (vx * Y + vy) * Z + vz
         if axis == 0:
             vx += sx
             tx += ddx
@@ -177,13 +178,13 @@ def _cast_one(labels: np.ndarray, free_label: int, ox: float, oy: float, oz: flo
             tz += ddz
             if vz < 0 or vz >= Z:
                 break
-    return np.nan, free_label
+    return np.nan, free_label, -1
 
 
 @njit(cache=True)
 def _cast_from_outside(labels: np.ndarray, free_label: int, vx: int, vy: int, vz: int, sx: int, sy: int,
                        sz: int, tx: float, ty: float, tz: float, ddx: float, ddy: float,
-                       ddz: float) -> tuple[float, int]:
+                       ddz: float) -> tuple[float, int, int]:
     """`_cast_one` for an origin outside the grid: step (at most the reference's 1000 steps) until the
     ray enters, then as usual until it leaves."""
     X, Y, Z = labels.shape
@@ -191,9 +192,11 @@ def _cast_from_outside(labels: np.ndarray, free_label: int, vx: int, vy: int, vz
     for _ in range(_MAX_STEPS + 1):
         inside = 0 <= vx < X and 0 <= vy < Y and 0 <= vz < Z
         lab = free_label
+        here = -1
         if inside:
             was_inside = True
             lab = int(labels[vx, vy, vz])
+            here = (vx * Y + vy) * Z + vz
         elif was_inside:
             break
         if tx < ty:
@@ -214,8 +217,8 @@ def _cast_from_outside(labels: np.ndarray, free_label: int, vx: int, vy: int, vz
             vz += sz
             tz += ddz
         if lab != free_label:
-            return t, lab
-    return np.nan, free_label
+            return t, lab, here
+    return np.nan, free_label, -1
 
 
 @njit(cache=True, parallel=True)
@@ -226,7 +229,7 @@ def _first_hits_kernel(labels: np.ndarray, origins_v: np.ndarray, ends_v: np.nda
     for q in prange(n * R):
         o = q // R
         r = q - o * R
-        d, c = _cast_one(labels, free_label, np.float64(origins_v[o, 0]), np.float64(origins_v[o, 1]),
+        d, c, _ = _cast_one(labels, free_label, np.float64(origins_v[o, 0]), np.float64(origins_v[o, 1]),
                          np.float64(origins_v[o, 2]), np.float64(ends_v[o, r, 0]), np.float64(ends_v[o, r, 1]),
                          np.float64(ends_v[o, r, 2]))
         dist_v[o, r] = d
@@ -245,11 +248,11 @@ def _pair_hits_kernel(gt: np.ndarray, pred: np.ndarray, origins_v: np.ndarray, e
         r = q - o * R
         ox, oy, oz = np.float64(origins_v[o, 0]), np.float64(origins_v[o, 1]), np.float64(origins_v[o, 2])
         ex, ey, ez = np.float64(ends_v[o, r, 0]), np.float64(ends_v[o, r, 1]), np.float64(ends_v[o, r, 2])
-        d, c = _cast_one(gt, free_label, ox, oy, oz, ex, ey, ez)
+        d, c, _ = _cast_one(gt, free_label, ox, oy, oz, ex, ey, ez)
         gt_dist_v[o, r] = d
         gt_cls[o, r] = c
         if c != free_label:
-            d, c = _cast_one(pred, free_label, ox, oy, oz, ex, ey, ez)
+            d, c, _ = _cast_one(pred, free_label, ox, oy, oz, ex, ey, ez)
         else:
             d, c = np.nan, free_label
         pred_dist_v[o, r] = d
@@ -290,6 +293,14 @@ def first_hits(labels: np.ndarray, origins_keyego: np.ndarray, directions: np.nd
 def first_hits_reference(labels: np.ndarray, origins_keyego: np.ndarray, directions: np.ndarray | None = None,
                          grid: OccGrid = GRID, free_label: int = FREE_LABEL) -> tuple[np.ndarray, np.ndarray]:
     """Numpy twin of `first_hits`: the same traversal, all rays stepped together."""
+    dist, cls, _ = march_reference(labels, origins_keyego, directions, grid, free_label)
+    return dist, cls
+
+
+def march_reference(labels: np.ndarray, origins_keyego: np.ndarray, directions: np.ndarray | None = None,
+                    grid: OccGrid = GRID, free_label: int = FREE_LABEL) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`first_hits_reference` plus each ray's first-hit voxel as a flat index `(n, R) int64` into
+    `labels.ravel()` (-1: no hit): the numpy twin of the casting kernels' third output."""
     lab = _check_grid(labels, grid, "labels")
     dirs = _rays() if directions is None else np.asarray(directions, np.float32).reshape(-1, 3)
     o_v, e_v = _ray_setup(origins_keyego, dirs, grid)
@@ -306,6 +317,7 @@ def first_hits_reference(labels: np.ndarray, origins_keyego: np.ndarray, directi
     shape = np.array(lab.shape)
     dist = np.full(n * R, np.nan)
     cls = np.full(n * R, free_label, np.uint8)
+    index = np.full(n * R, -1, np.int64)
     active = np.ones(n * R, bool)
     was_inside = np.zeros(n * R, bool)
     rows = np.arange(n * R)
@@ -323,10 +335,11 @@ def first_hits_reference(labels: np.ndarray, origins_keyego: np.ndarray, directi
         hit = active & inside & (lab_here != free_label)
         dist[hit] = t_exit[hit]
         cls[hit] = lab_here[hit]
+        index[hit] = np.ravel_multi_index(tuple(vi[hit].T), lab.shape)
         active &= ~hit
         v[rows, ax] += s[rows, ax]
         t[rows, ax] += dt[rows, ax]
-    return _to_metres(dist.reshape(n, R), grid), cls.reshape(n, R)
+    return _to_metres(dist.reshape(n, R), grid), cls.reshape(n, R), index.reshape(n, R)
 
 
 def ray_counts(gt_dist: np.ndarray, gt_cls: np.ndarray, pred_dist: np.ndarray, pred_cls: np.ndarray,
@@ -352,12 +365,19 @@ def ray_counts(gt_dist: np.ndarray, gt_cls: np.ndarray, pred_dist: np.ndarray, p
 class RayIoUResult:
     """RayIoU of a split. `per_class (T, K-1) float64` IoU per tau and non-free class (NaN: class
     never seen by a truth or predicted ray), `rayiou_at {tau: mean over classes}`, `rayiou` = mean
-    over all T x (K-1) values (NaN skipped), `counts (2 + T, K) int64` as in `ray_counts`."""
+    over all T x (K-1) values (NaN skipped), `counts (2 + T, K) int64` as in `ray_counts`.
+
+    With flow scored (`occdata.eval.flow.RayFlowAccumulator`; else None / NaN): `ave_per_class
+    (K-1,) float64` m/s (NaN: not a moving class, or no true-positive ray of it), `mave` (NaN: no
+    moving class has one), `occ_score` = 0.9 `rayiou` + 0.1 max(1 - `mave`, 0) (NaN with `mave`)."""
 
     per_class: np.ndarray
     rayiou_at: dict[float, float]
     rayiou: float
     counts: np.ndarray
+    ave_per_class: np.ndarray | None = None
+    mave: float = float("nan")
+    occ_score: float = float("nan")
 
 
 class RayIoUAccumulator:

@@ -31,11 +31,12 @@ from occdata.runtime.tasks import StopCheck, no_stop
 from occdata.store.layout import (
     FLAT_ARRAYS,
     FLAT_OF_OFFSETS,
-    PER_SAMPLE,
     STATE_DONE,
     STATE_ERROR,
     STATE_PENDING,
     checksummed_names,
+    has_flow,
+    per_sample,
 )
 from occdata.store.sample import SampleOptions, SampleResult, process_sample
 
@@ -56,9 +57,11 @@ class SampleInput:
     label_path: Path | None
     options: SampleOptions
     sweeps: tuple[LidarRecord, ...] = ()
+    label_format: str = "occ3d"  # "openocc-v2": OpenOcc v2 files, with flow (occdata.occ3d)
 
     def convert(self) -> SampleResult:
-        return process_sample(self.index, self.sample, self.static, self.label_path, self.options, self.sweeps)
+        return process_sample(self.index, self.sample, self.static, self.label_path, self.options, self.sweeps,
+                              self.label_format)
 
 
 @dataclass(frozen=True)
@@ -105,8 +108,8 @@ class BlockSummary:
     placed: bool = True
 
 
-def _fill_rows(root: zarr.Group) -> dict[str, np.ndarray]:
-    return {s.name: np.full(root[s.name].shape[1:], s.fill, dtype=s.dtype) for s in PER_SAMPLE}
+def _fill_rows(root: zarr.Group, specs: tuple) -> dict[str, np.ndarray]:
+    return {s.name: np.full(root[s.name].shape[1:], s.fill, dtype=s.dtype) for s in specs}
 
 
 def open_for_task(store: str) -> zarr.Group:
@@ -134,14 +137,15 @@ def convert_block(job: ConvertJob) -> BlockSummary:
     checksums and last the state flags."""
     results = [sample.convert() for sample in job.samples]
     root = open_for_task(job.store)
-    rows = _fixed_rows(root, results)
+    flow = has_flow(root.attrs)
+    rows = _fixed_rows(root, results, per_sample(flow))
     _write_rows([(root[n], job.i0, job.i1, a) for n, a in rows.items()])
     payload = _payload(results)
     errors = tuple((r.index, r.token, r.error) for r in results if r.error)
     needs = tuple(int(payload[f"{n}/rows"].sum()) for n in FLAT_ARRAYS)
     if any(need > e - a for need, (a, e) in zip(needs, job.regions, strict=True)):
         return BlockSummary(job.block, errors, needs, placed=False)
-    names = checksummed_names()
+    names = checksummed_names(flow)
     sums = np.zeros((len(results), len(names)), dtype=np.uint32)
     for col, name in enumerate(names):
         if name in FLAT_ARRAYS:
@@ -167,11 +171,11 @@ def convert_block(job: ConvertJob) -> BlockSummary:
     return BlockSummary(job.block, errors, needs)
 
 
-def _fixed_rows(root: zarr.Group, results: list[SampleResult]) -> dict[str, np.ndarray]:
-    """The block's rows of every fixed-shape array but offsets and status, `(n, ...)` each."""
-    fill = _fill_rows(root)
+def _fixed_rows(root: zarr.Group, results: list[SampleResult], specs: tuple) -> dict[str, np.ndarray]:
+    """The block's rows of every fixed-shape array of `specs` but offsets and status, `(n, ...)` each."""
+    fill = _fill_rows(root, specs)
     return {s.name: np.stack([r.arrays.get(s.name, fill[s.name]) for r in results]).astype(s.dtype, copy=False)
-            for s in PER_SAMPLE if not s.name.startswith("status/") and s.name not in FLAT_OF_OFFSETS}
+            for s in specs if not s.name.startswith("status/") and s.name not in FLAT_OF_OFFSETS}
 
 
 def _flags(job: ConvertJob, errors: tuple[tuple[int, str, str], ...]) -> np.ndarray:
@@ -182,10 +186,10 @@ def _flags(job: ConvertJob, errors: tuple[tuple[int, str, str], ...]) -> np.ndar
                      for i in range(job.i0, job.i1)], dtype=np.uint8)
 
 
-def sample_checksums(arrays: dict[str, np.ndarray], flat: dict[str, bytes]) -> np.ndarray:
-    """`(A,) uint32` crc32 per checksummed array, in `checksummed_names()` order."""
+def sample_checksums(arrays: dict[str, np.ndarray], flat: dict[str, bytes], flow: bool = False) -> np.ndarray:
+    """`(A,) uint32` crc32 per checksummed array, in `checksummed_names(flow)` order."""
     out = []
-    for name in checksummed_names():
+    for name in checksummed_names(flow):
         if name in FLAT_ARRAYS:
             out.append(zlib.crc32(flat[name]))
         else:

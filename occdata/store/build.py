@@ -56,6 +56,7 @@ class BuildReport:
     n_labelled: int
     processed_now: int
     warnings: tuple[str, ...] = ()  # from reading the tables (identical duplicates, nbr_samples)
+    flow: bool = False  # the labels were OpenOcc v2 files: the store has labels/flow
 
 
 def build_store(config: BuildConfig, client: Any = None) -> BuildReport:
@@ -83,7 +84,7 @@ def _build_locked(config: BuildConfig, client: Any, inputs: BuildInputs) -> Buil
     def plan() -> np.ndarray:  # a new store's regions, from the tables and the files' sizes
         return plan_regions(payload_bounds(inputs.ds.samples, inputs.histories, config.options), spans)
 
-    root, out = open_or_create(config, inputs.ds, list(inputs.split_names), inputs.gts, plan)
+    root, out = open_or_create(config, inputs.ds, list(inputs.split_names), inputs.gts, plan, inputs.label_format)
     state = resume_state(root)
     todo = blocks_todo(state, spans)
     if todo and root.attrs.get("complete"):
@@ -147,4 +148,5 @@ def _finish(config: BuildConfig, root: zarr.Group, out: str, inputs: BuildInputs
         n_labelled=int(root["labels/present"][:].sum()),
         processed_now=processed,
         warnings=inputs.ds.warnings,
+        flow=inputs.flow,
     )

@@ -24,12 +24,14 @@ from occdata.runtime.storage import is_remote, join, read_bytes, remove_tree, si
 from occdata.store.identity import build_identity, identity_diff
 from occdata.store.layout import (
     FLAT_ARRAYS,
-    PER_SAMPLE,
     REGIONS,
     SCHEMA_NAME,
     SCHEMA_VERSION,
     TOKEN_ARRAYS,
     checksummed_names,
+    has_flow,
+    per_sample,
+    schema_version,
     token_width,
 )
 from occdata.store.reader import StoreReader, store_location
@@ -51,8 +53,9 @@ def create_arrays(root: zarr.Group, n: int, block: int, attrs: dict[str, Any], t
     """Every array of the layout for `n` samples in blocks of `block`, pending, and the root attributes.
     `regions` `(n_blocks, len(FLAT_ARRAYS), 2) int64`: the plan (`occdata.store.plan.plan_regions`);
     the flat arrays are as long as its end from the start (None: empty plan, empty flat arrays)."""
-    n_check = len(checksummed_names())
-    for s in PER_SAMPLE:
+    flow = has_flow(attrs)
+    n_check = len(checksummed_names(flow))
+    for s in per_sample(flow):
         shape = (n, *s.shape)
         if s.name == "status/checksum":
             shape = (n, n_check)
@@ -86,8 +89,21 @@ def create_arrays(root: zarr.Group, n: int, block: int, attrs: dict[str, Any], t
     root.attrs.put(attrs)
 
 
-def root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str], gts: Path | None) -> dict[str, Any]:
-    """The root attributes of a new store (`gts`: the labels folder read)."""
+_FLOW_ATTR = {
+    "array": "labels/flow", "shape": "(N, 200, 200, 16, 2)", "dtype": "float32", "components": ["vx", "vy"],
+    "unit": "m/s", "frame": "the grid's axes (key ego), velocity over the ground",
+    "source": "the 'flow' array of the OpenOcc v2 labels.npz files read with --gts",
+    "classes": "labels/semantics holds our (Occ3D) ids, mapped from OpenOcc v2's by name; OpenOcc v2 has no "
+               "'others' (class 0 never occurs)",
+}
+
+
+def root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str], gts: Path | None,
+               label_format: str = "occ3d") -> dict[str, Any]:
+    """The root attributes of a new store (`gts`: the labels folder read; `label_format` its files'
+    format: "openocc-v2" makes a version-3 store with `labels/flow`, and says so in `flow` and in the
+    build identity; "occ3d" leaves every attribute as it was before flow existed)."""
+    flow = label_format == "openocc-v2"
     first = 0
     scenes = []
     for sc in ds.scenes:
@@ -99,7 +115,7 @@ def root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str],
     opts = config.options
     return {
         "schema": SCHEMA_NAME,
-        "schema_version": SCHEMA_VERSION,
+        "schema_version": schema_version(flow),
         "n_samples": len(ds.samples),
         "camera_order": list(CAMERA_ORDER),
         "class_names": list(CLASS_NAMES),
@@ -120,13 +136,13 @@ def root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str],
                                                     else "")},
         "bev": {"encoding": "uint32 bit field, bit c = class c present in the column",
                 "free_bit": FREE_LABEL},
-        "checksum_arrays": list(checksummed_names()),
+        "checksum_arrays": list(checksummed_names(flow)),
         "checksum": "crc32 of each array's per-sample C-order bytes (flat arrays: its 6 camera slices)",
-        "build_identity": build_identity(config, ds, gts),
+        "build_identity": build_identity(config, ds, gts, label_format),
         "build_config": {"workers": config.cluster.workers, "on_error": config.on_error},
         "errors": [],
         "complete": False,
-    }
+    } | ({"flow": dict(_FLOW_ATTR)} if flow else {})
 
 
 STAGING_SUFFIX = ".staging"  # <store>.staging: where schema-1 builds staged blocks (removed, never written now)
@@ -178,7 +194,7 @@ def _open_existing(config: BuildConfig, out: str, attrs: dict[str, Any]) -> zarr
             raise OccDataError(f"cannot resume: {exc}") from None
     if root.attrs.get("schema") != SCHEMA_NAME:
         raise OccDataError(f"cannot resume {out}: not an occdata store (no schema attribute)")
-    if root.attrs.get("schema_version") != SCHEMA_VERSION:
+    if root.attrs.get("schema_version") not in (SCHEMA_VERSION, schema_version(True)):
         raise OccDataError(
             f"cannot resume {out}: it was built by an older occdata (store schema {root.attrs.get('schema_version')}, "
             f"this one writes {SCHEMA_VERSION}); it stays readable, but to finish it build again into a new --out"
@@ -198,11 +214,12 @@ def _open_existing(config: BuildConfig, out: str, attrs: dict[str, Any]) -> zarr
 
 
 def open_or_create(config: BuildConfig, ds: NuScenesDataset, split_names: list[str],
-                   gts: Path | None, plan: Callable[[], np.ndarray]) -> tuple[zarr.Group, str]:
+                   gts: Path | None, plan: Callable[[], np.ndarray],
+                   label_format: str = "occ3d") -> tuple[zarr.Group, str]:
     """The store to write, and its location (a local path or a URL). `plan()` gives a new store's
     regions (`create_arrays`); a resumed store keeps its own."""
     out = store_location(config.out)
-    attrs = root_attrs(config, ds, split_names, gts)
+    attrs = root_attrs(config, ds, split_names, gts, label_format)
     if store_exists(out):
         return _open_existing(config, out, attrs), out
     remove_tree(sibling(out, STAGING_SUFFIX))  # left by an earlier store of that name: not ours

@@ -18,14 +18,17 @@ _IDENTITY_OPTION = {
     "source_root": "--root", "source_version": "--version", "gts": "--gts", "splits": "--split",
     "block_samples": "--block-samples", "options.image_scale": "--image-scale",
     "options.jpeg_quality": "--jpeg-quality", "options.min_depth": "min_depth",
-    "options.lidar_sweeps": "--lidar-sweeps",
+    "options.lidar_sweeps": "--lidar-sweeps", "labels_format": "the format of the --gts files",
     "sample_tokens_crc32": "the sample list in the tables",
 }
 
 
-def build_identity(config: BuildConfig, ds: NuScenesDataset, gts: Path | None) -> dict[str, Any]:
+def build_identity(config: BuildConfig, ds: NuScenesDataset, gts: Path | None,
+                   label_format: str = "occ3d") -> dict[str, Any]:
     """What a resumed build must match (workers, resume and on_error may change between runs);
-    `gts`: the labels folder the build reads (`config.labels().folder`)."""
+    `gts`: the labels folder the build reads (`config.labels().folder`); `label_format` its files'
+    format, recorded only when not "occ3d" (identities from before flow stay as they were)."""
+    extra = {} if label_format == "occ3d" else {"labels_format": label_format}
     return {
         "source_root": str(ds.root),
         "source_version": ds.version,
@@ -34,7 +37,7 @@ def build_identity(config: BuildConfig, ds: NuScenesDataset, gts: Path | None) -
         "block_samples": config.block_samples,
         "options": asdict(config.options),
         "sample_tokens_crc32": zlib.crc32("".join(s.token for s in ds.samples).encode()),
-    }
+    } | extra
 
 
 def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:

@@ -13,19 +13,20 @@ import numpy as np
 from occdata.errors import OccDataError
 from occdata.nuscenes import LidarRecord, NuScenesDataset, load_nuscenes
 from occdata.nuscenes.reader import confined_path
-from occdata.occ3d import LABEL_FILE, label_relpaths
+from occdata.occ3d import LABEL_FILE, OPENOCC_V2, label_keys, label_relpaths
 from occdata.store.blocks import SampleInput
 from occdata.store.config import BuildConfig
 from occdata.store.sample import static_arrays, temporal_indices
 
-__all__ = ["BuildInputs", "check_sweep_files", "find_label_files", "read_inputs"]
+__all__ = ["BuildInputs", "check_sweep_files", "find_label_files", "label_format", "read_inputs"]
 
 
 @dataclass(frozen=True, eq=False)
 class BuildInputs:
     """The selection a build converts, `n` samples: `labels` and `histories` per sample (its labels
     file or None, its previous LiDAR sweeps); `scene_index`, `split_code`, `prev_index` `(n,)`
-    and `prev_valid` `(n, ...)` as `temporal_indices` gives them; `gts` the labels folder read."""
+    and `prev_valid` `(n, ...)` as `temporal_indices` gives them; `gts` the labels folder read;
+    `label_format` its files' format ("occ3d", or "openocc-v2": the store gets `labels/flow`)."""
 
     ds: NuScenesDataset
     gts: Path | None
@@ -36,13 +37,18 @@ class BuildInputs:
     split_code: np.ndarray
     prev_index: np.ndarray
     prev_valid: np.ndarray
+    label_format: str = "occ3d"
+
+    @property
+    def flow(self) -> bool:
+        return self.label_format == OPENOCC_V2
 
     def sample_input(self, i: int, config: BuildConfig, tok_width: int) -> SampleInput:
         """What converting sample `i` needs (`tok_width`: the store's token length)."""
         s = self.ds.samples[i]
         static = static_arrays(s, int(self.scene_index[i]), int(self.split_code[i]), self.prev_index[i],
                                self.prev_valid[i], tok_width)
-        return SampleInput(i, s, static, self.labels[i], config.options, self.histories[i])
+        return SampleInput(i, s, static, self.labels[i], config.options, self.histories[i], self.label_format)
 
 
 def read_inputs(config: BuildConfig) -> BuildInputs:
@@ -66,7 +72,19 @@ def read_inputs(config: BuildConfig) -> BuildInputs:
     split_code = np.array([split_of[ds.scenes[k].split] for k in scene_index])
     prev_index, prev_valid = temporal_indices(scene_index, np.array([s.index_in_scene for s in ds.samples]))
     return BuildInputs(ds, source.folder, tuple(labels), histories, tuple(split_names), scene_index, split_code,
-                       prev_index, prev_valid)
+                       prev_index, prev_valid, label_format(labels))
+
+
+def label_format(labels: list[Path | None]) -> str:
+    """The format of a labels tree, from its first readable file: "openocc-v2" if that file has a
+    `flow` array (OpenOcc v2's files, ours from `occdata labels --grid openocc-v2`: its class ids, and
+    the store gets `labels/flow`), else "occ3d". Only that file's zip directory is read; a file of
+    the other format later fails its sample with one line (a tree must hold one format)."""
+    for path in labels:
+        keys = label_keys(path) if path is not None else None
+        if keys is not None:
+            return OPENOCC_V2 if "flow" in keys else "occ3d"
+    return "occ3d"
 
 
 def check_sweep_files(histories: list[tuple[LidarRecord, ...]], n_sweeps: int) -> None:

@@ -11,7 +11,7 @@ from occdata.constants import CAMERA_ORDER
 from occdata.errors import OccDataError
 from occdata.fileio import atomic_open
 from occdata.store.bev import unpack_bev
-from occdata.store.layout import FLAT_ARRAYS, PER_SAMPLE, STATE_DONE, STATE_ERROR, STATE_PENDING
+from occdata.store.layout import FLAT_ARRAYS, STATE_DONE, STATE_ERROR, STATE_PENDING, per_sample
 from occdata.store.reader import StoreReader
 
 __all__ = ["DUMP_KEYS", "dump_sample", "store_info"]
@@ -20,7 +20,7 @@ __all__ = ["DUMP_KEYS", "dump_sample", "store_info"]
 def store_info(reader: StoreReader) -> dict[str, Any]:
     state = reader.state
     arrays = {}
-    for name in [s.name for s in PER_SAMPLE] + list(FLAT_ARRAYS):
+    for name in [s.name for s in per_sample(reader.has_flow)] + list(FLAT_ARRAYS):
         a = reader.group[name]
         shards = getattr(a, "shards", None)
         arrays[name] = {"shape": list(a.shape), "dtype": str(a.dtype), "chunks": list(a.chunks),
@@ -36,6 +36,7 @@ def store_info(reader: StoreReader) -> dict[str, Any]:
         "pending": int((state == STATE_PENDING).sum()),
         "labelled": int(reader.group["labels/present"][:].sum()),
         "with_visibility": int(reader.group["visibility/present"][:].sum()),
+        "flow": reader.has_flow,
         "scenes": len(scenes),
         "scene_table": scenes,
         "recorded_errors": errors,
@@ -55,6 +56,7 @@ DUMP_KEYS = {
     "T_global_from_ego_cam": "(6, 4, 4) float64",
     "depth_uvd_<c>": "(M_c, 3) float32 per camera c = 0..5: u, v (original pixels), depth (m)",
     "semantics / mask_lidar / mask_camera": "(200, 200, 16) uint8 (absent without labels)",
+    "flow": "(200, 200, 16, 2) float32 (vx, vy) m/s in key ego (stores with flow, labelled samples only)",
     "bev": "(18, 200, 200) uint8 multi-hot (absent without labels)",
     "visibility_camera / visibility_lidar": "(200, 200, 16) uint8 (absent until `occdata visibility`)",
     "prev_index / prev_valid": "(16,) int32 / bool temporal indices, nearest first",
@@ -94,6 +96,8 @@ def dump_sample(reader: StoreReader, index: int, out: Path) -> list[str]:
         for k in ("semantics", "mask_lidar", "mask_camera"):
             data[k] = a[f"labels/{k}"]
         data["bev"] = unpack_bev(a["labels/bev"])
+        if "labels/flow" in a:
+            data["flow"] = a["labels/flow"]
     if a["visibility/present"]:
         data["visibility_camera"] = a["visibility/camera"]
         data["visibility_lidar"] = a["visibility/lidar"]

@@ -38,9 +38,11 @@ from occdata.fileio import is_temp_name
 from occdata.store.layout import (
     FLAT_ARRAYS,
     FLAT_OF_OFFSETS,
+    FLOW,
     PER_SAMPLE,
     STATE_PENDING,
     checksummed_names,
+    has_flow,
     token_str,
 )
 
@@ -56,7 +58,7 @@ def crc_rows(data: np.ndarray) -> np.ndarray:
     return np.array([zlib.crc32(np.ascontiguousarray(row).tobytes()) for row in data], dtype=np.uint32)
 
 
-_SPEC = {s.name: s for s in PER_SAMPLE}
+_SPEC = {s.name: s for s in (*PER_SAMPLE, FLOW)}
 
 
 class StoreIntegrity:
@@ -65,7 +67,7 @@ class StoreIntegrity:
     def __init__(self, group: zarr.Group, attrs: dict[str, Any] | None = None) -> None:
         self.group = group
         self.attrs = dict(group.attrs) if attrs is None else attrs
-        self.names = checksummed_names()
+        self.names = checksummed_names(has_flow(self.attrs))
         self._keys: dict[str, set[str]] = {}
         self._checksums: np.ndarray | None = None
         self._tokens: np.ndarray | None = None

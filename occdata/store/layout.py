@@ -1,16 +1,19 @@
-"""The store schema (version 2): array names, shapes, dtypes, chunking. See docs/store.md.
+"""The store schema (version 2, or 3 with flow): array names, shapes, dtypes, chunking. See docs/store.md.
 
 Every per-sample array has the sample axis first. Small arrays are chunked by blocks of samples;
 large label arrays have one chunk per sample inside one shard per block (few files, cheap random
 access). Ragged data (JPEG bytes, LiDAR depth points) lives in flat arrays with (start, length)
 offsets per (sample, camera); each block of samples owns a chunk-aligned region of them, planned
 before any sample is converted (`plan/regions`, version 2), so a task writes its payload in place.
+Version 3 is version 2 plus one optional label array, `labels/flow` (OpenOcc v2's per-voxel velocity),
+and its checksum column (the last one); a store without flow is version 2, byte for byte as before.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -36,12 +39,20 @@ __all__ = [
     "STATE_ERROR",
     "STATE_PENDING",
     "ArraySpec",
+    "FLOW",
+    "FLOW_SCHEMA_VERSION",
     "N_PREV",
+    "has_flow",
+    "per_sample",
+    "schema_version",
 ]
 
 SCHEMA_NAME = "occdata.store"
 SCHEMA_VERSION = 2  # 2: every block's ragged payload in its own planned region (gaps between blocks)
-READABLE_SCHEMA_VERSIONS = (1, 2)  # version 1 (blocks packed back to back) reads the same, through the offsets
+# 3: version 2 + `labels/flow` and its checksum column. A version-2 reader refuses it (it would not know
+# the extra column), naming the version, instead of calling the checksum table damaged.
+FLOW_SCHEMA_VERSION = 3
+READABLE_SCHEMA_VERSIONS = (1, 2, 3)  # version 1 (blocks packed back to back) reads the same, through the offsets
 N_PREV = 16  # temporal history length (DESIGN §5.4)
 N_CAM = 6
 
@@ -94,6 +105,27 @@ PER_SAMPLE: tuple[ArraySpec, ...] = (
     ArraySpec("status/checksum", (), "uint32", checksummed=False),  # shape set from the checksummed count
 )
 
+# (vx, vy) m/s per voxel in the grid's (key ego) axes, 0 where static, free or unlabelled. float32: the
+# label files' own dtype, so the stored value is the file's value (float16 would round 30 m/s by up to
+# 0.008 m/s per component and save ~1/4 of a few kB after zstd: the zeros dominate; docs/store.md).
+FLOW = ArraySpec("labels/flow", (*_G, 2), "float32", sharded=True)
+
+
+def per_sample(flow: bool = False) -> tuple[ArraySpec, ...]:
+    """The per-sample arrays of a store with (or without) `labels/flow`."""
+    return PER_SAMPLE + ((FLOW,) if flow else ())
+
+
+def schema_version(flow: bool = False) -> int:
+    """The version a new store is written with: 3 with flow, else 2 (unchanged)."""
+    return FLOW_SCHEMA_VERSION if flow else SCHEMA_VERSION
+
+
+def has_flow(attrs: Any) -> bool:
+    """Whether a store (its root attributes) holds `labels/flow`: schema version 3."""
+    return attrs.get("schema_version") == FLOW_SCHEMA_VERSION
+
+
 # Flat ragged arrays: name -> (row shape, dtype, chunk rows).
 FLAT_ARRAYS: dict[str, tuple[tuple[int, ...], str, int]] = {
     "images/jpeg": ((), "uint8", 1 << 20),
@@ -108,9 +140,10 @@ REGIONS = "plan/regions"
 FLAT_OF_OFFSETS = {"images/offsets": "images/jpeg", "depth/offsets": "depth/uvd"}
 
 
-def checksummed_names() -> tuple[str, ...]:
-    """Arrays covered by the per-sample checksum, in checksum-column order (flat ones last)."""
-    return tuple(s.name for s in PER_SAMPLE if s.checksummed) + tuple(FLAT_ARRAYS)
+def checksummed_names(flow: bool = False) -> tuple[str, ...]:
+    """Arrays covered by the per-sample checksum, in checksum-column order (flat ones next, then
+    `labels/flow` last when the store has it: the other columns keep their places)."""
+    return tuple(s.name for s in PER_SAMPLE if s.checksummed) + tuple(FLAT_ARRAYS) + ((FLOW.name,) if flow else ())
 
 
 TOKEN_ARRAYS = ("sample/token", "sample/lidar_token", "cam/token")

@@ -16,7 +16,6 @@ from occdata.store.integrity import CorruptStoreError, StoreIntegrity
 from occdata.store.layout import (
     FLAT_ARRAYS,
     MIN_TOKEN_BYTES,
-    PER_SAMPLE,
     READABLE_SCHEMA_VERSIONS,
     SCHEMA_NAME,
     STATE_DONE,
@@ -24,6 +23,8 @@ from occdata.store.layout import (
     STATE_PENDING,
     TOKEN_ARRAYS,
     checksummed_names,
+    has_flow,
+    per_sample,
     token_str,
 )
 
@@ -63,6 +64,7 @@ class StoreReader:
                 f"{', '.join(map(str, READABLE_SCHEMA_VERSIONS))}; rebuild it with this version of occdata"
             )
         self.attrs: dict[str, Any] = attrs
+        self.has_flow: bool = has_flow(attrs)  # `labels/flow` (schema version 3)
         self.n_samples: int = self._check_layout()
         self.integrity = StoreIntegrity(self.group, attrs)
         self._cache: dict[str, np.ndarray] = {}
@@ -75,9 +77,9 @@ class StoreReader:
         n = self.attrs.get("n_samples")
         if not isinstance(n, int) or isinstance(n, bool) or n < 0:
             raise OccDataError(f"store {self.path}: attribute n_samples is {n!r}, not a sample count")
-        n_check = len(checksummed_names())
+        n_check = len(checksummed_names(self.has_flow))
         expected = {s.name: ((n, n_check) if s.name == "status/checksum" else (n, *s.shape), s.dtype)
-                    for s in PER_SAMPLE}
+                    for s in per_sample(self.has_flow)}
         for name, (row, dtype, _) in FLAT_ARRAYS.items():
             expected[name] = ((None, *row), dtype)
         # Token arrays are as wide as the store's longest token (>= 32 bytes), the same for all three.
@@ -179,12 +181,12 @@ class StoreReader:
         return token_str(self.small("sample/token")[index])
 
     def sample_arrays(self, index: int, names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
-        """Per-sample arrays (no sample axis) for one sample; all non-status arrays by default."""
+        """Per-sample arrays (no sample axis) for one sample; all of the store's arrays by default."""
         self._check_index(index)
-        names = names or tuple(s.name for s in PER_SAMPLE)
+        names = names or tuple(s.name for s in per_sample(self.has_flow))
         out = {}
         committed = self.state[index] != STATE_PENDING
-        checked = set(checksummed_names())
+        checked = set(checksummed_names(self.has_flow))
         for name in names:
             try:
                 out[name] = np.asarray(self.group[name][index])

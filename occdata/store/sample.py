@@ -15,7 +15,7 @@ import numpy as np
 
 from occdata.errors import OccDataError
 from occdata.nuscenes import LidarRecord, SampleRecord, load_lidar_points, validate_sample
-from occdata.occ3d import read_label
+from occdata.occ3d import OPENOCC_V2, label_keys, read_label, read_openocc_v2_label
 from occdata.sensors.jpeg_check import decode_jpeg_checked
 from occdata.sensors.projection import project_to_cameras
 from occdata.store.bev import bev_bits
@@ -146,22 +146,26 @@ def process_sample(
     label_path: Path | None,
     options: SampleOptions,
     sweeps: tuple[LidarRecord, ...] = (),
+    label_format: str = "occ3d",
 ) -> SampleResult:
     """Read and convert one sample; the depth targets also take the points of `sweeps` (previous
-    LIDAR_TOP sweeps, `NuScenesDataset.lidar_history`). Bad input gives a result with `error` set
-    (never raises it)."""
+    LIDAR_TOP sweeps, `NuScenesDataset.lidar_history`). `label_format` "openocc-v2": the labels file
+    is OpenOcc v2's (mapped to our ids, its flow kept as `labels/flow`). Bad input gives a result
+    with `error` set (never raises it)."""
     try:
         validate_sample(sample)
         jpeg = tuple(_read_jpeg(c.path, c.width, c.height, options) for c in sample.cameras)
         uvd = depth_points(sample, sweeps, static["calib/K"], static["cam/image_size"], options.min_depth)
         arrays = dict(static)
         if label_path is not None and os.path.lexists(label_path):
-            labels = read_label(label_path)
+            labels = _read_labels(label_path, label_format)
             arrays["labels/present"] = np.bool_(True)
             arrays["labels/semantics"] = labels["semantics"]
             arrays["labels/mask_lidar"] = labels["mask_lidar"]
             arrays["labels/mask_camera"] = labels["mask_camera"]
             arrays["labels/bev"] = bev_bits(labels["semantics"])
+            if "flow" in labels:
+                arrays["labels/flow"] = labels["flow"]
         else:
             arrays["labels/present"] = np.bool_(False)
         return SampleResult(index=index, token=sample.token, arrays=arrays, jpeg=jpeg, uvd=uvd)
@@ -170,6 +174,17 @@ def process_sample(
     except Exception as exc:  # noqa: BLE001 - anything else about this sample's input stays with it
         reason = f"unexpected {type(exc).__name__}: {exc}"
         return SampleResult(index=index, token=sample.token, arrays=dict(static), jpeg=(), uvd=(), error=reason)
+
+
+def _read_labels(path: Path, label_format: str) -> dict[str, np.ndarray]:
+    """The sample's labels in the tree's format; a file of the other format is one `SampleError`."""
+    keys = label_keys(path)
+    if keys is not None and ("flow" in keys) != (label_format == OPENOCC_V2):
+        has, tree = ("has", "Occ3D files (no flow)") if "flow" in keys else ("has no", "OpenOcc v2 files (with flow)")
+        raise SampleError(f"labels file {path} {has} 'flow', but the --gts tree's first labels file made this "
+                          f"build read {tree}: the tree mixes the two formats (their class ids differ too); "
+                          "give --gts a tree of one format")
+    return read_openocc_v2_label(path) if label_format == OPENOCC_V2 else read_label(path)
 
 
 def depth_points(

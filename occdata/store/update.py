@@ -15,7 +15,7 @@ import zarr
 from tqdm import tqdm
 
 from occdata.store.integrity import StoreIntegrity
-from occdata.store.layout import STATE_DONE, checksummed_names
+from occdata.store.layout import STATE_DONE, checksummed_names, has_flow
 
 __all__ = ["update_samples"]
 
@@ -36,7 +36,7 @@ def update_samples(
 
     `select` is an `(N,) bool` mask. Returns the number of samples updated.
     """
-    names = checksummed_names()
+    names = checksummed_names(has_flow(group.attrs))
     integrity = StoreIntegrity(group)
     state = integrity.read_state()
     todo = np.flatnonzero(select & (state == STATE_DONE))

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from occdata.errors import OccDataError
-from occdata.store.layout import FLAT_ARRAYS, FLAT_OF_OFFSETS, PER_SAMPLE, STATE_PENDING, checksummed_names
+from occdata.store.layout import FLAT_ARRAYS, FLAT_OF_OFFSETS, STATE_PENDING, checksummed_names, per_sample
 from occdata.store.reader import StoreReader
 
 __all__ = ["Problem", "pending_samples", "verify_store"]
@@ -38,12 +38,12 @@ def verify_store(reader: StoreReader, block: int = 32, progress: Callable[[int],
         stored = reader.group["status/checksum"][:]
     except Exception as exc:  # noqa: BLE001
         raise OccDataError(f"status arrays of {reader.path} are unreadable: {exc}") from None
-    names = checksummed_names()
+    names = checksummed_names(reader.has_flow)
     if stored.shape[1] != len(names):
         raise OccDataError(f"{reader.path}: checksum table has {stored.shape[1]} columns, expected {len(names)}")
     problems: list[Problem] = []
     # Every array's chunks: an absent one must hold only fill values for each committed sample.
-    for name in [s.name for s in PER_SAMPLE if s.name != "status/state"] + list(FLAT_ARRAYS):
+    for name in [s.name for s in per_sample(reader.has_flow) if s.name != "status/state"] + list(FLAT_ARRAYS):
         try:
             absent = reader.integrity.problems_absent(name, state)
         except OccDataError as exc:

@@ -20,7 +20,15 @@ from occdata.view.config import MASK_CHOICES, STYLES, VIEWS, FrameOptions, ViewC
 from occdata.view.draw import SceneDrawer
 from occdata.view.frame import SIDE_OFFSET_M, compose_frame
 from occdata.view.source import MASK_ARRAYS, SampleData, SceneEntry, ViewSource
-from occdata.view.voxels import ERROR_COLORS, ERROR_KINDS, GHOST_COLOR, N_SEMANTIC
+from occdata.view.voxels import (
+    ERROR_COLORS,
+    ERROR_KINDS,
+    GHOST_COLOR,
+    N_SEMANTIC,
+    SPEED_COLORS,
+    STATIC_COLOR,
+    speed_bin_name,
+)
 
 __all__ = ["LiveViewer", "Request"]
 
@@ -95,7 +103,8 @@ class LiveViewer:
         self.slider = gui.add_slider("Keyframe", min=1, max=len(first.indices), step=1, initial_value=1)
         self.play = gui.add_button("Play")
         self.step = gui.add_button_group("Step", ("previous", "next"))
-        views = [VIEWS[v] for v in VIEWS if v == "label" or src.has_pred_folder]
+        views = [VIEWS[v] for v in VIEWS
+                 if v == "label" or (v == "speed" and src.has_flow) or (v != "speed" and src.has_pred_folder)]
         self.view_dd = gui.add_dropdown("View", views, initial_value=VIEWS[frame.view])
         self.mask_dd = gui.add_dropdown("Mask", self._mask_choices(), initial_value=frame.mask)
         self.outside_cb = gui.add_checkbox("Voxels outside the mask (grey)", frame.outside_mask)
@@ -203,10 +212,12 @@ class LiveViewer:
     def _load(self, req: Request) -> SampleData:
         """The requested keyframe, reused while only the drawing options change."""
         o, s = req.options, self._sample
-        images, points = o.cameras or bool(self.panels_cb.value), o.lidar
+        images, points, flow = o.cameras or bool(self.panels_cb.value), o.lidar, o.view == "speed"
         if (s is None or (s.scene, s.position) != (req.scene, req.position)
-                or (images and s.images is None) or (points and s.points_ego is None)):
-            s = self.source.sample(self.source.scene(req.scene), req.position, images=images, points=points)
+                or (images and s.images is None) or (points and s.points_ego is None)
+                or (flow and s.flow is None and self.source.has_flow)):
+            s = self.source.sample(self.source.scene(req.scene), req.position, images=images, points=points,
+                                   flow=flow)
         self._sample = s
         return s
 
@@ -257,8 +268,11 @@ class LiveViewer:
         rows = []
         if req.options.view == "error":
             rows += [_swatch(ERROR_COLORS[k], kind) for k, kind in enumerate(ERROR_KINDS)]
+        if req.options.view == "speed":
+            rows += [_swatch(SPEED_COLORS[k - 1] if k else STATIC_COLOR, speed_bin_name(k))
+                     for k in range(len(SPEED_COLORS) + 1)]
         present = sorted({layer.class_id for g in frame.groups for layer in g.layers if layer.class_id is not None})
-        if req.options.view != "error":
+        if req.options.view not in ("error", "speed"):
             rows += [_swatch(CLASS_COLORS[c], CLASS_NAMES[c]) for c in present]
         if any(layer.ghost for g in frame.groups for layer in g.layers):
             rows.append(_swatch(GHOST_COLOR, f"outside the {req.options.mask} mask"))

@@ -11,13 +11,14 @@ from occdata.errors import OccDataError
 
 __all__ = ["MASK_CHOICES", "STYLES", "VIEWS", "FrameOptions", "ViewConfig"]
 
-ViewName = Literal["label", "prediction", "side", "error"]
+ViewName = Literal["label", "prediction", "side", "error", "speed"]
 StyleName = Literal["flat", "cubes"]
 VIEWS: dict[str, str] = {  # name -> what the viewer's menu says
     "label": "label",
     "prediction": "prediction",
     "side": "label | prediction",
     "error": "error (right / wrong / missed)",
+    "speed": "speed (label coloured by |flow|)",  # stores with flow (OpenOcc v2 labels)
 }
 STYLES: dict[str, str] = {"flat": "flat (exact class colours)", "cubes": "cubes (shaded)"}
 MASK_CHOICES: tuple[str, ...] = ("none", "camera", "lidar", "camera (occdata visibility)", "lidar (occdata visibility)")
@@ -69,7 +70,7 @@ class ViewConfig:
             raise OccDataError(f"--port {self.port} is not a TCP port (0-65535)")
         if not self.seconds_per_keyframe > 0:
             raise OccDataError(f"seconds per keyframe must be > 0 (got {self.seconds_per_keyframe})")
-        if self.pred is None and self.frame.view != "label":
+        if self.pred is None and self.frame.view not in ("label", "speed"):
             raise OccDataError(f"--view {self.frame.view} needs --pred (a prediction folder)")
         if self.export is not None and self.export.suffix.lower() not in (".html", ".htm"):
             raise OccDataError(f"--export {self.export}: the export is one HTML file, name it *.html")

@@ -10,7 +10,7 @@ import numpy as np
 from occdata.constants import EGO_BOX, GRID
 from occdata.view.config import FrameOptions
 from occdata.view.source import SampleData
-from occdata.view.voxels import VoxelLayer, error_ids, label_ids, layers_from_ids
+from occdata.view.voxels import VoxelLayer, error_ids, label_ids, layers_from_ids, speed_ids
 
 __all__ = ["SIDE_OFFSET_M", "Frame", "VoxelGroup", "compose_frame", "ego_box_center"]
 
@@ -72,10 +72,14 @@ def compose_frame(sample: SampleData, opts: FrameOptions) -> Frame:
     if truth is None:
         notes.append("No labels for this sample (a test split, or a store built without labels): "
                      "only the cameras, LiDAR points and prediction can be shown.")
-    if pred is None and opts.view != "label":
+    if pred is None and opts.view not in ("label", "speed"):
         notes.append("No prediction for this sample in the prediction folder.")
+    if opts.view == "speed" and truth is not None and sample.flow is None:
+        notes.append("No flow in this store (it comes from OpenOcc v2 labels, docs/store.md): the speed view "
+                     "has nothing to colour.")
     groups: list[VoxelGroup] = []
-    wants = {"label": ("truth",), "prediction": ("pred",), "side": ("truth", "pred"), "error": ("error",)}
+    wants = {"label": ("truth",), "prediction": ("pred",), "side": ("truth", "pred"), "error": ("error",),
+             "speed": ("speed",)}
     side = opts.view == "side"
     for name in wants[opts.view]:
         offset = (0.0, (SIDE_OFFSET_M if name == "truth" else -SIDE_OFFSET_M) if side else 0.0, 0.0)
@@ -85,6 +89,9 @@ def compose_frame(sample: SampleData, opts: FrameOptions) -> Frame:
         elif name == "pred" and pred is not None:
             layers = layers_from_ids(label_ids(pred, mask))
             groups.append(VoxelGroup("pred", "prediction", offset, _keep(layers, opts)))
+        elif name == "speed" and truth is not None and sample.flow is not None:
+            layers = layers_from_ids(speed_ids(truth, sample.flow, mask), speed_view=True)
+            groups.append(VoxelGroup("speed", "speed (|flow|)", offset, _keep(layers, opts)))
         elif name == "error" and truth is not None and pred is not None:
             layers = layers_from_ids(error_ids(truth, pred, mask), error_view=True)
             groups.append(VoxelGroup("error", "error view", offset, _keep(layers, opts)))

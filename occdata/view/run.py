@@ -101,7 +101,7 @@ def _record(server: Any, source: ViewSource, scene: SceneEntry, cfg: ViewConfig)
     add_legend_plane(server.scene, _classes_in(source, scene), position=(0.0, -46.0 - side, 0.0))
     drawer = SceneDrawer(server.scene)
     for pos in range(len(scene.indices)):
-        sample = source.sample(scene, pos, images=opts.cameras, points=opts.lidar)
+        sample = source.sample(scene, pos, images=opts.cameras, points=opts.lidar, flow=opts.view == "speed")
         frame = compose_frame(sample, opts)
         drawer.draw(sample, frame, opts)
         caption = f"{scene.name} ({scene.split}) · keyframe {pos + 1}/{len(scene.indices)} · {sample.token[:12]}"

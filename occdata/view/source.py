@@ -48,7 +48,7 @@ class SampleData:
     the sample has); `pred (X, Y, Z) uint8` (None without a prediction); `cameras`: frustum per camera;
     `images`: RGB `(h, w, 3) uint8` per camera (decoded small; None unless asked for);
     `points_ego (M, 3) float32`: the stored depth points of all cameras lifted to key ego (None unless
-    asked for)."""
+    asked for); `flow (X, Y, Z, 2) float32` (vx, vy) m/s (None unless asked for and the store has it)."""
 
     index: int
     token: str
@@ -62,6 +62,7 @@ class SampleData:
     cameras: tuple[FrustumParams, ...]
     images: tuple[np.ndarray, ...] | None = None
     points_ego: np.ndarray | None = None
+    flow: np.ndarray | None = None
 
 
 class ViewSource:
@@ -143,8 +144,14 @@ class ViewSource:
         path = self.predictions.get(token)
         return read_prediction(path) if path is not None else None
 
-    def sample(self, scene: SceneEntry, position: int, images: bool = False, points: bool = False) -> SampleData:
-        """The keyframe at `position` (0-based) of `scene`; images and LiDAR points only when asked."""
+    @property
+    def has_flow(self) -> bool:
+        """Whether the store holds `labels/flow` (the speed view)."""
+        return self.reader.has_flow
+
+    def sample(self, scene: SceneEntry, position: int, images: bool = False, points: bool = False,
+               flow: bool = False) -> SampleData:
+        """The keyframe at `position` (0-based) of `scene`; images, LiDAR points and flow only when asked."""
         if not 0 <= position < len(scene.indices):
             raise OccDataError(f"keyframe {position} out of range: {scene.name} has {len(scene.indices)}")
         index = scene.indices[position]
@@ -159,4 +166,6 @@ class ViewSource:
             camera_names=tuple(r.attrs.get("camera_order", ())), cameras=self._cameras(index),
             images=self._images(index) if images else None,
             points_ego=self._points(index) if points else None,
+            flow=(r.sample_arrays(index, ("labels/flow",))["labels/flow"]
+                  if flow and labelled and r.has_flow else None),
         )

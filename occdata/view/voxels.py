@@ -22,6 +22,9 @@ __all__ = [
     "ERROR_KINDS",
     "GHOST_COLOR",
     "N_SEMANTIC",
+    "SPEED_BINS",
+    "SPEED_COLORS",
+    "STATIC_COLOR",
     "FrustumParams",
     "VoxelLayer",
     "error_ids",
@@ -30,6 +33,8 @@ __all__ = [
     "label_ids",
     "layers_from_ids",
     "lift_depth_points",
+    "speed_bin_name",
+    "speed_ids",
 ]
 
 N_SEMANTIC = FREE_LABEL  # 17 drawable classes, 0..16
@@ -41,6 +46,15 @@ ERROR_COLORS: tuple[tuple[int, int, int], ...] = ((40, 200, 90), (235, 40, 40), 
 GHOST_COLOR = (150, 150, 150)  # occupied voxels outside the chosen mask
 _GHOST_ID_LABEL = N_SEMANTIC  # 17
 _GHOST_ID_ERROR = len(ERROR_KINDS) * N_SEMANTIC  # 51
+# The speed view: occupied voxels coloured by |flow| (m/s) in bins [0.1, 1), [1, 2), ..., [9, inf); voxels
+# slower than 0.1 m/s (static: buildings, road, parked cars) are one grey, darker than the mask's ghost grey.
+SPEED_BINS: tuple[float, ...] = (0.1, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0)  # lower edges, m/s
+SPEED_COLORS: tuple[tuple[int, int, int], ...] = (  # slow (blue) -> fast (dark red), one per bin
+    (48, 18, 59), (65, 69, 171), (70, 117, 237), (57, 162, 252), (27, 207, 212), (36, 236, 166),
+    (97, 252, 108), (210, 233, 53), (254, 155, 45), (217, 56, 6))
+STATIC_COLOR = (95, 95, 95)
+_STATIC_ID = 0
+_GHOST_ID_SPEED = len(SPEED_BINS) + 1  # 11
 SIDE_SHADE = 0.78  # colour factor of voxels whose top face is hidden (the flat style's only shading)
 
 
@@ -104,6 +118,28 @@ def error_ids(truth: np.ndarray, pred: np.ndarray, mask: np.ndarray | None = Non
     return ids
 
 
+def speed_ids(labels: np.ndarray, flow: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Node ids `(X, Y, Z) int16` of the speed view: for occupied voxels of `labels (X, Y, Z) uint8`,
+    0 where |flow| < 0.1 m/s (static), else 1 + the `SPEED_BINS` bin of |flow| (`flow (X, Y, Z, 2)`,
+    (vx, vy) m/s); 11 where occupied and outside `mask`; -1 where free."""
+    occ = _occupied(labels)
+    f = np.asarray(flow, np.float32)
+    speed = np.sqrt(f[..., 0] * f[..., 0] + f[..., 1] * f[..., 1])
+    ids = np.where(occ, np.searchsorted(np.asarray(SPEED_BINS, np.float32), speed, side="right"),
+                   EMPTY).astype(np.int16)  # 0 below the first edge, k past the k-th edge
+    if mask is not None:
+        ids[occ & (np.asarray(mask) == 0)] = _GHOST_ID_SPEED
+    return ids
+
+
+def speed_bin_name(k: int) -> str:
+    """The legend's words for speed-view node id `k` (0 static, 1..10 a bin)."""
+    if k == _STATIC_ID:
+        return f"static (< {SPEED_BINS[0]:g} m/s)"
+    lo = SPEED_BINS[k - 1]
+    return f">= {lo:g} m/s" if k == len(SPEED_BINS) else f"{lo:g}-{SPEED_BINS[k]:g} m/s"
+
+
 def exposed_voxels(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Voxels worth drawing in a node-id grid `(X, Y, Z) int` (-1 = nothing): those with at least one
     6-neighbour of another id (outside the grid counts as another id).
@@ -127,10 +163,17 @@ def exposed_voxels(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return ijk[order], node[order], top[show][order]
 
 
-def _layer_meta(node: int, error_view: bool) -> tuple[str, tuple[int, int, int], int | None, bool]:
+def _layer_meta(node: int, error_view: bool, speed_view: bool = False) -> tuple[str, tuple[int, int, int],
+                                                                               int | None, bool]:
     """(name, colour, class, ghost) of a node id."""
     from occdata.constants import CLASS_NAMES
 
+    if speed_view:
+        if node == _GHOST_ID_SPEED:
+            return "outside_mask", GHOST_COLOR, None, True
+        if node == _STATIC_ID:
+            return "static", STATIC_COLOR, None, False
+        return f"speed_{node}", SPEED_COLORS[node - 1], None, False
     if error_view:
         if node == _GHOST_ID_ERROR:
             return "outside_mask", GHOST_COLOR, None, True
@@ -141,8 +184,10 @@ def _layer_meta(node: int, error_view: bool) -> tuple[str, tuple[int, int, int],
     return CLASS_NAMES[node], CLASS_COLORS[node], int(node), False
 
 
-def layers_from_ids(ids: np.ndarray, error_view: bool = False, grid: OccGrid = GRID) -> list[VoxelLayer]:
-    """The drawable layers of a node-id grid (from `label_ids` or, with `error_view`, `error_ids`)."""
+def layers_from_ids(ids: np.ndarray, error_view: bool = False, grid: OccGrid = GRID,
+                    speed_view: bool = False) -> list[VoxelLayer]:
+    """The drawable layers of a node-id grid (from `label_ids`, or `error_ids` with `error_view`, or
+    `speed_ids` with `speed_view`: layers `static`, `speed_<k>` (k = 1..10) and `outside_mask`)."""
     ijk, node, top = exposed_voxels(ids)
     lower = np.asarray(grid.lower, dtype=np.float64)
     centers = (lower + grid.voxel_size * (ijk + 0.5)).astype(np.float32)
@@ -150,7 +195,7 @@ def layers_from_ids(ids: np.ndarray, error_view: bool = False, grid: OccGrid = G
     ends = np.append(starts[1:], len(node))
     layers = []
     for value, a, b in zip(values.tolist(), starts.tolist(), ends.tolist(), strict=True):
-        name, color, cls, ghost = _layer_meta(int(value), error_view)
+        name, color, cls, ghost = _layer_meta(int(value), error_view, speed_view)
         layers.append(VoxelLayer(name=name, centers_ego=centers[a:b], top_exposed=top[a:b], color=color,
                                  class_id=cls, ghost=ghost))
     return layers
