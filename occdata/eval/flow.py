@@ -16,7 +16,6 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from numba import njit, prange
 
 from occdata.constants import CLASS_NAMES, FREE_LABEL, GRID, NUM_CLASSES, OccGrid
 from occdata.errors import OccDataError
@@ -25,8 +24,9 @@ from occdata.eval.rayiou import (
     RAYIOU_TAUS,
     RayIoUAccumulator,
     RayIoUResult,
-    _cast_one,
     _check_grid,
+    _first_hits_kernel,
+    _pair_hits_kernel,
     _ray_setup,
     _rays,
     _to_metres,
@@ -40,46 +40,6 @@ MOVING_CLASSES: tuple[int, ...] = tuple(CLASS_NAMES.index(n) for n in (
     "car", "truck", "trailer", "bus", "construction_vehicle", "bicycle", "motorcycle", "pedestrian"))
 
 
-@njit(cache=True, parallel=True)
-def _pair_hit_voxels_kernel(gt: np.ndarray, pred: np.ndarray, origins_v: np.ndarray, ends_v: np.ndarray,
-                            free_label: int, gt_dist_v: np.ndarray, gt_cls: np.ndarray, gt_index: np.ndarray,
-                            pred_dist_v: np.ndarray, pred_cls: np.ndarray, pred_index: np.ndarray) -> None:
-    """`_pair_hits_kernel` that also writes each first hit's flat voxel index `(n, R) int64` (-1: none)."""
-    n, R = ends_v.shape[0], ends_v.shape[1]
-    for q in prange(n * R):
-        o = q // R
-        r = q - o * R
-        ox, oy, oz = np.float64(origins_v[o, 0]), np.float64(origins_v[o, 1]), np.float64(origins_v[o, 2])
-        ex, ey, ez = np.float64(ends_v[o, r, 0]), np.float64(ends_v[o, r, 1]), np.float64(ends_v[o, r, 2])
-        d, c, k = _cast_one(gt, free_label, ox, oy, oz, ex, ey, ez)
-        gt_dist_v[o, r] = d
-        gt_cls[o, r] = c
-        gt_index[o, r] = k
-        if c != free_label:
-            d, c, k = _cast_one(pred, free_label, ox, oy, oz, ex, ey, ez)
-        else:
-            d, c, k = np.nan, free_label, -1
-        pred_dist_v[o, r] = d
-        pred_cls[o, r] = c
-        pred_index[o, r] = k
-
-
-@njit(cache=True, parallel=True)
-def _first_hit_voxels_kernel(labels: np.ndarray, origins_v: np.ndarray, ends_v: np.ndarray, free_label: int,
-                             dist_v: np.ndarray, cls: np.ndarray, index: np.ndarray) -> None:
-    """`_first_hits_kernel` that also writes each first hit's flat voxel index (-1: none)."""
-    n, R = ends_v.shape[0], ends_v.shape[1]
-    for q in prange(n * R):
-        o = q // R
-        r = q - o * R
-        d, c, k = _cast_one(labels, free_label, np.float64(origins_v[o, 0]), np.float64(origins_v[o, 1]),
-                            np.float64(origins_v[o, 2]), np.float64(ends_v[o, r, 0]),
-                            np.float64(ends_v[o, r, 1]), np.float64(ends_v[o, r, 2]))
-        dist_v[o, r] = d
-        cls[o, r] = c
-        index[o, r] = k
-
-
 def first_hit_voxels(labels: np.ndarray, origins_keyego: np.ndarray, directions: np.ndarray | None = None,
                      grid: OccGrid = GRID, free_label: int = FREE_LABEL) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`first_hits` plus each ray's first-hit voxel, a flat index `(n, R) int64` into `labels.ravel()`
@@ -90,7 +50,7 @@ def first_hit_voxels(labels: np.ndarray, origins_keyego: np.ndarray, directions:
     shape = e_v.shape[:2]
     dist_v, cls, index = np.empty(shape, np.float32), np.empty(shape, np.uint8), np.empty(shape, np.int64)
     if dist_v.size:
-        _first_hit_voxels_kernel(lab, o_v, e_v, free_label, dist_v, cls, index)
+        _first_hits_kernel(lab, o_v, e_v, free_label, dist_v, cls, index)
     return _to_metres(dist_v, grid), cls, index
 
 
@@ -162,7 +122,7 @@ class RayFlowAccumulator(RayIoUAccumulator):
         gc, pc = np.empty(shape, np.uint8), np.empty(shape, np.uint8)
         gi, pi = np.empty(shape, np.int64), np.empty(shape, np.int64)
         if gd.size:
-            _pair_hit_voxels_kernel(g, p, o_v, e_v, self.free_label, gd, gc, gi, pd, pc, pi)
+            _pair_hits_kernel(g, p, o_v, e_v, self.free_label, gd, gc, gi, pd, pc, pi)
         gd, pd = _to_metres(gd, self.grid), _to_metres(pd, self.grid)
         self._counts += ray_counts(gd, gc, pd, pc, self.taus, self.num_classes, self.free_label)
         self._flow += flow_sums(gd, gc, gi, pd, pc, pi, fg, fp, AVE_TAU, self.num_classes, self.free_label)

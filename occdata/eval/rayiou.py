@@ -223,23 +223,25 @@ def _cast_from_outside(labels: np.ndarray, free_label: int, vx: int, vy: int, vz
 
 @njit(cache=True, parallel=True)
 def _first_hits_kernel(labels: np.ndarray, origins_v: np.ndarray, ends_v: np.ndarray, free_label: int,
-                       dist_v: np.ndarray, cls: np.ndarray) -> None:
-    """Fill `dist_v (n, R) float32` (voxel units) and `cls (n, R) uint8` for every ray."""
+                       dist_v: np.ndarray, cls: np.ndarray, index: np.ndarray) -> None:
+    """Fill `dist_v (n, R) float32` (voxel units), `cls (n, R) uint8` and `index (n, R) int64` (the hit
+    voxel's flat index, -1: none; what flow scoring reads) for every ray."""
     n, R = ends_v.shape[0], ends_v.shape[1]
     for q in prange(n * R):
         o = q // R
         r = q - o * R
-        d, c, _ = _cast_one(labels, free_label, np.float64(origins_v[o, 0]), np.float64(origins_v[o, 1]),
-                         np.float64(origins_v[o, 2]), np.float64(ends_v[o, r, 0]), np.float64(ends_v[o, r, 1]),
-                         np.float64(ends_v[o, r, 2]))
+        d, c, k = _cast_one(labels, free_label, np.float64(origins_v[o, 0]), np.float64(origins_v[o, 1]),
+                            np.float64(origins_v[o, 2]), np.float64(ends_v[o, r, 0]), np.float64(ends_v[o, r, 1]),
+                            np.float64(ends_v[o, r, 2]))
         dist_v[o, r] = d
         cls[o, r] = c
+        index[o, r] = k
 
 
 @njit(cache=True, parallel=True)
 def _pair_hits_kernel(gt: np.ndarray, pred: np.ndarray, origins_v: np.ndarray, ends_v: np.ndarray,
-                      free_label: int, gt_dist_v: np.ndarray, gt_cls: np.ndarray, pred_dist_v: np.ndarray,
-                      pred_cls: np.ndarray) -> None:
+                      free_label: int, gt_dist_v: np.ndarray, gt_cls: np.ndarray, gt_index: np.ndarray,
+                      pred_dist_v: np.ndarray, pred_cls: np.ndarray, pred_index: np.ndarray) -> None:
     """`_first_hits_kernel` through truth and prediction at once; a ray whose truth hits nothing is
     dropped by the metric, so its prediction is not cast (left as no hit)."""
     n, R = ends_v.shape[0], ends_v.shape[1]
@@ -248,15 +250,17 @@ def _pair_hits_kernel(gt: np.ndarray, pred: np.ndarray, origins_v: np.ndarray, e
         r = q - o * R
         ox, oy, oz = np.float64(origins_v[o, 0]), np.float64(origins_v[o, 1]), np.float64(origins_v[o, 2])
         ex, ey, ez = np.float64(ends_v[o, r, 0]), np.float64(ends_v[o, r, 1]), np.float64(ends_v[o, r, 2])
-        d, c, _ = _cast_one(gt, free_label, ox, oy, oz, ex, ey, ez)
+        d, c, k = _cast_one(gt, free_label, ox, oy, oz, ex, ey, ez)
         gt_dist_v[o, r] = d
         gt_cls[o, r] = c
+        gt_index[o, r] = k
         if c != free_label:
-            d, c, _ = _cast_one(pred, free_label, ox, oy, oz, ex, ey, ez)
+            d, c, k = _cast_one(pred, free_label, ox, oy, oz, ex, ey, ez)
         else:
-            d, c = np.nan, free_label
+            d, c, k = np.nan, free_label, -1
         pred_dist_v[o, r] = d
         pred_cls[o, r] = c
+        pred_index[o, r] = k
 
 
 def _check_grid(labels: np.ndarray, grid: OccGrid, what: str) -> np.ndarray:
@@ -286,7 +290,7 @@ def first_hits(labels: np.ndarray, origins_keyego: np.ndarray, directions: np.nd
     dist_v = np.empty(e_v.shape[:2], np.float32)
     cls = np.empty(e_v.shape[:2], np.uint8)
     if dist_v.size:
-        _first_hits_kernel(lab, o_v, e_v, free_label, dist_v, cls)
+        _first_hits_kernel(lab, o_v, e_v, free_label, dist_v, cls, np.empty(e_v.shape[:2], np.int64))
     return _to_metres(dist_v, grid), cls
 
 
@@ -410,8 +414,9 @@ class RayIoUAccumulator:
         shape = e_v.shape[:2]
         gd, pd = np.empty(shape, np.float32), np.empty(shape, np.float32)
         gc, pc = np.empty(shape, np.uint8), np.empty(shape, np.uint8)
+        gi, pi = np.empty(shape, np.int64), np.empty(shape, np.int64)
         if gd.size:
-            _pair_hits_kernel(g, p, o_v, e_v, self.free_label, gd, gc, pd, pc)
+            _pair_hits_kernel(g, p, o_v, e_v, self.free_label, gd, gc, gi, pd, pc, pi)
         self._counts += ray_counts(_to_metres(gd, self.grid), gc, _to_metres(pd, self.grid), pc, self.taus,
                                    self.num_classes, self.free_label)
         self.n_samples += 1
