@@ -26,7 +26,6 @@ from occdata.eval.rayiou import (
     RayIoUResult,
     _check_grid,
     _first_hits_kernel,
-    _pair_hits_kernel,
     _ray_setup,
     _rays,
     _to_metres,
@@ -110,20 +109,8 @@ class RayFlowAccumulator(RayIoUAccumulator):
         if flow_gt is None or flow_pred is None:
             super().update(gt, pred, origins_keyego)
             return
-        g = _check_grid(gt, self.grid, "ground truth")
-        p = _check_grid(pred, self.grid, "prediction")
         fg, fp = _check_flow(flow_gt, self.grid, "ground truth"), _check_flow(flow_pred, self.grid, "prediction")
-        for a, what in ((g, "ground truth"), (p, "prediction")):
-            if int(a.max()) >= self.num_classes:
-                raise OccDataError(f"{what} has labels >= {self.num_classes} (max {int(a.max())})")
-        o_v, e_v = _ray_setup(origins_keyego, _rays(), self.grid)
-        shape = e_v.shape[:2]
-        gd, pd = np.empty(shape, np.float32), np.empty(shape, np.float32)
-        gc, pc = np.empty(shape, np.uint8), np.empty(shape, np.uint8)
-        gi, pi = np.empty(shape, np.int64), np.empty(shape, np.int64)
-        if gd.size:
-            _pair_hits_kernel(g, p, o_v, e_v, self.free_label, gd, gc, gi, pd, pc, pi)
-        gd, pd = _to_metres(gd, self.grid), _to_metres(pd, self.grid)
+        gd, gc, gi, pd, pc, pi = self._pair_hits(gt, pred, origins_keyego)
         self._counts += ray_counts(gd, gc, pd, pc, self.taus, self.num_classes, self.free_label)
         self._flow += flow_sums(gd, gc, gi, pd, pc, pi, fg, fp, AVE_TAU, self.num_classes, self.free_label)
         self.n_samples += 1

@@ -402,6 +402,13 @@ class RayIoUAccumulator:
 
     def update(self, gt: np.ndarray, pred: np.ndarray, origins_keyego: np.ndarray) -> None:
         """Add one sample: `gt`, `pred (X, Y, Z) uint8` labels, `origins_keyego (n, 3)` metres."""
+        gd, gc, _, pd, pc, _ = self._pair_hits(gt, pred, origins_keyego)
+        self._counts += ray_counts(gd, gc, pd, pc, self.taus, self.num_classes, self.free_label)
+        self.n_samples += 1
+
+    def _pair_hits(self, gt: np.ndarray, pred: np.ndarray, origins_keyego: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Both grids checked, every ray cast through both: `(gt_dist, gt_cls, gt_index, pred_dist, pred_cls,
+        pred_index)`, each `(n, R)`; distances in metres, indices flat into the grid (-1: no hit)."""
         g = _check_grid(gt, self.grid, "ground truth")
         p = _check_grid(pred, self.grid, "prediction")
         if int(p.max()) >= self.num_classes:
@@ -417,9 +424,7 @@ class RayIoUAccumulator:
         gi, pi = np.empty(shape, np.int64), np.empty(shape, np.int64)
         if gd.size:
             _pair_hits_kernel(g, p, o_v, e_v, self.free_label, gd, gc, gi, pd, pc, pi)
-        self._counts += ray_counts(_to_metres(gd, self.grid), gc, _to_metres(pd, self.grid), pc, self.taus,
-                                   self.num_classes, self.free_label)
-        self.n_samples += 1
+        return _to_metres(gd, self.grid), gc, gi, _to_metres(pd, self.grid), pc, pi
 
     @property
     def state(self) -> np.ndarray:
