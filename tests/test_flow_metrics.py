@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_metrics import _random_dirs, _random_scene  # the same random scenes as the RayIoU kernel test
 
 from occdata.constants import CLASS_NAMES, FREE_LABEL, GRID, OccGrid
 from occdata.eval.flow import MOVING_CLASSES, RayFlowAccumulator, first_hit_voxels, occ_score
@@ -25,19 +26,6 @@ from occdata.occ3d import openocc_to_occ3d
 F = FREE_LABEL
 CAR, PED, MANMADE = CLASS_NAMES.index("car"), CLASS_NAMES.index("pedestrian"), CLASS_NAMES.index("manmade")
 ORIGIN = np.array([[0.94, 0.0, 1.84]])  # a LiDAR origin in key ego
-
-
-def _random_scene(rng: np.random.Generator, shape: tuple[int, int, int], density: float) -> np.ndarray:
-    lab = np.full(shape, F, np.uint8)
-    occ = rng.random(shape) < density
-    lab[occ] = rng.integers(0, 17, occ.sum())
-    return lab
-
-
-def _random_dirs(rng: np.random.Generator, n: int) -> np.ndarray:
-    d = rng.normal(size=(n, 3))
-    d[: n // 10, 1] = 0.0  # some rays exactly in an axis plane
-    return (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
 
 
 def test_hit_voxel_kernel_equals_numpy_twin_and_first_hits() -> None:
