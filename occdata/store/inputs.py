@@ -10,9 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
+from occdata.constants import GRID
 from occdata.errors import OccDataError
-from occdata.gridfiles import LabelSite, grid_label_path
-from occdata.grids import GridSpec
+from occdata.gridfiles import LabelSite, grid_label_path, read_grid_label
+from occdata.grids import GridSpec, LabelLayout
 from occdata.nuscenes import LidarRecord, NuScenesDataset, load_nuscenes
 from occdata.nuscenes.reader import confined_path
 from occdata.occ3d import LABEL_FILE, OPENOCC_V2, label_keys, label_relpaths
@@ -74,6 +75,7 @@ def read_inputs(config: BuildConfig) -> BuildInputs:
     if source.folder is not None:
         labels, ds = (find_label_files(source.folder, ds, source.required) if grid is None
                       else find_grid_label_files(source.folder, ds, source.required, grid))
+    _check_first_label(labels, grid)
     split_names = sorted({sc.split for sc in ds.scenes})
     scene_pos = {sc.token: i for i, sc in enumerate(ds.scenes)}
     scene_index = np.array([scene_pos[s.scene_token] for s in ds.samples])
@@ -82,6 +84,32 @@ def read_inputs(config: BuildConfig) -> BuildInputs:
     prev_index, prev_valid = temporal_indices(scene_index, np.array([s.index_in_scene for s in ds.samples]))
     return BuildInputs(ds, source.folder, tuple(labels), histories, tuple(split_names), scene_index, split_code,
                        prev_index, prev_valid, label_format(labels) if grid is None else "occ3d", grid)
+
+
+def _check_first_label(labels: list[Path | None], grid: GridSpec | None) -> None:
+    """Refuse, before anything is written, a labels tree whose first file is not on the build's grid
+    (one line saying which options name the right grid), rather than failing every sample."""
+    first = next((p for p in labels if p is not None), None)
+    if first is None:
+        return
+    want = GRID.shape if grid is None else grid.shape
+    hint = ("pass --grid NAME or --voxel-size V [--range ...] as the labels were written (occdata labels/synth "
+            "put each grid in gts/<grid>/)")
+    name = "occ3d" if grid is None else grid.name
+    try:
+        if grid is None or grid.layout in (LabelLayout.OCC3D, LabelLayout.OPENOCC_V2):
+            with np.load(first, allow_pickle=False) as npz:
+                shape = tuple(npz["semantics"].shape) if "semantics" in npz.files else want
+        else:  # sparse rows: indices beyond the grid say it is another one
+            shape = read_grid_label(grid, first)["semantics"].shape
+    except OccDataError as exc:
+        if "outside" in str(exc):
+            raise OccDataError(f"{exc}: not the build's grid {name} {want}; {hint}") from None
+        return
+    except (OSError, ValueError, EOFError, KeyError):
+        return  # a damaged file fails its own sample, naming it
+    if shape != want:
+        raise OccDataError(f"labels file {first} is of shape {shape}, not the build's grid {name} {want}; {hint}")
 
 
 def label_format(labels: list[Path | None]) -> str:
