@@ -199,3 +199,23 @@ def test_fastocc_stops_at_start_on_a_store_of_another_grid(name: str, words: str
     with pytest.raises(OccDataError, match="fastocc eval cannot use it"):  # what `fastocc eval` / `predict` call
         check_store_grid(stores[name], ModelConfig(), "eval")
     check_store_grid(stores["occ3d"], ModelConfig(), "eval")  # Occ3D's grid: no complaint
+
+
+def test_visibility_follows_a_key_ego_grid_and_refuses_a_lidar_one(stores: dict[str, Path], tmp_path: Path) -> None:
+    import shutil
+
+    from occdata.store.visibility_cmd import compute_visibility
+
+    key, lidar = tmp_path / "key.zarr", tmp_path / "lidar.zarr"
+    shutil.copytree(stores[OCC_08.name], key)
+    shutil.copytree(stores["surroundocc"], lidar)
+    report = compute_visibility(key, recompute=True, progress=False)
+    assert report.computed == 2 and report.compared == 2
+    r = open_store(key)
+    cam = r.array("visibility/camera")[:]
+    assert cam.shape == (2, 100, 100, 8) and 0 < cam.mean() < 1
+    # The synthetic world's own camera masks on that grid (its truth writer): the recomputed ones agree.
+    shipped = r.array("labels/mask_camera")[:]
+    assert (cam == shipped).mean() > 0.97, (cam == shipped).mean()
+    with pytest.raises(OccDataError, match="LIDAR_TOP frame.*not available"):
+        compute_visibility(lidar, recompute=True, progress=False)
