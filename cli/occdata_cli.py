@@ -505,6 +505,7 @@ def eval_cmd(pred: str, pred_classes: str, store: str, split: str, mask: str, no
                                              rayiou=not no_rayiou, progress=progress, pred_classes=pred_classes))
     if as_json:
         extra = {} if report.flow_note is None else {"mave": None, "occ_score": None, "flow_note": report.flow_note}
+        extra |= {} if report.grid is None else {"grid": report.grid}
         click.echo(json.dumps(results_dict(report.miou, report.rayiou, split=report.split, mask=report.mask,
                                            n_samples=report.n_samples,
                                            unlabelled_skipped=report.n_unlabelled_skipped,

@@ -69,6 +69,7 @@ class EvalReport:
     rayiou: RayIoUResult | None
     seconds: float
     flow_note: str | None = None  # why mAVE / OccScore are not available (None: they are scored)
+    grid: str | None = None  # the store's label grid when not Occ3D's (e.g. "surroundocc, all-ones masks")
 
 
 def find_predictions(pred: Path) -> dict[str, Path]:
@@ -220,7 +221,16 @@ def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
     bar.close()
     return EvalReport(split=cfg.split, mask=cfg.mask, n_samples=len(indices), n_unlabelled_skipped=n_unlabelled,
                       miou=miou.result(), rayiou=ray.result() if ray else None,
-                      seconds=time.perf_counter() - t0, flow_note=flow_note)
+                      seconds=time.perf_counter() - t0, flow_note=flow_note, grid=_grid_words(reader))
+
+
+def _grid_words(reader: Any) -> str | None:
+    g = reader.grid
+    if "name" not in reader.attrs.get("grid", {}):
+        return None  # Occ3D's grid, as every store before grids
+    frame = "key ego" if g.frame == "key_ego" else "LIDAR_TOP frame"
+    return (f"{g.name} ({'x'.join(map(str, g.shape))}, {g.grid.voxel_size:g} m, {frame}"
+            + ("" if g.masks else "; no masks in the source: the store's masks are all ones") + ")")
 
 
 def _prediction(reader: Any, path: Path, classes: str) -> tuple[np.ndarray, np.ndarray | None]:
@@ -314,7 +324,8 @@ def format_table(miou: MIoUResult, rayiou: RayIoUResult | None) -> str:
 
 
 def summary_line(report: EvalReport) -> str:
-    s = (f"{report.split}: {report.n_samples} samples, mIoU {100 * report.miou.miou:.2f} "
+    on = "" if report.grid is None else f" on grid {report.grid}"
+    s = (f"{report.split}{on}: {report.n_samples} samples, mIoU {100 * report.miou.miou:.2f} "
          f"(mask {report.mask}), geometry IoU {100 * report.miou.geo_iou:.2f}")
     if report.rayiou is not None:
         at = ", ".join(f"@{t:g} {100 * v:.2f}" for t, v in report.rayiou.rayiou_at.items())
