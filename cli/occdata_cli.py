@@ -181,6 +181,8 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
         f"{report.store}: {report.n_done}/{report.n_samples} samples done, {report.n_errors} errors, "
         f"{report.n_labelled} labelled ({report.processed_now} processed in this run)"
         + ("; OpenOcc v2 labels: classes mapped to Occ3D ids, flow stored in labels/flow" if report.flow else "")
+        + (f"; labels on grid {config.grid.name} {config.grid.shape}, in Occ3D ids (occdata info shows the grid)"
+           if config.grid is not None and config.grid.name not in ("occ3d", "openocc-v2") else "")
     )
     if report.n_errors:
         click.echo("errors are recorded in the store: see `occdata info --store ...`", err=True)

@@ -7,6 +7,8 @@ offsets per (sample, camera); each block of samples owns a chunk-aligned region 
 before any sample is converted (`plan/regions`, version 2), so a task writes its payload in place.
 Version 3 is version 2 plus one optional label array, `labels/flow` (OpenOcc v2's per-voxel velocity),
 and its checksum column (the last one); a store without flow is version 2, byte for byte as before.
+The label arrays take the shape of the store's label grid (`per_sample(flow, shape)`, `grid_shape(attrs)`;
+Occ3D's 200 x 200 x 16 by default and for every store whose `grid` attribute names none).
 """
 
 from __future__ import annotations
