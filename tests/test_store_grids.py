@@ -257,3 +257,18 @@ def test_viewer_refuses_another_grid_in_one_line(stores: dict[str, Path]) -> Non
     with pytest.raises(OccDataError, match="grid surroundocc; occdata view shows stores on Occ3D's grid only"):
         ViewSource(stores["surroundocc"])
     assert ViewSource(stores["occ3d"]).scenes
+
+
+def test_a_label_id_outside_the_grid_fails_its_sample(world: Path, tmp_path: Path) -> None:
+    import shutil
+
+    gts = tmp_path / "gts"
+    shutil.copytree(world / "gts" / OCC_08.name, gts)
+    path = next(gts.rglob("labels.npz"))
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays["semantics"][0, 0, 0] = 40  # not an Occ3D id: must not be stored as free
+    np.savez(path, **arrays)
+    out = tmp_path / "s.zarr"
+    with pytest.raises(OccDataError, match=r"1 voxels with ids outside the grid's 0\.\.17"):
+        build_store(BuildConfig(root=world, out=out, gts=gts, progress=False, grid=OCC_08))

@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 
 from occdata.errors import OccDataError
-from occdata.gridfiles import read_grid_label, to_occ3d_ids
-from occdata.grids import GridSpec
+from occdata.gridfiles import IGNORE, read_grid_label, to_occ3d_ids
+from occdata.grids import GridSpec, LabelLayout
 from occdata.nuscenes import LidarRecord, SampleRecord, load_lidar_points, validate_sample
 from occdata.occ3d import OPENOCC_V2, label_keys, read_label, read_openocc_v2_label
 from occdata.sensors.jpeg_check import decode_jpeg_checked
@@ -195,7 +195,14 @@ def _read_grid(path: Path, spec: GridSpec) -> dict[str, np.ndarray]:
     """A label file of `spec` -> `semantics` in our ids and the two masks, each `(X, Y, Z) uint8` of the
     grid's shape; a grid without masks gets all-ones masks (attrs["grid"]["mask"] says so)."""
     raw = read_grid_label(spec, path)
-    out = {"semantics": to_occ3d_ids(spec, raw["semantics"])}
+    sem = raw["semantics"]
+    bad = sem >= len(spec.class_names)
+    if spec.layout in (LabelLayout.SURROUNDOCC, LabelLayout.OPENOCCUPANCY):
+        bad &= sem != IGNORE  # the sparse readers' noise
+    if sem.dtype.kind not in "biu" or bad.any():  # an unknown id must not become free silently
+        raise SampleError(f"bad {spec.name} label {path}: {int(bad.sum())} voxels with ids outside the grid's "
+                          f"0..{len(spec.class_names) - 1} (max {int(sem.max())})")
+    out = {"semantics": to_occ3d_ids(spec, sem)}
     for k in ("mask_lidar", "mask_camera"):
         m = raw.get(k) if spec.masks else np.ones(spec.shape, np.uint8)
         if m is None or m.shape != spec.shape or m.dtype.kind not in "biu" or (m.size and m.max() > 1):
