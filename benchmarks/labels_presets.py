@@ -27,26 +27,14 @@ import numpy as np
 from benchmarks.common import SHARED_DATA, write_json
 from benchmarks.provenance import REPO, machine
 from occdata.constants import CLASS_NAMES, FREE_LABEL
-from occdata.gridfiles import IGNORE, LabelSite, grid_label_path, read_grid_label
-from occdata.grids import GRID_PRESETS, GridSpec, LabelFrame, LabelLayout
+from occdata.gridfiles import LabelSite, grid_label_path, read_grid_label, to_occ3d_ids
+from occdata.grids import GRID_PRESETS, GridSpec, LabelFrame
 from occdata.nuscenes import load_nuscenes
 from occdata.view.render import View, bev_top_view, class_legend, render_voxels
 
 __all__: list[str] = []
 
 _PANEL_W = 400
-
-
-def occ3d_ids(spec: GridSpec, stored: np.ndarray) -> np.ndarray:
-    """`(X, Y, Z) uint8` in the grid's own ids (as `read_grid_label` returns them) -> our 18 classes:
-    free 17; the sparse layouts' empty 0 -> free and noise (IGNORE) -> others (0)."""
-    inv = np.full(256, FREE_LABEL, np.uint8)
-    for ours in range(FREE_LABEL - 1, -1, -1):  # many-to-one: the lowest of our ids wins
-        if spec.class_map[ours] != spec.free_value:
-            inv[spec.class_map[ours]] = ours
-    if spec.layout in (LabelLayout.SURROUNDOCC, LabelLayout.OPENOCCUPANCY):
-        inv[0], inv[IGNORE] = FREE_LABEL, 0
-    return inv[stored]
 
 
 def panel(spec: GridSpec, labels: np.ndarray) -> np.ndarray:
@@ -94,7 +82,7 @@ def main() -> None:
     panels, present, counts = [], set(), {}
     for spec in GRID_PRESETS.values():
         grid_root = out if spec.name == "occ3d" else out / spec.name
-        labels = occ3d_ids(spec, read_grid_label(spec, grid_label_path(spec, grid_root, site))["semantics"])
+        labels = to_occ3d_ids(spec, read_grid_label(spec, grid_label_path(spec, grid_root, site))["semantics"])
         panels.append(panel(spec, labels))
         classes, n = np.unique(labels[labels != FREE_LABEL], return_counts=True)
         present |= set(classes.tolist())

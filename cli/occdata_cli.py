@@ -18,7 +18,7 @@ from cli.options import (
     root_options,
     store_option,
 )
-from occdata.grids import GRID_NAMES, grids_from_options
+from occdata.grids import GRID_NAMES, GridSpec, grids_from_options
 
 if TYPE_CHECKING:
     from occdata.runtime.cluster import ClusterConfig
@@ -121,6 +121,14 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
                    "which no sample finds its file is an error. An OpenOcc v2 tree (files with 'flow', e.g. "
                    "`occdata labels --grid openocc-v2` output) is read in its class ids and its flow is stored "
                    "(labels/flow); a tree must hold one format.")
+@click.option("--grid", "grid_name", type=click.Choice(list(GRID_NAMES)), default=None,
+              help="The grid of the --gts labels, in its benchmark's layout (e.g. gts/surroundocc/ from "
+                   "`occdata labels|synth --grid surroundocc`): the store's label arrays get its shape, "
+                   "in our 18 Occ3D class ids. Default: Occ3D's grid.")
+@click.option("--voxel-size", type=click.FloatRange(0.05, 2.0), default=None,
+              help="The --gts labels are a custom Occ3D-style grid of this voxel size (m), e.g. gts/occ3d-0.8m/.")
+@click.option("--range", "grid_range", type=float, nargs=6, default=None, metavar="XMIN YMIN ZMIN XMAX YMAX ZMAX",
+              help="That custom grid's range in metres (key ego; default Occ3D's -40 -40 -1 40 40 5.4).")
 @click.option("--split", "splits", multiple=True,
               help="Keep only scenes of this split (repeatable): train, val, test, mini_train, mini_val, ...")
 @cluster_options()
@@ -140,9 +148,10 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
                    "motion-compensated to each camera; needs the sweeps/ files). 0: the keyframe alone.")
 @progress_option()
 @friendly_errors
-def build(root: str, version: str | None, out: str, gts: str | None, splits: tuple[str, ...], cluster: ClusterConfig,
-          resume: bool, on_error: str, block_samples: int, image_scale: float, jpeg_quality: int, lidar_sweeps: int,
-          progress: bool) -> None:
+def build(root: str, version: str | None, out: str, gts: str | None, grid_name: str | None,
+          voxel_size: float | None, grid_range: tuple[float, ...] | None, splits: tuple[str, ...],
+          cluster: ClusterConfig, resume: bool, on_error: str, block_samples: int, image_scale: float,
+          jpeg_quality: int, lidar_sweeps: int, progress: bool) -> None:
     """Convert a nuScenes-format tree (+ Occ3D labels) into one chunked zarr store.
 
     Stores per keyframe: the 6 camera images, calibrations and poses, LiDAR depth targets,
@@ -160,7 +169,7 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
         resume=resume, on_error=on_error,  # type: ignore[arg-type]
         block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality,
                                                              lidar_sweeps=lidar_sweeps),
-        progress=progress,
+        progress=progress, grid=_one_grid(grid_name, voxel_size, grid_range),
     )
     click.echo(config.labels().note)
     with exit_on_interrupt(f"interrupted: every sample committed so far is kept in {out_path}; rerun the same "
@@ -172,6 +181,8 @@ def build(root: str, version: str | None, out: str, gts: str | None, splits: tup
         f"{report.store}: {report.n_done}/{report.n_samples} samples done, {report.n_errors} errors, "
         f"{report.n_labelled} labelled ({report.processed_now} processed in this run)"
         + ("; OpenOcc v2 labels: classes mapped to Occ3D ids, flow stored in labels/flow" if report.flow else "")
+        + (f"; labels on grid {config.grid.name} {config.grid.shape}, in Occ3D ids (occdata info shows the grid)"
+           if config.grid is not None and config.grid.name not in ("occ3d", "openocc-v2") else "")
     )
     if report.n_errors:
         click.echo("errors are recorded in the store: see `occdata info --store ...`", err=True)
@@ -344,6 +355,16 @@ def visibility_check(label: str, root: str, version: str | None, sample: str | N
         click.echo(f"  {CLASS_NAMES[k]:20s} {n:8d} {100 * a:6.1f}% {100 * b:6.1f}%")
 
 
+def _one_grid(name: str | None, voxel_size: float | None, grid_range: tuple[float, ...] | None) -> GridSpec | None:
+    """`occdata build`'s labels grid: None (Occ3D's) without options, else exactly one grid."""
+    if name is None and voxel_size is None and grid_range is None:
+        return None
+    if name is not None and (voxel_size is not None or grid_range is not None):
+        raise click.UsageError("give either --grid or --voxel-size/--range (one labels grid), not both")
+    (spec,) = grids_from_options(() if name is None else (name,), voxel_size, grid_range)
+    return spec
+
+
 @main.command()
 @store_option()
 @json_option("Print everything as JSON (scene table included).")
@@ -365,6 +386,7 @@ def info(store: str, as_json: bool) -> None:
                f"pending {summary['pending']}); labelled {summary['labelled']}; "
                f"with visibility {summary['with_visibility']}; scenes {summary['scenes']}")
     click.echo(f"  images: {a['images']}")
+    click.echo(f"  grid: {summary['grid']['line']}")
     click.echo("  flow: labels/flow, (vx, vy) m/s from OpenOcc v2 labels (schema v3)" if summary["flow"] else
                "  flow: none (labels without flow)")
     click.echo("  arrays:")
@@ -485,6 +507,7 @@ def eval_cmd(pred: str, pred_classes: str, store: str, split: str, mask: str, no
                                              rayiou=not no_rayiou, progress=progress, pred_classes=pred_classes))
     if as_json:
         extra = {} if report.flow_note is None else {"mave": None, "occ_score": None, "flow_note": report.flow_note}
+        extra |= {} if report.grid is None else {"grid": report.grid}
         click.echo(json.dumps(results_dict(report.miou, report.rayiou, split=report.split, mask=report.mask,
                                            n_samples=report.n_samples,
                                            unlabelled_skipped=report.n_unlabelled_skipped,

@@ -16,7 +16,8 @@ from occdata.errors import OccDataError
 from occdata.fileio import npz_bytes, write_atomic
 from occdata.grids import GridSpec, LabelLayout
 
-__all__ = ["IGNORE", "LAYOUT_FILES", "LabelSite", "grid_label_path", "read_grid_label", "write_grid_label"]
+__all__ = ["IGNORE", "LAYOUT_FILES", "LabelSite", "grid_label_path", "read_grid_label", "to_occ3d_ids",
+           "write_grid_label"]
 
 IGNORE = 255  # what the sparse layouts' loaders turn noise (class 0) into
 
@@ -113,3 +114,15 @@ def _dense(spec: GridSpec, path: Path, rows: np.ndarray) -> np.ndarray:
     dense = np.zeros(spec.shape, np.uint8)
     dense[tuple(xyz.T)] = cls
     return dense
+
+
+def to_occ3d_ids(spec: GridSpec, stored: np.ndarray) -> np.ndarray:
+    """`(X, Y, Z) uint8` in the grid's own ids (as `read_grid_label` returns them) -> our 18 classes:
+    free 17; the sparse layouts' empty 0 -> free and noise (IGNORE) -> others (0)."""
+    inv = np.full(256, FREE_LABEL, np.uint8)
+    for ours in range(FREE_LABEL - 1, -1, -1):  # many-to-one: the lowest of our ids wins
+        if spec.class_map[ours] != spec.free_value:
+            inv[spec.class_map[ours]] = ours
+    if spec.layout in (LabelLayout.SURROUNDOCC, LabelLayout.OPENOCCUPANCY):
+        inv[0], inv[IGNORE] = FREE_LABEL, 0
+    return inv[stored]

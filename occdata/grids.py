@@ -103,6 +103,27 @@ class GridSpec:
                 "masks": self.masks,
                 "from_occ3d": {CLASS_NAMES[k]: int(v) for k, v in enumerate(self.class_map)}}
 
+    @classmethod
+    def from_description(cls, d: dict[str, object]) -> GridSpec:
+        """The grid that `describe()` gave `d` (a manifest's or a store's words); `ValueError` if they are
+        incomplete or inconsistent."""
+        try:
+            classes = dict(d["classes"])  # type: ignore[call-overload]
+            names = tuple(sorted(classes, key=classes.__getitem__))
+            if [classes[n] for n in names] != list(range(len(names))):
+                raise ValueError("class ids are not 0..N-1")
+            from_occ3d = dict(d["from_occ3d"])  # type: ignore[call-overload]
+            spec = cls(str(d["name"]), OccGrid(tuple(map(float, d["lower"])), tuple(map(float, d["upper"])),  # type: ignore[call-overload, arg-type]
+                                               float(d["voxel_size"])),  # type: ignore[arg-type]
+                       LabelFrame(d["frame"]), LabelLayout(d["layout"]),
+                       tuple(int(from_occ3d[n]) for n in CLASS_NAMES), names, int(d["free_value"]),  # type: ignore[call-overload]
+                       bool(d["masks"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"not a grid description ({type(exc).__name__}: {exc})") from None
+        if list(spec.shape) != list(d.get("shape", spec.shape)):  # type: ignore[call-overload]
+            raise ValueError(f"grid {spec.name}: shape {d.get('shape')} does not follow from its range")
+        return spec
+
 
 GRID_PRESETS: dict[str, GridSpec] = {g.name: g for g in (
     GridSpec("occ3d", OccGrid((-40.0, -40.0, -1.0), (40.0, 40.0, 5.4), 0.4), LabelFrame.KEY_EGO, LabelLayout.OCC3D,

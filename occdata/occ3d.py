@@ -76,10 +76,12 @@ def _load(path: Path, what: str) -> dict[str, np.ndarray]:
         raise OccDataError(f"bad {what} {path}: not a readable .npz file ({type(exc).__name__}: {exc})") from None
 
 
-def _checked(path: Path, what: str, name: str, a: np.ndarray, top: int) -> np.ndarray:
-    """`a` as `(200, 200, 16) uint8` with values in 0..top, or one error naming file and array."""
-    if a.shape != GRID.shape:
-        raise OccDataError(f"bad {what} {path}: {name} has shape {a.shape}, expected {GRID.shape} (x, y, z)")
+def _checked(path: Path, what: str, name: str, a: np.ndarray, top: int,
+             shape: tuple[int, ...] = GRID.shape) -> np.ndarray:
+    """`a` as `shape` (Occ3D's `(200, 200, 16)` by default) `uint8` with values in 0..top, or one error
+    naming file and array."""
+    if a.shape != tuple(shape):
+        raise OccDataError(f"bad {what} {path}: {name} has shape {a.shape}, expected {tuple(shape)} (x, y, z)")
     if a.dtype.kind not in "biu":
         raise OccDataError(f"bad {what} {path}: {name} has dtype {a.dtype}, expected uint8")
     lo, hi = (int(a.min()), int(a.max())) if a.size else (0, 0)
@@ -146,10 +148,11 @@ def read_openocc_v2_label(path: str | Path) -> dict[str, np.ndarray]:
     return out
 
 
-def read_prediction_flow(path: str | Path, classes: str = "occ3d") -> tuple[np.ndarray, np.ndarray | None]:
+def read_prediction_flow(path: str | Path, classes: str = "occ3d",
+                         shape: tuple[int, int, int] = GRID.shape) -> tuple[np.ndarray, np.ndarray | None]:
     """A prediction file -> (`(200, 200, 16) uint8` labels in our ids, its `flow` `(200, 200, 16, 2)
     float32` or None when it has none). `classes="openocc-v2"`: its labels are OpenOcc v2 ids (free
-    16), mapped to ours by name."""
+    16), mapped to ours by name. `shape`: the labels' grid when not Occ3D's (a store's other grid)."""
     path = Path(path)
     if classes not in ("occ3d", OPENOCC_V2):
         raise OccDataError(f"unknown prediction classes {classes!r} (occ3d or {OPENOCC_V2})")
@@ -159,9 +162,9 @@ def read_prediction_flow(path: str | Path, classes: str = "occ3d") -> tuple[np.n
         raise OccDataError(f"bad prediction {path}: no 'semantics' or 'pred' array "
                            f"(found: {', '.join(sorted(arrays)) or 'none'})")
     if classes == OPENOCC_V2:
-        sem = openocc_to_occ3d()[_checked(path, "prediction", key, arrays[key], _OPENOCC_FREE)]
+        sem = openocc_to_occ3d()[_checked(path, "prediction", key, arrays[key], _OPENOCC_FREE, shape)]
     else:
-        sem = _checked(path, "prediction", key, arrays[key], NUM_CLASSES - 1)
+        sem = _checked(path, "prediction", key, arrays[key], NUM_CLASSES - 1, shape)
     flow = _checked_flow(path, "prediction", arrays["flow"]) if "flow" in arrays else None
     return sem, flow
 

@@ -28,6 +28,7 @@ from fastocc.checkpoint import load_model
 from fastocc.infer.common import check_device, split_indices
 from fastocc.infer.predict import PredictConfig, predict_split
 from fastocc.model.config import ModelConfig
+from fastocc.storegrid import check_store_grid
 from occdata.errors import OccDataError
 from occdata.eval.metrics import (
     MIoUAccumulator,
@@ -147,6 +148,7 @@ def evaluate(
         raise OccDataError(f"unknown mask {mask!r} (camera, lidar or none)")
     t0 = time.perf_counter()
     reader = open_store(cfg.store)
+    check_store_grid(reader, model_cfg, "eval")
     total = _labelled_split(reader, cfg)
     miou_acc = MIoUAccumulator()
     ray_acc = RayIoUAccumulator() if rayiou else None

@@ -23,6 +23,7 @@ from fastocc.checkpoint import load_model
 from fastocc.infer.common import check_device, split_indices
 from fastocc.infer.predict import PredictConfig, predict_split
 from fastocc.model.config import ModelConfig
+from fastocc.storegrid import check_store_grid
 from occdata.errors import OccDataError
 from occdata.fileio import write_atomic
 from occdata.occ3d import label_path, write_label
@@ -88,6 +89,7 @@ def write_predictions(model: nn.Module, model_cfg: ModelConfig, out: Path, cfg: 
     t0 = time.perf_counter()
     out = Path(out)
     reader = open_store(cfg.store)
+    check_store_grid(reader, model_cfg, "predict")  # its pictures compare with the store's labels
     indices = split_indices(reader, cfg.split)
     if not len(indices):
         raise OccDataError(f"split {cfg.split!r} of {cfg.store} has no built samples")

@@ -23,6 +23,7 @@ from fastocc.losses import LossConfig, LossTargets, class_weights_from_counts, o
 from fastocc.model import FastOcc
 from fastocc.model.config import ModelConfig
 from fastocc.model.inputs import synthetic_inputs
+from fastocc.storegrid import check_store_grid
 from fastocc.train import dist as D
 from fastocc.train.config import TrainConfig, flat_config, incompatible_fields
 from fastocc.train.preempt import StopRequest
@@ -163,20 +164,6 @@ def build_model(run: Run) -> nn.Module:
     if cfg.noise_images:
         model.backbone.register_forward_pre_hook(noise_hook(cfg.seed + 1000 * run.info.rank))
     return model.to(run.info.device)
-
-
-def check_store_grid(store: str | Path, model_cfg: ModelConfig) -> None:
-    """Stop at start, in one line, when the store's labels are on another grid than the model predicts
-    (rather than with a shape error deep in the loss)."""
-    from occdata.store.reader import open_store
-
-    g = open_store(store).attrs.get("grid", {})
-    want = model_cfg.fine_grid
-    got = (tuple(g.get("shape", ())), g.get("voxel_size"), tuple(g.get("lower", ())))
-    if got != (want.shape, want.voxel_size, tuple(want.lower)):
-        raise OccDataError(f"{store}: its labels are on a grid of shape {got[0]}, {got[1]} m voxels from {got[2]}; "
-                           f"this model predicts {want.shape} voxels of {want.voxel_size} m from {tuple(want.lower)} "
-                           "(Occ3D's grid): build the store from labels on that grid (occdata labels --grid occ3d)")
 
 
 def loss_config(run: Run) -> LossConfig:

@@ -27,7 +27,7 @@ from occdata.constants import CLASS_NAMES, FREE_LABEL
 from occdata.errors import OccDataError
 from occdata.eval.flow import MOVING_CLASSES, RayFlowAccumulator
 from occdata.eval.metrics import MIoUAccumulator, MIoUResult, RayIoUAccumulator, RayIoUResult
-from occdata.eval.rays import scene_ray_origins
+from occdata.eval.rays import scene_ray_origins, store_ray_origins
 from occdata.occ3d import LABEL_FILE, label_keys, list_label_files, read_prediction_flow
 
 __all__ = [
@@ -69,6 +69,7 @@ class EvalReport:
     rayiou: RayIoUResult | None
     seconds: float
     flow_note: str | None = None  # why mAVE / OccScore are not available (None: they are scored)
+    grid: str | None = None  # the store's label grid when not Occ3D's (e.g. "surroundocc, all-ones masks")
 
 
 def find_predictions(pred: Path) -> dict[str, Path]:
@@ -193,7 +194,8 @@ def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
     flow_note = _flow_note(reader, cfg, [files[store_tokens[i]] for i in indices])
     with_flow = flow_note is None
     miou = MIoUAccumulator()
-    ray = (RayFlowAccumulator() if with_flow else RayIoUAccumulator()) if cfg.rayiou else None
+    grid = reader.grid.grid  # the store's label grid: Occ3D's, or the one it was built on (--grid)
+    ray = (RayFlowAccumulator() if with_flow else RayIoUAccumulator(grid=grid)) if cfg.rayiou else None
     names = ("labels/semantics",) + ((_MASK_ARRAY[cfg.mask],) if cfg.mask != "none" else ())
     t0 = time.perf_counter()
     bar = tqdm(total=len(indices), desc=f"eval {cfg.split}", unit="sample", disable=not cfg.progress)
@@ -202,7 +204,7 @@ def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
     def with_flow_row(i: int, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         return arrays if flow_arr is None else arrays | {"labels/flow": np.asarray(flow_arr[i])}
 
-    samples = ((i, with_flow_row(i, arrays), read_prediction_flow(files[store_tokens[i]], cfg.pred_classes))
+    samples = ((i, with_flow_row(i, arrays), _prediction(reader, files[store_tokens[i]], cfg.pred_classes))
                for i, arrays in _iter_label_blocks(reader, indices, names))
     for i, arrays, (pred, pred_flow) in _read_ahead(samples):
         path = files[store_tokens[i]]
@@ -212,14 +214,34 @@ def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
             if isinstance(ray, RayFlowAccumulator):
                 ray.update(gt, pred, scene_ray_origins(reader, i), arrays["labels/flow"], pred_flow)
             elif ray is not None:
-                ray.update(gt, pred, scene_ray_origins(reader, i))
+                ray.update(gt, pred, store_ray_origins(reader, i))
         except OccDataError as exc:
             raise OccDataError(f"{path}: {exc}") from None
         bar.update()
     bar.close()
     return EvalReport(split=cfg.split, mask=cfg.mask, n_samples=len(indices), n_unlabelled_skipped=n_unlabelled,
                       miou=miou.result(), rayiou=ray.result() if ray else None,
-                      seconds=time.perf_counter() - t0, flow_note=flow_note)
+                      seconds=time.perf_counter() - t0, flow_note=flow_note, grid=_grid_words(reader))
+
+
+def _grid_words(reader: Any) -> str | None:
+    g = reader.grid
+    if "name" not in reader.attrs.get("grid", {}):
+        return None  # Occ3D's grid, as every store before grids
+    frame = "key ego" if g.frame == "key_ego" else "LIDAR_TOP frame"
+    return (f"{g.name} ({'x'.join(map(str, g.shape))}, {g.grid.voxel_size:g} m, {frame}"
+            + ("" if g.masks else "; no masks in the source: the store's masks are all ones") + ")")
+
+
+def _prediction(reader: Any, path: Path, classes: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """A prediction on the store's grid; another shape is one line that names the store's grid."""
+    try:
+        return read_prediction_flow(path, classes, reader.grid.shape)
+    except OccDataError as exc:
+        if reader.grid.name == "occ3d" or "has shape" not in str(exc):
+            raise
+        raise OccDataError(f"{exc}: the store's labels are on grid {reader.grid.name} "
+                           f"({'x'.join(map(str, reader.grid.shape))}, {reader.grid.grid.voxel_size:g} m)") from None
 
 
 def _flow_note(reader: Any, cfg: EvalConfig, paths: list[Path]) -> str | None:
@@ -302,7 +324,8 @@ def format_table(miou: MIoUResult, rayiou: RayIoUResult | None) -> str:
 
 
 def summary_line(report: EvalReport) -> str:
-    s = (f"{report.split}: {report.n_samples} samples, mIoU {100 * report.miou.miou:.2f} "
+    on = "" if report.grid is None else f" on grid {report.grid}"
+    s = (f"{report.split}{on}: {report.n_samples} samples, mIoU {100 * report.miou.miou:.2f} "
          f"(mask {report.mask}), geometry IoU {100 * report.miou.geo_iou:.2f}")
     if report.rayiou is not None:
         at = ", ".join(f"@{t:g} {100 * v:.2f}" for t, v in report.rayiou.rayiou_at.items())

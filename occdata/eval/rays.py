@@ -10,10 +10,11 @@ import numpy as np
 
 from occdata.errors import OccDataError
 from occdata.eval.metrics import ray_origins_keyego
+from occdata.grids import LabelFrame
 from occdata.store.layout import STATE_DONE
 from occdata.store.reader import StoreReader
 
-__all__ = ["scene_ray_origins"]
+__all__ = ["scene_ray_origins", "store_ray_origins"]
 
 
 def scene_ray_origins(reader: StoreReader, index: int) -> np.ndarray:
@@ -31,3 +32,15 @@ def scene_ray_origins(reader: StoreReader, index: int) -> np.ndarray:
     T_g = reader.small("pose/T_global_from_keyego")[done]
     T_el = reader.small("calib/T_ego_from_lidar")[done]
     return ray_origins_keyego(T_g, T_el, int(np.flatnonzero(done == index)[0]))
+
+
+def store_ray_origins(reader: StoreReader, index: int) -> np.ndarray:
+    """`scene_ray_origins` in the frame of the store's label grid, `(n, 3) float64` metres: key ego as
+    they are; a LIDAR_TOP-frame grid (SurroundOcc, OpenOccupancy) takes them through the keyframe's
+    `inv(calib/T_ego_from_lidar)` (the key ego is the ego pose at that LiDAR timestamp, so the LiDAR frame
+    is the key ego moved by the sensor's calibration: exact)."""
+    origins = scene_ray_origins(reader, index)
+    if reader.grid.frame is not LabelFrame.LIDAR:
+        return origins
+    T_lidar_from_keyego = np.linalg.inv(np.asarray(reader.small("calib/T_ego_from_lidar")[index], np.float64))
+    return origins @ T_lidar_from_keyego[:3, :3].T + T_lidar_from_keyego[:3, 3]

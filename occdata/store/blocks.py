@@ -26,6 +26,7 @@ import numpy as np
 import zarr
 
 from occdata.errors import OccDataError
+from occdata.grids import GridSpec
 from occdata.nuscenes import LidarRecord, SampleRecord
 from occdata.runtime.tasks import StopCheck, no_stop
 from occdata.store.layout import (
@@ -35,6 +36,7 @@ from occdata.store.layout import (
     STATE_ERROR,
     STATE_PENDING,
     checksummed_names,
+    grid_shape,
     has_flow,
     per_sample,
 )
@@ -58,10 +60,11 @@ class SampleInput:
     options: SampleOptions
     sweeps: tuple[LidarRecord, ...] = ()
     label_format: str = "occ3d"  # "openocc-v2": OpenOcc v2 files, with flow (occdata.occ3d)
+    grid: GridSpec | None = None  # the labels files' grid when not Occ3D's (occdata.gridfiles)
 
     def convert(self) -> SampleResult:
         return process_sample(self.index, self.sample, self.static, self.label_path, self.options, self.sweeps,
-                              self.label_format)
+                              self.label_format, self.grid)
 
 
 @dataclass(frozen=True)
@@ -138,7 +141,7 @@ def convert_block(job: ConvertJob) -> BlockSummary:
     results = [sample.convert() for sample in job.samples]
     root = open_for_task(job.store)
     flow = has_flow(root.attrs)
-    rows = _fixed_rows(root, results, per_sample(flow))
+    rows = _fixed_rows(root, results, per_sample(flow, grid_shape(root.attrs)))
     _write_rows([(root[n], job.i0, job.i1, a) for n, a in rows.items()])
     payload = _payload(results)
     errors = tuple((r.index, r.token, r.error) for r in results if r.error)

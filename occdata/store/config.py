@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Literal
 
 from occdata.errors import OccDataError
+from occdata.grids import GridSpec
 from occdata.runtime.cluster import ClusterConfig
 from occdata.store.sample import SampleOptions
 
@@ -40,7 +41,8 @@ class BuildConfig:
     labels folder, `ROOT_GTS` (`<root>/gts` when it exists: what the command does without --gts) or
     None (no labels). `labels_required` (a named folder only): a folder in which no sample finds its
     file is an error (a wrong folder would give a silently unlabelled store). `cluster`: where the
-    block tasks run."""
+    block tasks run. `grid`: the grid of the labels files (`--grid`; None: Occ3D's, or OpenOcc v2's
+    when the files have flow), which becomes the store's label grid."""
 
     root: Path
     out: Path | str
@@ -54,6 +56,7 @@ class BuildConfig:
     block_samples: int = 32
     options: SampleOptions = field(default_factory=SampleOptions)
     progress: bool = True
+    grid: GridSpec | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "root", Path(self.root))

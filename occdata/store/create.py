@@ -17,10 +17,11 @@ import zarr
 from zarr.codecs import ZstdCodec
 from zarr.core.sync import sync
 
-from occdata.constants import CAMERA_ORDER, CLASS_COLORS, CLASS_NAMES, FREE_LABEL, GRID
+from occdata.constants import CAMERA_ORDER, CLASS_COLORS, CLASS_NAMES, FREE_LABEL
 from occdata.errors import OccDataError
 from occdata.fileio import remove_stale_temps
 from occdata.runtime.storage import is_remote, join, read_bytes, remove_tree, sibling
+from occdata.store.grid import grid_attr
 from occdata.store.identity import build_identity, identity_diff
 from occdata.store.layout import (
     FLAT_ARRAYS,
@@ -29,6 +30,7 @@ from occdata.store.layout import (
     SCHEMA_VERSION,
     TOKEN_ARRAYS,
     checksummed_names,
+    grid_shape,
     has_flow,
     per_sample,
     schema_version,
@@ -55,7 +57,7 @@ def create_arrays(root: zarr.Group, n: int, block: int, attrs: dict[str, Any], t
     the flat arrays are as long as its end from the start (None: empty plan, empty flat arrays)."""
     flow = has_flow(attrs)
     n_check = len(checksummed_names(flow))
-    for s in per_sample(flow):
+    for s in per_sample(flow, grid_shape(attrs)):
         shape = (n, *s.shape)
         if s.name == "status/checksum":
             shape = (n, n_check)
@@ -121,9 +123,7 @@ def root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str],
         "class_names": list(CLASS_NAMES),
         "class_colors": [list(c) for c in CLASS_COLORS],
         "free_label": FREE_LABEL,
-        "grid": {"lower": list(GRID.lower), "upper": list(GRID.upper), "voxel_size": GRID.voxel_size,
-                 "shape": list(GRID.shape), "frame": "key ego (LIDAR_TOP keyframe ego pose)",
-                 "axis_order": "x, y, z"},
+        "grid": grid_attr(config.grid),
         "splits": split_names,
         "scenes": scenes,
         "images": {"encoding": "jpeg", "scale": opts.image_scale,

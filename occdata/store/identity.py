@@ -7,6 +7,8 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from occdata.store.grid import is_default_grid
+
 if TYPE_CHECKING:
     from occdata.nuscenes import NuScenesDataset
     from occdata.store.config import BuildConfig
@@ -19,6 +21,7 @@ _IDENTITY_OPTION = {
     "block_samples": "--block-samples", "options.image_scale": "--image-scale",
     "options.jpeg_quality": "--jpeg-quality", "options.min_depth": "min_depth",
     "options.lidar_sweeps": "--lidar-sweeps", "labels_format": "the format of the --gts files",
+    "label_grid": "--grid / --voxel-size / --range",
     "sample_tokens_crc32": "the sample list in the tables",
 }
 
@@ -27,8 +30,12 @@ def build_identity(config: BuildConfig, ds: NuScenesDataset, gts: Path | None,
                    label_format: str = "occ3d") -> dict[str, Any]:
     """What a resumed build must match (workers, resume and on_error may change between runs);
     `gts`: the labels folder the build reads (`config.labels().folder`); `label_format` its files'
-    format, recorded only when not "occ3d" (identities from before flow stay as they were)."""
+    format, recorded only when not "occ3d" (identities from before flow stay as they were); the
+    labels' grid, recorded only when not Occ3D's (`config.grid`)."""
     extra = {} if label_format == "occ3d" else {"labels_format": label_format}
+    if not is_default_grid(config.grid):
+        g = config.grid.describe()  # type: ignore[union-attr]
+        extra["label_grid"] = {k: g[k] for k in ("name", "voxel_size", "lower", "upper", "frame", "layout")}
     return {
         "source_root": str(ds.root),
         "source_version": ds.version,

@@ -10,15 +10,20 @@ from pathlib import Path
 
 import numpy as np
 
+from occdata.constants import GRID
 from occdata.errors import OccDataError
+from occdata.gridfiles import LabelSite, grid_label_path, read_grid_label
+from occdata.grids import GridSpec, LabelLayout
 from occdata.nuscenes import LidarRecord, NuScenesDataset, load_nuscenes
 from occdata.nuscenes.reader import confined_path
 from occdata.occ3d import LABEL_FILE, OPENOCC_V2, label_keys, label_relpaths
 from occdata.store.blocks import SampleInput
 from occdata.store.config import BuildConfig
+from occdata.store.grid import is_default_grid
 from occdata.store.sample import static_arrays, temporal_indices
 
-__all__ = ["BuildInputs", "check_sweep_files", "find_label_files", "label_format", "read_inputs"]
+__all__ = ["BuildInputs", "check_sweep_files", "find_grid_label_files", "find_label_files", "label_format",
+           "read_inputs"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -26,7 +31,8 @@ class BuildInputs:
     """The selection a build converts, `n` samples: `labels` and `histories` per sample (its labels
     file or None, its previous LiDAR sweeps); `scene_index`, `split_code`, `prev_index` `(n,)`
     and `prev_valid` `(n, ...)` as `temporal_indices` gives them; `gts` the labels folder read;
-    `label_format` its files' format ("occ3d", or "openocc-v2": the store gets `labels/flow`)."""
+    `label_format` its files' format ("occ3d", or "openocc-v2": the store gets `labels/flow`);
+    `grid` the files' grid when not Occ3D's (None otherwise)."""
 
     ds: NuScenesDataset
     gts: Path | None
@@ -38,6 +44,7 @@ class BuildInputs:
     prev_index: np.ndarray
     prev_valid: np.ndarray
     label_format: str = "occ3d"
+    grid: GridSpec | None = None
 
     @property
     def flow(self) -> bool:
@@ -48,7 +55,8 @@ class BuildInputs:
         s = self.ds.samples[i]
         static = static_arrays(s, int(self.scene_index[i]), int(self.split_code[i]), self.prev_index[i],
                                self.prev_valid[i], tok_width)
-        return SampleInput(i, s, static, self.labels[i], config.options, self.histories[i], self.label_format)
+        return SampleInput(i, s, static, self.labels[i], config.options, self.histories[i], self.label_format,
+                           self.grid)
 
 
 def read_inputs(config: BuildConfig) -> BuildInputs:
@@ -63,8 +71,11 @@ def read_inputs(config: BuildConfig) -> BuildInputs:
     if source.folder is not None and not source.folder.is_dir():
         raise OccDataError(f"labels folder not found: {source.folder}")
     labels: list[Path | None] = [None] * len(ds.samples)
+    grid = None if is_default_grid(config.grid) else config.grid
     if source.folder is not None:
-        labels, ds = find_label_files(source.folder, ds, source.required)
+        labels, ds = (find_label_files(source.folder, ds, source.required) if grid is None
+                      else find_grid_label_files(source.folder, ds, source.required, grid))
+    _check_first_label(labels, grid)
     split_names = sorted({sc.split for sc in ds.scenes})
     scene_pos = {sc.token: i for i, sc in enumerate(ds.scenes)}
     scene_index = np.array([scene_pos[s.scene_token] for s in ds.samples])
@@ -72,7 +83,33 @@ def read_inputs(config: BuildConfig) -> BuildInputs:
     split_code = np.array([split_of[ds.scenes[k].split] for k in scene_index])
     prev_index, prev_valid = temporal_indices(scene_index, np.array([s.index_in_scene for s in ds.samples]))
     return BuildInputs(ds, source.folder, tuple(labels), histories, tuple(split_names), scene_index, split_code,
-                       prev_index, prev_valid, label_format(labels))
+                       prev_index, prev_valid, label_format(labels) if grid is None else "occ3d", grid)
+
+
+def _check_first_label(labels: list[Path | None], grid: GridSpec | None) -> None:
+    """Refuse, before anything is written, a labels tree whose first file is not on the build's grid
+    (one line saying which options name the right grid), rather than failing every sample."""
+    first = next((p for p in labels if p is not None), None)
+    if first is None:
+        return
+    want = GRID.shape if grid is None else grid.shape
+    hint = ("pass --grid NAME or --voxel-size V [--range ...] as the labels were written (occdata labels/synth "
+            "put each grid in gts/<grid>/)")
+    name = "occ3d" if grid is None else grid.name
+    try:
+        if grid is None or grid.layout in (LabelLayout.OCC3D, LabelLayout.OPENOCC_V2):
+            with np.load(first, allow_pickle=False) as npz:
+                shape = tuple(npz["semantics"].shape) if "semantics" in npz.files else want
+        else:  # sparse rows: indices beyond the grid say it is another one
+            shape = read_grid_label(grid, first)["semantics"].shape
+    except OccDataError as exc:
+        if "outside" in str(exc):
+            raise OccDataError(f"{exc}: not the build's grid {name} {want}; {hint}") from None
+        return
+    except (OSError, ValueError, EOFError, KeyError):
+        return  # a damaged file fails its own sample, naming it
+    if shape != want:
+        raise OccDataError(f"labels file {first} is of shape {shape}, not the build's grid {name} {want}; {hint}")
 
 
 def label_format(labels: list[Path | None]) -> str:
@@ -127,8 +164,36 @@ def find_label_files(
         raise OccDataError(
             f"no label file under {gts} matches any of the {len(ds.samples)} samples; expected "
             f"{gts}/<scene name>/<sample token>/{LABEL_FILE} or {gts}/<sample token>/{LABEL_FILE}, "
-            f"e.g. {gts / nested} (check --gts; leave it out for samples without labels, e.g. the test split)"
+            f"e.g. {gts / nested} (check --gts; leave it out for samples without labels, e.g. the test split; "
+            "labels of another grid need --grid NAME or --voxel-size)"
         )
     if any(s.problem for s in samples):
         ds = dataclasses.replace(ds, samples=tuple(samples))
+    return found, ds
+
+
+def find_grid_label_files(gts: Path, ds: NuScenesDataset, required: bool,
+                          spec: GridSpec) -> tuple[list[Path | None], NuScenesDataset]:
+    """Per sample, its label file of `spec` under `gts` in the grid's own layout
+    (`occdata.gridfiles.grid_label_path`), or None; `required` as in `find_label_files`."""
+    found: list[Path | None] = []
+    samples = []
+    for s in ds.samples:
+        site = LabelSite(s.scene_name, s.scene_token, s.token, s.lidar.token, s.lidar.path.name)
+        path: Path | None = None
+        try:  # names from the tables are data: the path must stay under gts
+            rel = str(grid_label_path(spec, Path("."), site))
+            path = confined_path(gts, rel, f"scene {s.scene_name!r} / sample {s.token!r} (labels path under --gts)")
+        except OccDataError as exc:
+            s = dataclasses.replace(s, problem=s.problem or str(exc))
+        found.append(path if path is not None and os.path.lexists(path) else None)
+        samples.append(s)
+    if any(s.problem for s in samples):
+        ds = dataclasses.replace(ds, samples=tuple(samples))
+    if required and ds.samples and not any(found):
+        s = ds.samples[0]
+        expect = grid_label_path(spec, gts, LabelSite(s.scene_name, s.scene_token, s.token, s.lidar.token,
+                                                      s.lidar.path.name))
+        raise OccDataError(f"no {spec.name} label file under {gts} matches any of the {len(ds.samples)} samples; "
+                           f"expected e.g. {expect} (check --gts and --grid)")
     return found, ds

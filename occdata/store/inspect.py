@@ -14,13 +14,13 @@ from occdata.store.bev import unpack_bev
 from occdata.store.layout import FLAT_ARRAYS, STATE_DONE, STATE_ERROR, STATE_PENDING, per_sample
 from occdata.store.reader import StoreReader
 
-__all__ = ["DUMP_KEYS", "dump_sample", "store_info"]
+__all__ = ["DUMP_KEYS", "dump_sample", "grid_summary", "store_info"]
 
 
 def store_info(reader: StoreReader) -> dict[str, Any]:
     state = reader.state
     arrays = {}
-    for name in [s.name for s in per_sample(reader.has_flow)] + list(FLAT_ARRAYS):
+    for name in [s.name for s in per_sample(reader.has_flow, reader.grid_shape)] + list(FLAT_ARRAYS):
         a = reader.group[name]
         shards = getattr(a, "shards", None)
         arrays[name] = {"shape": list(a.shape), "dtype": str(a.dtype), "chunks": list(a.chunks),
@@ -37,12 +37,27 @@ def store_info(reader: StoreReader) -> dict[str, Any]:
         "labelled": int(reader.group["labels/present"][:].sum()),
         "with_visibility": int(reader.group["visibility/present"][:].sum()),
         "flow": reader.has_flow,
+        "grid": grid_summary(reader),
         "scenes": len(scenes),
         "scene_table": scenes,
         "recorded_errors": errors,
         "arrays": arrays,
         "attrs": attrs,
     }
+
+
+def grid_summary(reader: StoreReader) -> dict[str, Any]:
+    """The store's label grid: name, voxel size, range, shape, frame, source layout, masks, and a line."""
+    g = reader.grid
+    d = {k: v for k, v in g.describe().items() if k not in ("classes", "from_occ3d", "free_value")}
+    named = "name" in reader.attrs.get("grid", {})
+    masks = ("the grid's own masks" if g.masks else "none in the source: all-ones masks") if named else "Occ3D's"
+    lo, hi = g.grid.lower, g.grid.upper
+    d["line"] = (f"{g.name}: {g.grid.voxel_size:g} m voxels, {'x'.join(map(str, g.shape))}, "
+                 f"x {lo[0]:g}..{hi[0]:g} y {lo[1]:g}..{hi[1]:g} z {lo[2]:g}..{hi[2]:g} m in the "
+                 f"{'key ego' if g.frame == 'key_ego' else 'LIDAR_TOP'} frame; labels in our 18 Occ3D ids; masks: "
+                 f"{masks}")
+    return d
 
 
 DUMP_KEYS = {
@@ -55,10 +70,11 @@ DUMP_KEYS = {
     "T_global_from_keyego": "(4, 4) float64",
     "T_global_from_ego_cam": "(6, 4, 4) float64",
     "depth_uvd_<c>": "(M_c, 3) float32 per camera c = 0..5: u, v (original pixels), depth (m)",
-    "semantics / mask_lidar / mask_camera": "(200, 200, 16) uint8 (absent without labels)",
+    "semantics / mask_lidar / mask_camera": "(X, Y, Z) uint8, the store's grid ((200, 200, 16) on Occ3D's; "
+                                            "absent without labels)",
     "flow": "(200, 200, 16, 2) float32 (vx, vy) m/s in key ego (stores with flow, labelled samples only)",
-    "bev": "(18, 200, 200) uint8 multi-hot (absent without labels)",
-    "visibility_camera / visibility_lidar": "(200, 200, 16) uint8 (absent until `occdata visibility`)",
+    "bev": "(18, X, Y) uint8 multi-hot (absent without labels)",
+    "visibility_camera / visibility_lidar": "(X, Y, Z) uint8 (absent until `occdata visibility`)",
     "prev_index / prev_valid": "(16,) int32 / bool temporal indices, nearest first",
     "token / timestamp": "str / int64",
 }

@@ -39,10 +39,12 @@ from occdata.store.layout import (
     FLAT_ARRAYS,
     FLAT_OF_OFFSETS,
     FLOW,
-    PER_SAMPLE,
     STATE_PENDING,
+    ArraySpec,
     checksummed_names,
+    grid_shape,
     has_flow,
+    per_sample,
     token_str,
 )
 
@@ -58,7 +60,9 @@ def crc_rows(data: np.ndarray) -> np.ndarray:
     return np.array([zlib.crc32(np.ascontiguousarray(row).tobytes()) for row in data], dtype=np.uint32)
 
 
-_SPEC = {s.name: s for s in (*PER_SAMPLE, FLOW)}
+def _specs(attrs: dict[str, Any]) -> dict[str, ArraySpec]:
+    """Every per-sample array of a store with these attributes (its label grid's shapes)."""
+    return {s.name: s for s in (*per_sample(False, grid_shape(attrs)), FLOW)}
 
 
 class StoreIntegrity:
@@ -68,6 +72,7 @@ class StoreIntegrity:
         self.group = group
         self.attrs = dict(group.attrs) if attrs is None else attrs
         self.names = checksummed_names(has_flow(self.attrs))
+        self._spec = _specs(self.attrs)
         self._keys: dict[str, set[str]] = {}
         self._checksums: np.ndarray | None = None
         self._tokens: np.ndarray | None = None
@@ -117,7 +122,7 @@ class StoreIntegrity:
 
     def fill_crc(self, name: str) -> int:
         if name not in self._fill_crc:
-            s = _SPEC[name]
+            s = self._spec[name]
             self._fill_crc[name] = zlib.crc32(np.full(s.shape, s.fill, dtype=s.dtype).tobytes())
         return self._fill_crc[name]
 

@@ -7,6 +7,8 @@ offsets per (sample, camera); each block of samples owns a chunk-aligned region 
 before any sample is converted (`plan/regions`, version 2), so a task writes its payload in place.
 Version 3 is version 2 plus one optional label array, `labels/flow` (OpenOcc v2's per-voxel velocity),
 and its checksum column (the last one); a store without flow is version 2, byte for byte as before.
+The label arrays take the shape of the store's label grid (`per_sample(flow, shape)`, `grid_shape(attrs)`;
+Occ3D's 200 x 200 x 16 by default and for every store whose `grid` attribute names none).
 """
 
 from __future__ import annotations
@@ -43,6 +45,8 @@ __all__ = [
     "FLOW_SCHEMA_VERSION",
     "N_PREV",
     "has_flow",
+    "grid_shape",
+    "label_arrays",
     "per_sample",
     "schema_version",
 ]
@@ -71,7 +75,19 @@ class ArraySpec:
     checksummed: bool = True
 
 
-_G = GRID.shape
+def label_arrays(shape: tuple[int, int, int] = GRID.shape) -> tuple[ArraySpec, ...]:
+    """The per-sample arrays shaped by the store's label grid `shape` `(X, Y, Z)` (Occ3D's by default)."""
+    return (
+        ArraySpec("labels/semantics", shape, "uint8", fill=255, sharded=True),
+        ArraySpec("labels/mask_lidar", shape, "uint8", sharded=True),
+        ArraySpec("labels/mask_camera", shape, "uint8", sharded=True),
+        ArraySpec("labels/bev", shape[:2], "uint32", sharded=True),
+        ArraySpec("visibility/present", (), "bool"),
+        ArraySpec("visibility/camera", shape, "uint8", sharded=True),
+        ArraySpec("visibility/lidar", shape, "uint8", sharded=True),
+    )
+
+
 PER_SAMPLE: tuple[ArraySpec, ...] = (
     # Token arrays: the last axis is widened to the longest token of the store (`token_width`).
     ArraySpec("sample/token", (32,), "uint8"),
@@ -94,13 +110,7 @@ PER_SAMPLE: tuple[ArraySpec, ...] = (
     ArraySpec("images/offsets", (N_CAM, 2), "int64"),
     ArraySpec("depth/offsets", (N_CAM, 2), "int64"),
     ArraySpec("labels/present", (), "bool"),
-    ArraySpec("labels/semantics", _G, "uint8", fill=255, sharded=True),
-    ArraySpec("labels/mask_lidar", _G, "uint8", sharded=True),
-    ArraySpec("labels/mask_camera", _G, "uint8", sharded=True),
-    ArraySpec("labels/bev", _G[:2], "uint32", sharded=True),
-    ArraySpec("visibility/present", (), "bool"),
-    ArraySpec("visibility/camera", _G, "uint8", sharded=True),
-    ArraySpec("visibility/lidar", _G, "uint8", sharded=True),
+    *label_arrays(),
     ArraySpec("status/state", (), "uint8", checksummed=False),
     ArraySpec("status/checksum", (), "uint32", checksummed=False),  # shape set from the checksummed count
 )
@@ -108,12 +118,26 @@ PER_SAMPLE: tuple[ArraySpec, ...] = (
 # (vx, vy) m/s per voxel in the grid's (key ego) axes, 0 where static, free or unlabelled. float32: the
 # label files' own dtype, so the stored value is the file's value (float16 would round 30 m/s by up to
 # 0.008 m/s per component and save ~1/4 of a few kB after zstd: the zeros dominate; docs/store.md).
-FLOW = ArraySpec("labels/flow", (*_G, 2), "float32", sharded=True)
+FLOW = ArraySpec("labels/flow", (*GRID.shape, 2), "float32", sharded=True)
 
 
-def per_sample(flow: bool = False) -> tuple[ArraySpec, ...]:
-    """The per-sample arrays of a store with (or without) `labels/flow`."""
-    return PER_SAMPLE + ((FLOW,) if flow else ())
+def per_sample(flow: bool = False, shape: tuple[int, int, int] = GRID.shape) -> tuple[ArraySpec, ...]:
+    """The per-sample arrays of a store with (or without) `labels/flow`, on a label grid of `shape`."""
+    if tuple(shape) == GRID.shape:
+        return PER_SAMPLE + ((FLOW,) if flow else ())
+    if flow:
+        raise OccDataError(f"labels/flow exists on Occ3D's grid only, not on {tuple(shape)}")
+    labels = {s.name: s for s in label_arrays(tuple(shape))}  # type: ignore[arg-type]
+    return tuple(labels.get(s.name, s) for s in PER_SAMPLE)
+
+
+def grid_shape(attrs: Any) -> tuple[int, int, int]:
+    """The label grid shape `(X, Y, Z)` a store (its root attributes) records; Occ3D's when absent."""
+    grid = attrs.get("grid") if hasattr(attrs, "get") else None
+    shape = grid.get("shape") if isinstance(grid, dict) else None
+    if not (isinstance(shape, list) and len(shape) == 3 and all(isinstance(v, int) and v > 0 for v in shape)):
+        return GRID.shape
+    return (shape[0], shape[1], shape[2])
 
 
 def schema_version(flow: bool = False) -> int:

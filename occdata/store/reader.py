@@ -12,6 +12,8 @@ import numpy as np
 import zarr
 
 from occdata.errors import OccDataError
+from occdata.grids import GridSpec
+from occdata.store.grid import store_grid
 from occdata.store.integrity import CorruptStoreError, StoreIntegrity
 from occdata.store.layout import (
     FLAT_ARRAYS,
@@ -23,6 +25,7 @@ from occdata.store.layout import (
     STATE_PENDING,
     TOKEN_ARRAYS,
     checksummed_names,
+    grid_shape,
     has_flow,
     per_sample,
     token_str,
@@ -65,6 +68,11 @@ class StoreReader:
             )
         self.attrs: dict[str, Any] = attrs
         self.has_flow: bool = has_flow(attrs)  # `labels/flow` (schema version 3)
+        self.grid: GridSpec = store_grid(attrs)  # the label grid (Occ3D's unless attrs["grid"] names another)
+        self.grid_shape: tuple[int, int, int] = grid_shape(attrs)
+        if self.grid.shape != self.grid_shape:
+            raise OccDataError(f"store {self.path}: attribute grid has shape {list(self.grid_shape)}, but its "
+                               f"range and voxel size make {list(self.grid.shape)}; the metadata was edited")
         self.n_samples: int = self._check_layout()
         self.integrity = StoreIntegrity(self.group, attrs)
         self._cache: dict[str, np.ndarray] = {}
@@ -79,7 +87,7 @@ class StoreReader:
             raise OccDataError(f"store {self.path}: attribute n_samples is {n!r}, not a sample count")
         n_check = len(checksummed_names(self.has_flow))
         expected = {s.name: ((n, n_check) if s.name == "status/checksum" else (n, *s.shape), s.dtype)
-                    for s in per_sample(self.has_flow)}
+                    for s in per_sample(self.has_flow, self.grid_shape)}
         for name, (row, dtype, _) in FLAT_ARRAYS.items():
             expected[name] = ((None, *row), dtype)
         # Token arrays are as wide as the store's longest token (>= 32 bytes), the same for all three.
@@ -183,7 +191,7 @@ class StoreReader:
     def sample_arrays(self, index: int, names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
         """Per-sample arrays (no sample axis) for one sample; all of the store's arrays by default."""
         self._check_index(index)
-        names = names or tuple(s.name for s in per_sample(self.has_flow))
+        names = names or tuple(s.name for s in per_sample(self.has_flow, self.grid_shape))
         out = {}
         committed = self.state[index] != STATE_PENDING
         checked = set(checksummed_names(self.has_flow))

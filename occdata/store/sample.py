@@ -14,6 +14,8 @@ import cv2
 import numpy as np
 
 from occdata.errors import OccDataError
+from occdata.gridfiles import IGNORE, read_grid_label, to_occ3d_ids
+from occdata.grids import GridSpec, LabelLayout
 from occdata.nuscenes import LidarRecord, SampleRecord, load_lidar_points, validate_sample
 from occdata.occ3d import OPENOCC_V2, label_keys, read_label, read_openocc_v2_label
 from occdata.sensors.jpeg_check import decode_jpeg_checked
@@ -147,18 +149,20 @@ def process_sample(
     options: SampleOptions,
     sweeps: tuple[LidarRecord, ...] = (),
     label_format: str = "occ3d",
+    grid: GridSpec | None = None,
 ) -> SampleResult:
     """Read and convert one sample; the depth targets also take the points of `sweeps` (previous
     LIDAR_TOP sweeps, `NuScenesDataset.lidar_history`). `label_format` "openocc-v2": the labels file
-    is OpenOcc v2's (mapped to our ids, its flow kept as `labels/flow`). Bad input gives a result
-    with `error` set (never raises it)."""
+    is OpenOcc v2's (mapped to our ids, its flow kept as `labels/flow`). `grid`: the labels file is of
+    this (non-Occ3D) grid, in its layout and ids (`occdata.gridfiles`; mapped to ours). Bad input gives
+    a result with `error` set (never raises it)."""
     try:
         validate_sample(sample)
         jpeg = tuple(_read_jpeg(c.path, c.width, c.height, options) for c in sample.cameras)
         uvd = depth_points(sample, sweeps, static["calib/K"], static["cam/image_size"], options.min_depth)
         arrays = dict(static)
         if label_path is not None and os.path.lexists(label_path):
-            labels = _read_labels(label_path, label_format)
+            labels = _read_labels(label_path, label_format) if grid is None else _read_grid(label_path, grid)
             arrays["labels/present"] = np.bool_(True)
             arrays["labels/semantics"] = labels["semantics"]
             arrays["labels/mask_lidar"] = labels["mask_lidar"]
@@ -185,6 +189,26 @@ def _read_labels(path: Path, label_format: str) -> dict[str, np.ndarray]:
                           f"build read {tree}: the tree mixes the two formats (their class ids differ too); "
                           "give --gts a tree of one format")
     return read_openocc_v2_label(path) if label_format == OPENOCC_V2 else read_label(path)
+
+
+def _read_grid(path: Path, spec: GridSpec) -> dict[str, np.ndarray]:
+    """A label file of `spec` -> `semantics` in our ids and the two masks, each `(X, Y, Z) uint8` of the
+    grid's shape; a grid without masks gets all-ones masks (attrs["grid"]["mask"] says so)."""
+    raw = read_grid_label(spec, path)
+    sem = raw["semantics"]
+    bad = sem >= len(spec.class_names)
+    if spec.layout in (LabelLayout.SURROUNDOCC, LabelLayout.OPENOCCUPANCY):
+        bad &= sem != IGNORE  # the sparse readers' noise
+    if sem.dtype.kind not in "biu" or bad.any():  # an unknown id must not become free silently
+        raise SampleError(f"bad {spec.name} label {path}: {int(bad.sum())} voxels with ids outside the grid's "
+                          f"0..{len(spec.class_names) - 1} (max {int(sem.max())})")
+    out = {"semantics": to_occ3d_ids(spec, sem)}
+    for k in ("mask_lidar", "mask_camera"):
+        m = raw.get(k) if spec.masks else np.ones(spec.shape, np.uint8)
+        if m is None or m.shape != spec.shape or m.dtype.kind not in "biu" or (m.size and m.max() > 1):
+            raise SampleError(f"bad {spec.name} label {path}: {k} missing, not of shape {spec.shape} or not 0/1")
+        out[k] = m.astype(np.uint8, copy=False)
+    return out
 
 
 def depth_points(

@@ -18,9 +18,10 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES
+from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES, OccGrid
 from occdata.errors import OccDataError
 from occdata.geometry import invert_rigid, transform_points
+from occdata.grids import LabelFrame
 from occdata.nuscenes import LidarRecord, NuScenesDataset, load_lidar_points, load_nuscenes
 from occdata.runtime.lock import store_lock
 from occdata.store.build import check_sweep_files
@@ -84,20 +85,21 @@ def sample_visibility(
     lidar_origin_keyego: np.ndarray,
     points_keyego: np.ndarray,
     mask_lidar: np.ndarray | None = None,
+    grid: OccGrid = GRID,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Camera mask and LiDAR mask, each `(X, Y, Z) uint8`.
+    """Camera mask and LiDAR mask, each `(X, Y, Z) uint8`, on `grid` (a key-ego grid; Occ3D's by default).
 
     semantics `(X, Y, Z) uint8`; K `(C, 3, 3)`; T_keyego_from_cam `(C, 4, 4)`; image_size `(C, 2)`
     (W, H); lidar_origin_keyego `(3,)`; points_keyego `(M, 3)`. The camera mask is computed within
     `mask_lidar` if given (a shipped one), else within the computed LiDAR mask.
     """
-    lower = np.asarray(GRID.lower, dtype=np.float64)
+    lower = np.asarray(grid.lower, dtype=np.float64)
     points = np.asarray(points_keyego, dtype=np.float64).reshape(-1, 3)
     origins = np.broadcast_to(np.asarray(lidar_origin_keyego, dtype=np.float64), points.shape)
-    lidar = lidar_mask(semantics, origins, points, lower, GRID.voxel_size)
+    lidar = lidar_mask(semantics, origins, points, lower, grid.voxel_size)
     T_cam = np.stack([invert_rigid(np.asarray(T, dtype=np.float64)) for T in T_keyego_from_cam])
     camera = camera_mask(semantics, lidar if mask_lidar is None else mask_lidar, np.asarray(K, np.float64), T_cam,
-                         np.asarray(image_size), lower, GRID.voxel_size)
+                         np.asarray(image_size), lower, grid.voxel_size)
     return camera, lidar
 
 
@@ -155,6 +157,9 @@ def compute_visibility(
 def _compute_visibility(store: str | Path, recompute: bool, block: int, progress: bool,
                         lidar_sweeps: int | None, root: Path | None) -> VisibilityReport:
     reader = open_store(store)
+    if reader.grid.frame is not LabelFrame.KEY_EGO:
+        raise OccDataError(f"{store}: its labels are on grid {reader.grid.name} in the LIDAR_TOP frame; occdata "
+                           "visibility computes key-ego masks only (not available for this grid)")
     rays = None if lidar_sweeps is None else SweepRays.load(dict(reader.group.attrs), root, lidar_sweeps)
     group = zarr.open_group(reader.path, mode="r+")
     present = group["labels/present"][:]
@@ -183,7 +188,7 @@ def _compute_visibility(store: str | Path, recompute: bool, block: int, progress
         shipped_lidar = a["labels/mask_lidar"] if a["labels/mask_lidar"].any() else None
         camera, lidar = sample_visibility(
             a["labels/semantics"], a["calib/K"], a["calib/T_keyego_from_cam"], a["cam/image_size"],
-            origins, ends, shipped_lidar,
+            origins, ends, shipped_lidar, reader.grid.grid,
         )
         free = a["labels/semantics"] == FREE_LABEL
         free_seen[:] += (int(lidar[free].sum()), int(free.sum()))

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from occdata.constants import GRID
 from occdata.errors import OccDataError
 from occdata.eval.evaluate import find_predictions
 from occdata.occ3d import read_prediction
@@ -70,6 +71,9 @@ class ViewSource:
 
     def __init__(self, store: str | Path, pred: Path | None = None, split: str | None = None) -> None:
         self.reader: StoreReader = open_store(store)
+        if self.reader.grid.grid != GRID:  # the viewer draws on Occ3D's grid
+            raise OccDataError(f"{store}: its labels are on grid {self.reader.grid.name}; occdata view shows "
+                               "stores on Occ3D's grid only (not yet other grids)")
         self.split = split
         self.predictions: dict[str, Path] = find_predictions(pred) if pred is not None else {}
         self.has_pred_folder = pred is not None
