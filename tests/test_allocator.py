@@ -46,7 +46,7 @@ def _faults(mode: str) -> int:
 def test_worker_setup_keeps_large_freed_buffers() -> None:
     default, tuned = _faults("default"), _faults("tuned")
     # 10 fresh 40 MiB buffers fault in 102,400 pages of 4 KiB (fewer where the kernel gives huge pages)
-    assert default >= 200, default  # the churn the settings remove (the control)
+    assert default >= 100, default  # the churn the settings remove (the control; ~200 with huge pages)
     assert tuned < default / 10, (tuned, default)
 
 
