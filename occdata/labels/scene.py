@@ -353,13 +353,12 @@ def _densify(semantics: np.ndarray, votes: list[np.ndarray], box_of_vote: list[i
 
 def _grid_labels(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tuple[BoxRecord, ...],
                  sample: SampleRecord, rays: tuple[np.ndarray, np.ndarray], spec: GridSpec,
-                 v_global: np.ndarray | None = None, masks: bool | None = None,
+                 masks: bool, v_global: np.ndarray | None = None,
                  static_rays: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, np.ndarray]:
-    """One keyframe on one grid: `semantics` in Occ3D classes (17 = free) and, where the grid's layout
-    has them (or `masks`), the masks; all `(X, Y, Z) uint8` in the grid's frame. With `v_global (B, 3)`
-    (m/s, global, one row per box of `boxes`, NaN as 0) also `flow (X, Y, Z, 2) float32` (`_flow`). With
-    `static_rays` (`_static_rays`), `_densify` the semantics before the masks (a voxel a box filled takes
-    its flow)."""
+    """One keyframe on one grid: `semantics` in Occ3D classes (17 = free) and, with `masks`, the masks;
+    all `(X, Y, Z) uint8` in the grid's frame. With `v_global (B, 3)` (m/s, global, one row per box of
+    `boxes`, NaN as 0) also `flow (X, Y, Z, 2) float32` (`_flow`). With `static_rays` (`_static_rays`),
+    `_densify` the semantics before the masks (a voxel a box filled takes its flow)."""
     T = T_grid_from_keyego(sample, spec) @ invert_rigid(sample.T_global_from_keyego)
     votes, box_of_vote = _votes(static, cloud, boxes, T, spec.grid)
     semantics = majority(votes, spec.grid.shape, NUM_CLASSES - 1, FREE_LABEL)
@@ -367,7 +366,7 @@ def _grid_labels(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tu
     if static_rays is not None:
         semantics, filled_by = _densify(semantics, votes, box_of_vote, boxes, rays, T, spec.grid, static_rays)
     out = {"semantics": semantics}
-    if spec.masks if masks is None else masks:
+    if masks:
         out["mask_lidar"], out["mask_camera"] = _masks(semantics, sample, rays, spec)
     if v_global is not None:
         out["flow"] = _flow(votes, box_of_vote, semantics, v_global, T[:3, :3], filled_by)
@@ -491,7 +490,7 @@ def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions,
             should_stop()
             any_flow = any(g.name in flow_names for g in members)
             shared = _grid_labels(static, cloud, boxes, s, rays[s.token], members[0],
-                                  v_global[n] if any_flow else None, masks=any(g.masks for g in members),
+                                  any(g.masks for g in members), v_global[n] if any_flow else None,
                                   static_rays=more)
             for spec in members:
                 keep = {"semantics", *(("mask_lidar", "mask_camera") if spec.masks else ()),
