@@ -20,37 +20,13 @@ import numpy as np
 from occdata.constants import CLASS_NAMES, FREE_LABEL, GRID, NUM_CLASSES, OccGrid
 from occdata.errors import OccDataError
 from occdata.eval.miou import _nanmean
-from occdata.eval.rayiou import (
-    RAYIOU_TAUS,
-    RayIoUAccumulator,
-    RayIoUResult,
-    _check_grid,
-    _first_hits_kernel,
-    _ray_setup,
-    _rays,
-    _to_metres,
-    ray_counts,
-)
+from occdata.eval.rayiou import RAYIOU_TAUS, RayIoUAccumulator, RayIoUResult, first_hit_voxels, ray_counts
 
 __all__ = ["AVE_TAU", "MOVING_CLASSES", "RayFlowAccumulator", "first_hit_voxels", "flow_sums", "occ_score"]
 
 AVE_TAU = 2.0  # metres: the reference scores velocity on the true positives of its 2nd threshold
 MOVING_CLASSES: tuple[int, ...] = tuple(CLASS_NAMES.index(n) for n in (
     "car", "truck", "trailer", "bus", "construction_vehicle", "bicycle", "motorcycle", "pedestrian"))
-
-
-def first_hit_voxels(labels: np.ndarray, origins_keyego: np.ndarray, directions: np.ndarray | None = None,
-                     grid: OccGrid = GRID, free_label: int = FREE_LABEL) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`first_hits` plus each ray's first-hit voxel, a flat index `(n, R) int64` into `labels.ravel()`
-    (-1: no hit); numba. Its numpy twin is `occdata.eval.rayiou.march_reference`."""
-    lab = _check_grid(labels, grid, "labels")
-    dirs = _rays() if directions is None else np.asarray(directions, np.float32).reshape(-1, 3)
-    o_v, e_v = _ray_setup(origins_keyego, dirs, grid)
-    shape = e_v.shape[:2]
-    dist_v, cls, index = np.empty(shape, np.float32), np.empty(shape, np.uint8), np.empty(shape, np.int64)
-    if dist_v.size:
-        _first_hits_kernel(lab, o_v, e_v, free_label, dist_v, cls, index)
-    return _to_metres(dist_v, grid), cls, index
 
 
 def flow_sums(gt_dist: np.ndarray, gt_cls: np.ndarray, gt_index: np.ndarray, pred_dist: np.ndarray,

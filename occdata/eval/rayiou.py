@@ -22,6 +22,7 @@ __all__ = [
     "RAYIOU_TAUS",
     "RayIoUAccumulator",
     "RayIoUResult",
+    "first_hit_voxels",
     "first_hits",
     "first_hits_reference",
     "lidar_ray_directions",
@@ -284,14 +285,21 @@ def first_hits(labels: np.ndarray, origins_keyego: np.ndarray, directions: np.nd
     Returns `dist (n, R) float32` metres from the origin to where the ray LEAVES the first occupied
     voxel (NaN: no hit before leaving the grid) and `cls (n, R) uint8`, that voxel's label
     (free_label: no hit)."""
+    return first_hit_voxels(labels, origins_keyego, directions, grid, free_label)[:2]
+
+
+def first_hit_voxels(labels: np.ndarray, origins_keyego: np.ndarray, directions: np.ndarray | None = None,
+                     grid: OccGrid = GRID, free_label: int = FREE_LABEL) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`first_hits` plus each ray's first-hit voxel, a flat index `(n, R) int64` into `labels.ravel()`
+    (-1: no hit; what flow scoring reads there); numba. Its numpy twin is `march_reference`."""
     lab = _check_grid(labels, grid, "labels")
     dirs = _rays() if directions is None else np.asarray(directions, np.float32).reshape(-1, 3)
     o_v, e_v = _ray_setup(origins_keyego, dirs, grid)
-    dist_v = np.empty(e_v.shape[:2], np.float32)
-    cls = np.empty(e_v.shape[:2], np.uint8)
+    shape = e_v.shape[:2]
+    dist_v, cls, index = np.empty(shape, np.float32), np.empty(shape, np.uint8), np.empty(shape, np.int64)
     if dist_v.size:
-        _first_hits_kernel(lab, o_v, e_v, free_label, dist_v, cls, np.empty(e_v.shape[:2], np.int64))
-    return _to_metres(dist_v, grid), cls
+        _first_hits_kernel(lab, o_v, e_v, free_label, dist_v, cls, index)
+    return _to_metres(dist_v, grid), cls, index
 
 
 def first_hits_reference(labels: np.ndarray, origins_keyego: np.ndarray, directions: np.ndarray | None = None,
