@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from occdata.constants import CLASS_NAMES, FREE_LABEL, GRID, NUM_CLASSES
+from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES
 from occdata.errors import OccDataError
 from occdata.fileio import npz_bytes, write_atomic
 
@@ -36,11 +36,12 @@ _OPENOCC_FREE = 16
 
 
 def openocc_to_occ3d() -> np.ndarray:
-    """`(17,) uint8`: OpenOcc v2 class id -> our (Occ3D) id, by class name (free 16 -> 17)."""
+    """`(17,) uint8`: OpenOcc v2 class id -> our (Occ3D) id (free 16 -> 17): the openocc-v2 grid's own
+    class map, inverted (`occdata.gridfiles.to_occ3d_ids`)."""
+    from occdata.gridfiles import to_occ3d_ids
     from occdata.grids import GRID_PRESETS
 
-    names = GRID_PRESETS[OPENOCC_V2].class_names
-    return np.array([CLASS_NAMES.index(n) for n in names], np.uint8)
+    return to_occ3d_ids(GRID_PRESETS[OPENOCC_V2], np.arange(_OPENOCC_FREE + 1, dtype=np.uint8))
 
 
 def label_path(root: str | Path, scene: str, token: str) -> Path:
