@@ -27,7 +27,7 @@ from occdata.constants import CLASS_NAMES, FREE_LABEL
 from occdata.errors import OccDataError
 from occdata.eval.flow import MOVING_CLASSES, RayFlowAccumulator
 from occdata.eval.metrics import MIoUAccumulator, MIoUResult, RayIoUAccumulator, RayIoUResult
-from occdata.eval.rays import scene_ray_origins, store_ray_origins
+from occdata.eval.rays import store_ray_origins
 from occdata.occ3d import LABEL_FILE, label_keys, list_label_files, read_prediction_flow
 
 __all__ = [
@@ -195,7 +195,7 @@ def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
     with_flow = flow_note is None
     miou = MIoUAccumulator()
     grid = reader.grid.grid  # the store's label grid: Occ3D's, or the one it was built on (--grid)
-    ray = (RayFlowAccumulator() if with_flow else RayIoUAccumulator(grid=grid)) if cfg.rayiou else None
+    ray = ((RayFlowAccumulator if with_flow else RayIoUAccumulator)(grid=grid)) if cfg.rayiou else None
     names = ("labels/semantics",) + ((_MASK_ARRAY[cfg.mask],) if cfg.mask != "none" else ())
     t0 = time.perf_counter()
     bar = tqdm(total=len(indices), desc=f"eval {cfg.split}", unit="sample", disable=not cfg.progress)
@@ -212,7 +212,7 @@ def evaluate_predictions(cfg: EvalConfig) -> EvalReport:
         try:
             miou.update(gt, pred, arrays.get(_MASK_ARRAY.get(cfg.mask, "")))
             if isinstance(ray, RayFlowAccumulator):
-                ray.update(gt, pred, scene_ray_origins(reader, i), arrays["labels/flow"], pred_flow)
+                ray.update(gt, pred, store_ray_origins(reader, i), arrays["labels/flow"], pred_flow)
             elif ray is not None:
                 ray.update(gt, pred, store_ray_origins(reader, i))
         except OccDataError as exc:

@@ -10,6 +10,7 @@ import numpy as np
 
 from occdata.errors import OccDataError
 from occdata.eval.metrics import ray_origins_keyego
+from occdata.geometry import invert_rigid, transform_points
 from occdata.grids import LabelFrame
 from occdata.store.layout import STATE_DONE
 from occdata.store.reader import StoreReader
@@ -42,5 +43,5 @@ def store_ray_origins(reader: StoreReader, index: int) -> np.ndarray:
     origins = scene_ray_origins(reader, index)
     if reader.grid.frame is not LabelFrame.LIDAR:
         return origins
-    T_lidar_from_keyego = np.linalg.inv(np.asarray(reader.small("calib/T_ego_from_lidar")[index], np.float64))
-    return origins @ T_lidar_from_keyego[:3, :3].T + T_lidar_from_keyego[:3, 3]
+    T_lidar_from_keyego = invert_rigid(np.asarray(reader.small("calib/T_ego_from_lidar")[index], np.float64))
+    return transform_points(T_lidar_from_keyego, origins)
