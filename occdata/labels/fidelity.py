@@ -195,8 +195,11 @@ def score_scene(generated: list[np.ndarray], truth: list[tuple[np.ndarray, ...]]
     regions = band_regions(generated[0].shape) if generated and generated[0].shape == GRID.shape else []
     bands = [Fidelity() for _ in regions]
     for gen, masks in zip(generated, truth, strict=True):
-        total.add(voxel_fidelity(gen, *masks))
+        if not regions:
+            total.add(voxel_fidelity(gen, *masks))
         for band, region in zip(bands, regions, strict=True):
             band.add(voxel_fidelity(gen, *masks, region=region))
+    for band in bands:  # the bands partition the grid and every count is per voxel: they sum to the whole
+        total.add(band)
     moving = moving_containment(generated, T_keyego_from_global, boxes_by_keyframe, class_of)
     return SceneScore(total, moving, bands)
