@@ -15,12 +15,14 @@ from cli.options import (
     config_choice,
     json_option,
     progress_option,
+    rig_options,
     root_options,
     store_option,
 )
 from occdata.grids import GRID_NAMES, GridSpec, grids_from_options
 
 if TYPE_CHECKING:
+    from occdata.nuscenes.rig import RigChoice
     from occdata.runtime.cluster import ClusterConfig
 
 __all__ = ["main"]
@@ -84,8 +86,9 @@ def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: in
 @click.option("--check-files/--no-check-files", default=True, show_default=True,
               help="Check that every keyframe image and LiDAR file exists.")
 @json_option("Print the summary as JSON.")
+@rig_options()
 @friendly_errors
-def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> None:
+def scan(root: str, version: str | None, check_files: bool, as_json: bool, rig: RigChoice) -> None:
     """Read and validate a nuScenes-format tree; print scenes and samples per split.
 
     Every foreign key is resolved and every sample is checked as `occdata build` checks it from
@@ -93,20 +96,25 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
     one line naming the file, row or token. The LIDAR_TOP sweep chains (prev links) are followed
     too and the sweeps between keyframes reported (their files are counted, not required).
     """
+    from occdata.nuscenes.rig import describe_rig
     from occdata.nuscenes.summary import scan_tree
 
-    summary = scan_tree(local_path(root, "--root"), version, check_files)
+    summary = scan_tree(local_path(root, "--root"), version, check_files, rig)
     for note in summary["warnings"]:
         click.echo(f"warning: {note}", err=True)
     if as_json:
         click.echo(json.dumps(summary, indent=2))
         return
     click.echo(f"{summary['root']} [{summary['version']}]: {summary['scenes']} scenes, {summary['samples']} samples")
+    click.echo(f"  rig: {describe_rig(summary['rig'])}")
+    for line in summary["left_out"]:
+        click.echo(f"  left out: {line}")
     for split, n in summary["samples_per_split"].items():
         click.echo(f"  {split:>12}: {summary['scenes_per_split'][split]:5d} scenes {n:7d} samples")
     sw = summary["sweeps"]
     files = f"; {sw['files_present']} of their files present" if "files_present" in sw else ""
-    click.echo(f"  LIDAR_TOP sweeps between keyframes: {sw['per_keyframe_mean']:.2f} per keyframe "
+    click.echo(f"  {summary['rig']['reference_lidar']} sweeps between keyframes: "
+               f"{sw['per_keyframe_mean']:.2f} per keyframe "
                f"(min {sw['per_keyframe_min']}, max {sw['per_keyframe_max']}), {sw['total']} in all{files}")
 
 
@@ -146,15 +154,17 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool) -> No
 @click.option("--lidar-sweeps", type=click.IntRange(0, 100), default=0, show_default=True, metavar="N",
               help="Depth targets from the keyframe LiDAR sweep plus up to N previous sweeps (20 Hz, "
                    "motion-compensated to each camera; needs the sweeps/ files). 0: the keyframe alone.")
+@rig_options()
 @progress_option()
 @friendly_errors
 def build(root: str, version: str | None, out: str, gts: str | None, grid_name: str | None,
           voxel_size: float | None, grid_range: tuple[float, ...] | None, splits: tuple[str, ...],
           cluster: ClusterConfig, resume: bool, on_error: str, block_samples: int, image_scale: float,
-          jpeg_quality: int, lidar_sweeps: int, progress: bool) -> None:
+          jpeg_quality: int, lidar_sweeps: int, progress: bool, rig: RigChoice) -> None:
     """Convert a nuScenes-format tree (+ Occ3D labels) into one chunked zarr store.
 
-    Stores per keyframe: the 6 camera images, calibrations and poses, LiDAR depth targets,
+    Stores per keyframe: the rig's camera images (every camera of the tables unless --cameras),
+    calibrations and poses, depth targets from every LiDAR,
     Occ3D labels and BEV multi-hot GT when labels exist, and 16-frame temporal indices.
     Kill it at any time and rerun with --resume: the result is identical.
     """
@@ -169,7 +179,7 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
         resume=resume, on_error=on_error,  # type: ignore[arg-type]
         block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality,
                                                              lidar_sweeps=lidar_sweeps),
-        progress=progress, grid=_one_grid(grid_name, voxel_size, grid_range),
+        progress=progress, grid=_one_grid(grid_name, voxel_size, grid_range), rig=rig,
     )
     click.echo(config.labels().note)
     with exit_on_interrupt(f"interrupted: every sample committed so far is kept in {out_path}; rerun the same "
@@ -177,6 +187,9 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
         report = build_store(config)
     for note in report.warnings:
         click.echo(f"warning: {note}", err=True)
+    click.echo(f"rig: {report.rig.describe()}")
+    for line in report.rig.left_out:
+        click.echo(f"left out: {line}")
     click.echo(
         f"{report.store}: {report.n_done}/{report.n_samples} samples done, {report.n_errors} errors, "
         f"{report.n_labelled} labelled ({report.processed_now} processed in this run)"
@@ -371,6 +384,7 @@ def _one_grid(name: str | None, voxel_size: float | None, grid_range: tuple[floa
 @friendly_errors
 def info(store: str, as_json: bool) -> None:
     """Samples, scenes, arrays (shapes, dtypes, chunks), attrs and recorded errors of a store."""
+    from occdata.nuscenes.rig import describe_rig
     from occdata.store.inspect import store_info
     from occdata.store.reader import open_store
 
@@ -385,6 +399,7 @@ def info(store: str, as_json: bool) -> None:
     click.echo(f"  samples: {summary['samples']} (done {summary['done']}, errors {summary['errors']}, "
                f"pending {summary['pending']}); labelled {summary['labelled']}; "
                f"with visibility {summary['with_visibility']}; scenes {summary['scenes']}")
+    click.echo(f"  rig: {describe_rig(summary['rig'])}")
     click.echo(f"  images: {a['images']}")
     click.echo(f"  grid: {summary['grid']['line']}")
     click.echo("  flow: labels/flow, (vx, vy) m/s from OpenOcc v2 labels (schema v3)" if summary["flow"] else

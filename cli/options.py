@@ -14,8 +14,8 @@ import click
 from cli._common import DEFAULT_STORE
 from occdata.errors import OccDataError
 
-__all__ = ["ConfigChoice", "cluster_options", "config_choice", "json_option", "progress_option", "root_options",
-           "store_option"]
+__all__ = ["ConfigChoice", "cluster_options", "config_choice", "json_option", "progress_option", "rig_options",
+           "root_options", "store_option"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -112,5 +112,37 @@ def cluster_options(per_worker: str = "") -> Callable[[F], F]:
                                       "$DASK_SCHEDULER_ADDRESS) instead of a LocalCluster; its workers must "
                                       "see --root and --out at the same paths.")
         return workers(scheduler(wrapper))  # type: ignore[return-value]
+
+    return decorate
+
+
+def rig_options() -> Callable[[F], F]:
+    """`--cameras`, `--lidars` and `--reference-lidar`, handed to the command as one `rig`
+    (occdata.nuscenes.rig.RigChoice, which validates them). Default: every camera and LiDAR of the
+    tables (`occdata scan` lists them)."""
+
+    def decorate(fn: F) -> F:
+        @functools.wraps(fn)
+        def wrapper(*args: Any, cameras: str | None, lidars: str | None, reference_lidar: str | None,
+                    **kwargs: Any) -> Any:
+            from occdata.nuscenes.rig import RigChoice
+
+            try:
+                rig = RigChoice.parse(cameras, lidars, reference_lidar)
+            except OccDataError as exc:
+                raise click.ClickException(str(exc)) from None
+            return fn(*args, rig=rig, **kwargs)
+
+        cams = click.option("--cameras", default=None, metavar="CH,CH,...",
+                            help="Cameras to use, in this order (the network's camera order). Default: every "
+                                 "camera of sensor.json with keyframes; nuScenes' six in their model order "
+                                 "first, others by name.")
+        lids = click.option("--lidars", default=None, metavar="CH,CH,...",
+                            help="LiDARs to use (depth targets, labels, masks merge them all). Default: every "
+                                 "LiDAR of sensor.json with keyframes.")
+        ref = click.option("--reference-lidar", default=None, metavar="CH",
+                           help="The LiDAR whose keyframe timestamp and ego pose define the key-ego frame. "
+                                "Default: LIDAR_TOP where there is one, else the first LiDAR by name.")
+        return cams(lids(ref(wrapper)))  # type: ignore[return-value]
 
     return decorate

@@ -14,6 +14,7 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("OCCDATA_SHARED_DATA") or REPO.parent / "shared" / "data")
 REAL_NUSCENES = SHARED_DATA / "nuscenes-real"
 REAL_SEQ = SHARED_DATA / "nuscenes-real-seq"
+REAL_LYFT = SHARED_DATA / "lyft-real"
 REAL_OCC3D_LABEL_DIR = SHARED_DATA / "occ3d-label"
 REAL_OCC3D_LABEL = REAL_OCC3D_LABEL_DIR / "29796060110c4163b07f06eff4af0753" / "labels.npz"
 
@@ -51,6 +52,14 @@ def real_seq_root() -> Path:
         if not (REAL_SEQ / "v1.0-mini" / f"{table}.json").is_file():
             missing_fixture("real nuScenes scene", REAL_SEQ)
     return REAL_SEQ
+
+
+@pytest.fixture(scope="session")
+def real_lyft_root() -> Path:
+    """The 16 real Lyft Level 5 keyframes (7 cameras, 3 LiDARs, tables in train_data/, no boxes)."""
+    if not (REAL_LYFT / "train_data" / "sample_data.json").is_file():
+        missing_fixture("real Lyft keyframes", REAL_LYFT)
+    return REAL_LYFT
 
 
 @pytest.fixture(scope="session")

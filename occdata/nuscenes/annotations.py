@@ -23,7 +23,7 @@ import numpy as np
 from occdata.errors import OccDataError
 from occdata.geometry import transform_from_pose
 from occdata.nuscenes.records import LidarRecord, NuScenesDataset
-from occdata.nuscenes.rows import RowProblem, field, floats, integer, ref, short
+from occdata.nuscenes.rows import RowProblem, field, floats, integer, ref, short, timestamp_us
 from occdata.nuscenes.tables import iter_table_rows, load_table
 
 __all__ = ["MOVING_TRAVEL_M", "Annotations", "BoxRecord", "box_velocity", "boxes_for_lidar", "load_annotations",
@@ -292,7 +292,7 @@ def _references(
         if ts is None:
             sample = ref(sample_rows, row.sample, "sample", src)
             try:
-                ts = integer(field(sample, "timestamp", "sample"), f"sample {row.sample!r} timestamp")
+                ts = timestamp_us(field(sample, "timestamp", "sample"), f"sample {row.sample!r} timestamp")
             except RowProblem as exc:
                 raise OccDataError(f"sample.json: {exc}") from None
             sample_ts[row.sample] = ts

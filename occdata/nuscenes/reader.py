@@ -1,9 +1,10 @@
 """Load a nuScenes-format version folder into frozen keyframe records (DESIGN §3).
 
-Only what occupancy needs is kept: keyframe samples with their 6 cameras and LIDAR_TOP sweep, each
-sensor with its calibration and its own ego pose; on request (`sweeps=True`) also the non-keyframe
-LIDAR_TOP sweeps before each keyframe (`SampleRecord.sweeps`, through the `prev` links). Every
-foreign key is resolved here, so a broken tree fails early with one line naming the table and token.
+Only what occupancy needs is kept: keyframe samples with the rig's cameras and LiDARs (`rig.py`: read
+from the tables, never assumed), each sensor with its calibration and its own ego pose; on request
+(`sweeps=True`) also each LiDAR's non-keyframe sweeps before each keyframe (`SampleRecord.sweeps`,
+`extra_sweeps`, through the `prev` links). Every foreign key is resolved here, so a broken tree fails
+early with one line naming the table and token.
 """
 
 from __future__ import annotations
@@ -18,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from occdata.constants import CAMERA_ORDER, LIDAR_CHANNEL
 from occdata.errors import OccDataError
 from occdata.nuscenes.records import CameraRecord, LidarRecord, NuScenesDataset, SampleRecord, SceneRecord
-from occdata.nuscenes.rows import RowProblem, field, floats, integer, pose, ref, short
+from occdata.nuscenes.rig import Rig, RigChoice, resolve_rig, sensor_modalities
+from occdata.nuscenes.rows import RowProblem, field, floats, integer, pose, ref, short, timestamp_us
 from occdata.nuscenes.splits import official_split
 from occdata.nuscenes.tables import load_table, usable_as_file_name
 
@@ -40,7 +41,6 @@ __all__ = [
 # Non-official scenes (synthetic or custom data) may carry "split=<name>" in their description.
 SPLIT_TAG = re.compile(r"\bsplit=([A-Za-z0-9_]+)")
 _NEEDED_TABLES = ("scene", "sample", "sample_data", "calibrated_sensor", "ego_pose", "sensor", "log")
-_CHANNELS = frozenset((*CAMERA_ORDER, LIDAR_CHANNEL))
 
 
 def find_version(root: Path, version: str | None) -> str:
@@ -97,10 +97,10 @@ def confined_path(root: Path, relative: Any, where: str) -> Path:
 class TableIndex:
     """The rows that `load_nuscenes` needs, keyed by token, and the maps derived from them.
 
-    `sample_data` holds the keyframe rows of the 6 cameras and LIDAR_TOP, plus (with `sweeps`) the
-    non-keyframe LIDAR_TOP rows; `ego_poses` only the poses those rows use. Derived:
-    `channel_of_calib` (calibrated_sensor token -> sensor channel), `lidar_rows` (the LIDAR_TOP
-    rows of `sample_data`), `keyframes` (sample token -> channel -> keyframe sample_data row).
+    `sample_data` holds the keyframe rows of the rig's sensors, plus (with `sweeps`) the LiDARs'
+    non-keyframe rows; `ego_poses` only the poses those rows use. Derived: `rig`, `channel_of_calib`
+    (calibrated_sensor token -> sensor channel), `lidar_rows` (the rig's LiDAR rows of `sample_data`),
+    `keyframes` (sample token -> channel -> keyframe sample_data row).
     """
 
     root: Path
@@ -117,13 +117,15 @@ class TableIndex:
     lidar_rows: dict[str, dict[str, Any]]
     keyframes: dict[str, dict[str, dict[str, Any]]]
     notes: tuple[str, ...]  # one line each: identical duplicate rows ignored
+    rig: Rig
 
 
-def read_tables(root: Path, version: str, sweeps: bool) -> TableIndex:
-    """Load the tables of `<root>/<version>` that the reader needs into a `TableIndex`.
+def read_tables(root: Path, version: str, sweeps: bool, rig: RigChoice | None = None) -> TableIndex:
+    """Load the tables of `<root>/<version>` that the reader needs into a `TableIndex`, with the rig
+    (`resolve_rig`) narrowed by `rig`.
 
     Raises `OccDataError` for a missing table, a dangling calibrated_sensor / sensor / sample token,
-    or two keyframe rows of one channel in one sample.
+    a channel named by two sensors, or two keyframe rows of one channel in one sample.
     """
     vdir = root / version
     for name in _NEEDED_TABLES:
@@ -136,18 +138,24 @@ def read_tables(root: Path, version: str, sweeps: bool) -> TableIndex:
     scenes = load_table(vdir / "scene.json", warn=notes.append)
     samples = load_table(vdir / "sample.json", warn=notes.append)
     channel_of_calib = _channels_of_calibs(calibs, sensors)
-    keep = _sample_data_filter(calibs, channel_of_calib, sweeps)
+    modalities = sensor_modalities(sensors)
+    choice = rig or RigChoice()
+    wanted = {c for c, m in modalities.items() if m in ("camera", "lidar")}
+    keep = _sample_data_filter(calibs, channel_of_calib, modalities, wanted, sweeps)
     sample_data = load_table(vdir / "sample_data.json", keep=keep, warn=notes.append)
+    keyframes = _keyframes_by_sample(sample_data, samples, channel_of_calib)
+    resolved = resolve_rig(modalities, {c for per in keyframes.values() for c in per}, choice)
+    used = set(resolved.channels)
+    sample_data = {t: sd for t, sd in sample_data.items() if channel_of_calib[sd["calibrated_sensor_token"]] in used}
+    keyframes = {s: {c: sd for c, sd in per.items() if c in used} for s, per in keyframes.items()}
     pose_tokens = {field(sd, "ego_pose_token", "sample_data") for sd in sample_data.values()}
     ego_poses = load_table(vdir / "ego_pose.json", keep=lambda r: r.get("token") in pose_tokens, warn=notes.append)
-    lidar_rows = {
-        t: sd for t, sd in sample_data.items() if channel_of_calib[sd["calibrated_sensor_token"]] == LIDAR_CHANNEL
-    }
+    lidars = set(resolved.lidars)
+    lidar_rows = {t: sd for t, sd in sample_data.items() if channel_of_calib[sd["calibrated_sensor_token"]] in lidars}
     return TableIndex(
         root=root, version=version, sweeps=sweeps, sensors=sensors, calibs=calibs, logs=logs, scenes=scenes,
         samples=samples, sample_data=sample_data, ego_poses=ego_poses, channel_of_calib=channel_of_calib,
-        lidar_rows=lidar_rows, keyframes=_keyframes_by_sample(sample_data, samples, channel_of_calib),
-        notes=tuple(notes),
+        lidar_rows=lidar_rows, keyframes=keyframes, notes=tuple(notes), rig=resolved,
     )
 
 
@@ -161,10 +169,12 @@ def _channels_of_calibs(calibs: dict[str, dict[str, Any]], sensors: dict[str, di
 
 
 def _sample_data_filter(
-    calibs: dict[str, dict[str, Any]], channel_of_calib: dict[str, str], sweeps: bool
+    calibs: dict[str, dict[str, Any]], channel_of_calib: dict[str, str], modalities: dict[str, str],
+    wanted: set[str], sweeps: bool,
 ) -> Callable[[dict[str, Any]], bool]:
-    """The sample_data rows to keep: keyframes of the 6 cameras and LIDAR_TOP; with `sweeps` also the
-    non-keyframe LIDAR_TOP rows. A row naming an unknown calibrated_sensor is an `OccDataError`."""
+    """The sample_data rows to keep: keyframes of the `wanted` channels (cameras and LiDARs); with
+    `sweeps` also the LiDARs' non-keyframe rows. A row naming an unknown calibrated_sensor is an
+    `OccDataError`."""
 
     def keep(row: dict[str, Any]) -> bool:
         key = row.get("is_key_frame", False)
@@ -173,7 +183,8 @@ def _sample_data_filter(
         cs_tok = field(row, "calibrated_sensor_token", "sample_data")
         if cs_tok not in channel_of_calib:
             ref(calibs, cs_tok, "calibrated_sensor", f"sample_data {row.get('token')!r}")
-        return channel_of_calib[cs_tok] in _CHANNELS if key else channel_of_calib[cs_tok] == LIDAR_CHANNEL
+        channel = channel_of_calib[cs_tok]
+        return channel in wanted and (key or modalities.get(channel) == "lidar")
 
     return keep
 
@@ -196,7 +207,8 @@ def _keyframes_by_sample(
 
 
 def load_nuscenes(
-    root: Path | str, version: str | None = None, check_files: bool = False, sweeps: bool = False
+    root: Path | str, version: str | None = None, check_files: bool = False, sweeps: bool = False,
+    rig: RigChoice | None = None,
 ) -> NuScenesDataset:
     """Read `<root>/<version>/*.json` into keyframe records.
 
@@ -207,10 +219,14 @@ def load_nuscenes(
     `NuScenesDataset.root` is `dataset_root(root)` and every record path is that root joined with the
     row's filename: symlinks (a symlinked root included) are kept, not resolved.
 
-    With `sweeps`, the non-keyframe LIDAR_TOP rows are read too: each keyframe gets the sweeps that
-    its LIDAR_TOP `prev` links pass through before reaching the previous keyframe's LIDAR_TOP (the
+    The rig (cameras, LiDARs, the reference LiDAR) comes from the tables (`resolve_rig`), narrowed by
+    `rig`; the sensors not used are named in `NuScenesDataset.rig.left_out`. Timestamps written as
+    floats (Lyft) are rounded to the nearest microsecond.
+
+    With `sweeps`, the non-keyframe LiDAR rows are read too: each keyframe gets, per LiDAR, the sweeps
+    that its `prev` links pass through before reaching the previous keyframe's row of that LiDAR (the
     scene's first keyframe: until `prev` is ""), nearest first. Their files are not checked
-    (nuScenes' keyframe-only download ships none). A link to a token that is not a LIDAR_TOP row, a
+    (nuScenes' keyframe-only download ships none). A link to a token that is not a row of the same LiDAR, a
     `prev`/`next` pair that disagree, a row of another scene, a chain that reaches another keyframe
     or ends before the previous one, or a cycle, is an `OccDataError` naming the rows.
 
@@ -222,7 +238,7 @@ def load_nuscenes(
     """
     root = dataset_root(root)
     version = find_version(root, version)
-    idx = read_tables(root, version, sweeps)
+    idx = read_tables(root, version, sweeps, rig)
     notes = list(idx.notes)
     samples_per_scene = Counter(r.get("scene_token") for r in idx.samples.values())
     scenes: list[SceneRecord] = []
@@ -231,17 +247,18 @@ def load_nuscenes(
         scene = _scene_record(idx, sc_tok, sc, samples_per_scene[sc_tok], notes)
         scenes.append(scene)
         for i, s_tok in enumerate(scene.sample_tokens):
-            prev_key = _lidar_token(idx, scene.sample_tokens[i - 1]) if i else ""
-            samples.append(_sample_record(idx, s_tok, scene.name, i, prev_key, check_files))
+            prev_keys = _lidar_tokens(idx, scene.sample_tokens[i - 1]) if i else {}
+            samples.append(_sample_record(idx, s_tok, scene.name, i, prev_keys, check_files))
     return NuScenesDataset(
         root=root, version=version, scenes=tuple(scenes), samples=tuple(samples), warnings=tuple(notes),
-        sweeps_loaded=sweeps,
+        sweeps_loaded=sweeps, rig=idx.rig,
     )
 
 
-def _lidar_token(idx: TableIndex, sample_token: str) -> str:
-    """The keyframe LIDAR_TOP sample_data token of a sample ("" if it has none)."""
-    return idx.keyframes.get(sample_token, {}).get(LIDAR_CHANNEL, {}).get("token", "")
+def _lidar_tokens(idx: TableIndex, sample_token: str) -> dict[str, str]:
+    """LiDAR channel -> the keyframe sample_data token of that LiDAR in a sample."""
+    rows = idx.keyframes.get(sample_token, {})
+    return {c: rows[c]["token"] for c in idx.rig.lidars if c in rows}
 
 
 def _scene_record(idx: TableIndex, sc_tok: str, sc: dict[str, Any], in_table: int, notes: list[str]) -> SceneRecord:
@@ -295,37 +312,41 @@ def _scene_samples(idx: TableIndex, sc_tok: str, sc: dict[str, Any], name: str) 
 
 
 def _sample_record(
-    idx: TableIndex, s_tok: str, scene_name: str, index: int, prev_key: str, check_files: bool
+    idx: TableIndex, s_tok: str, scene_name: str, index: int, prev_keys: dict[str, str], check_files: bool
 ) -> SampleRecord:
     """The record of one keyframe sample; a problem with its values gives a placeholder record."""
     row = idx.samples[s_tok]
     sds = idx.keyframes.get(s_tok, {})
-    missing = [c for c in (*CAMERA_ORDER, LIDAR_CHANNEL) if c not in sds]
+    missing = [c for c in idx.rig.channels if c not in sds]
     if missing:
         raise OccDataError(f"sample {s_tok!r} has no keyframe sample_data for {', '.join(missing)}")
-    chain = _sweep_chain(idx, sds[LIDAR_CHANNEL], prev_key, row["scene_token"], scene_name) if idx.sweeps else []
-    for sd in (*sds.values(), *chain):  # foreign keys first: a dangling pose is a broken tree, not a row value
+    chains = [
+        _sweep_chain(idx, c, sds[c], prev_keys.get(c, ""), row["scene_token"], scene_name) if idx.sweeps else []
+        for c in idx.rig.lidars
+    ]
+    for sd in (*sds.values(), *(sd for chain in chains for sd in chain)):
+        # foreign keys first: a dangling pose is a broken tree, not a row value
         ref(idx.ego_poses, sd["ego_pose_token"], "ego_pose", f"sample_data {sd['token']!r}")
     try:
-        return _build_sample(idx, s_tok, row, sds, scene_name, index, chain, check_files)
+        return _build_sample(idx, s_tok, row, sds, scene_name, index, chains, check_files)
     except RowProblem as exc:
         return _placeholder_sample(idx, s_tok, row, sds, scene_name, index, str(exc))
 
 
 def _sweep_chain(
-    idx: TableIndex, key_sd: dict[str, Any], prev_key: str, scene_tok: str, scene_name: str
+    idx: TableIndex, channel: str, key_sd: dict[str, Any], prev_key: str, scene_tok: str, scene_name: str
 ) -> list[dict[str, Any]]:
-    """The non-keyframe LIDAR_TOP rows from `key_sd` back (through `prev`) to the previous
-    keyframe's LIDAR_TOP row `prev_key` ("" for the scene's first keyframe: to the chain's start)."""
+    """The non-keyframe rows of LiDAR `channel` from `key_sd` back (through `prev`) to the previous
+    keyframe's row `prev_key` of that LiDAR ("" for the scene's first keyframe: to the chain's start)."""
     out: list[dict[str, Any]] = []
     cur, tok = key_sd, key_sd.get("prev", "")
     while tok and tok != prev_key:
         nxt = idx.lidar_rows.get(tok)
-        where = f"LIDAR_TOP chain of scene {scene_name!r}: sample_data {cur['token']!r}.prev"
-        if nxt is None:
-            raise OccDataError(f"{where} is {tok!r}, not a LIDAR_TOP row of sample_data.json")
+        where = f"{channel} chain of scene {scene_name!r}: sample_data {cur['token']!r}.prev"
+        if nxt is None or idx.channel_of_calib[nxt["calibrated_sensor_token"]] != channel:
+            raise OccDataError(f"{where} is {tok!r}, not a {channel} row of sample_data.json")
         if nxt.get("is_key_frame", False):
-            raise OccDataError(f"{where} reaches keyframe {tok!r}, not the previous keyframe's LIDAR_TOP "
+            raise OccDataError(f"{where} reaches keyframe {tok!r}, not the previous keyframe's {channel} "
                                f"{prev_key or '(none: first keyframe)'!r}")
         if nxt.get("next", "") != cur["token"]:
             raise OccDataError(f"{where} is {tok!r}, but that row's next is {nxt.get('next', '')!r}")
@@ -337,9 +358,9 @@ def _sweep_chain(
         out.append(nxt)
         cur, tok = nxt, nxt.get("prev", "")
     if prev_key and tok != prev_key:
-        raise OccDataError(f"LIDAR_TOP chain of scene {scene_name!r}: the prev-links from keyframe sample_data "
+        raise OccDataError(f"{channel} chain of scene {scene_name!r}: the prev-links from keyframe sample_data "
                            f"{key_sd['token']!r} end at {cur['token']!r} before the previous keyframe's "
-                           f"LIDAR_TOP {prev_key!r}")
+                           f"{channel} {prev_key!r}")
     return out
 
 
@@ -364,7 +385,7 @@ def _ego_pose(idx: TableIndex, sd: dict[str, Any]) -> np.ndarray:
 
 
 def _timestamp(sd: dict[str, Any]) -> int:
-    return integer(field(sd, "timestamp", "sample_data"), f"sample_data {sd['token']!r} timestamp")
+    return timestamp_us(field(sd, "timestamp", "sample_data"), f"sample_data {sd['token']!r} timestamp")
 
 
 def _camera_record(idx: TableIndex, channel: str, sd: dict[str, Any], check_files: bool) -> CameraRecord:
@@ -387,7 +408,7 @@ def _camera_record(idx: TableIndex, channel: str, sd: dict[str, Any], check_file
 
 def _lidar_record(idx: TableIndex, sd: dict[str, Any], check_files: bool) -> LidarRecord:
     return LidarRecord(
-        channel=LIDAR_CHANNEL,
+        channel=idx.channel_of_calib[sd["calibrated_sensor_token"]],
         token=sd["token"],
         path=_sensor_path(idx, sd, check_files),
         T_ego_from_lidar=pose(idx.calibs[sd["calibrated_sensor_token"]], "calibrated_sensor"),
@@ -399,21 +420,24 @@ def _lidar_record(idx: TableIndex, sd: dict[str, Any], check_files: bool) -> Lid
 
 def _build_sample(
     idx: TableIndex, s_tok: str, row: dict[str, Any], sds: dict[str, dict[str, Any]], scene_name: str,
-    index: int, chain: list[dict[str, Any]], check_files: bool,
+    index: int, chains: list[list[dict[str, Any]]], check_files: bool,
 ) -> SampleRecord:
-    cams = tuple(_camera_record(idx, channel, sds[channel], check_files) for channel in CAMERA_ORDER)
-    lidar = _lidar_record(idx, sds[LIDAR_CHANNEL], check_files)
+    cams = tuple(_camera_record(idx, channel, sds[channel], check_files) for channel in idx.rig.cameras)
+    lidars = [_lidar_record(idx, sds[channel], check_files) for channel in idx.rig.lidars]
+    sweeps = [tuple(_lidar_record(idx, sd, check_files=False) for sd in chain) for chain in chains]
     return SampleRecord(
         token=s_tok,
         scene_token=field(row, "scene_token", "sample"),
         scene_name=scene_name,
         index_in_scene=index,
-        timestamp=integer(field(row, "timestamp", "sample"), f"sample {s_tok!r} timestamp"),
+        timestamp=timestamp_us(field(row, "timestamp", "sample"), f"sample {s_tok!r} timestamp"),
         prev=row.get("prev", ""),
         next=row.get("next", ""),
         cameras=cams,
-        lidar=lidar,
-        sweeps=tuple(_lidar_record(idx, sd, check_files=False) for sd in chain),  # sweep files are not shipped
+        lidar=lidars[0],
+        sweeps=sweeps[0],  # sweep files are not checked: nuScenes' keyframe download ships none
+        extra_lidars=tuple(lidars[1:]),
+        extra_sweeps=tuple(sweeps[1:]),
     )
 
 
@@ -426,15 +450,16 @@ def _placeholder_sample(
     cams = tuple(
         CameraRecord(channel=c, token=sds[c]["token"], path=idx.root, K=np.full((3, 3), np.nan),
                      T_ego_from_cam=nan4, T_global_from_ego=nan4, timestamp=0, width=0, height=0)
-        for c in CAMERA_ORDER
+        for c in idx.rig.cameras
     )
-    lidar = LidarRecord(channel=LIDAR_CHANNEL, token=sds[LIDAR_CHANNEL]["token"], path=idx.root,
-                        T_ego_from_lidar=nan4, T_global_from_ego=nan4, timestamp=0, sample_token=s_tok)
+    lidars = [LidarRecord(channel=c, token=sds[c]["token"], path=idx.root, T_ego_from_lidar=nan4,
+                          T_global_from_ego=nan4, timestamp=0, sample_token=s_tok) for c in idx.rig.lidars]
     ts = row.get("timestamp")
     return SampleRecord(
         token=s_tok, scene_token=row["scene_token"], scene_name=scene_name, index_in_scene=index,
-        timestamp=ts if isinstance(ts, int) and not isinstance(ts, bool) else 0,
-        prev=row.get("prev", ""), next=row.get("next", ""), cameras=cams, lidar=lidar, problem=problem,
+        timestamp=ts if isinstance(ts, int) and not isinstance(ts, bool) and ts >= 0 else 0,
+        prev=row.get("prev", ""), next=row.get("next", ""), cameras=cams, lidar=lidars[0], problem=problem,
+        extra_lidars=tuple(lidars[1:]), extra_sweeps=tuple(() for _ in lidars[1:]),
     )
 
 
@@ -476,5 +501,6 @@ def validate_sample(sample: SampleRecord) -> None:
             raise OccDataError(f"sample {sample.token!r}: {cam.channel} intrinsics are invalid")
         if cam.width <= 0 or cam.height <= 0:
             raise OccDataError(f"sample {sample.token!r}: {cam.channel} image size {cam.width}x{cam.height}")
-    check_rigid(sample.lidar.T_ego_from_lidar, "LIDAR_TOP calibration")
-    check_rigid(sample.lidar.T_global_from_ego, "LIDAR_TOP ego pose")
+    for lidar in sample.lidars:
+        check_rigid(lidar.T_ego_from_lidar, f"{lidar.channel} calibration")
+        check_rigid(lidar.T_global_from_ego, f"{lidar.channel} ego pose")

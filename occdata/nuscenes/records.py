@@ -1,4 +1,4 @@
-"""Frozen records for the keyframe data that occupancy needs (DESIGN §3), and the LIDAR_TOP sweeps."""
+"""Frozen records for the keyframe data that occupancy needs (DESIGN §3), and the LiDAR sweeps."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from occdata.geometry import invert_rigid
+from occdata.nuscenes.rig import NUSCENES_RIG, Rig
 
 __all__ = ["CameraRecord", "CameraRig", "LidarRecord", "NuScenesDataset", "SampleRecord", "SceneRecord"]
 
@@ -34,7 +35,7 @@ class CameraRecord:
 
 @dataclass(frozen=True, eq=False)
 class CameraRig:
-    """A keyframe's cameras in its key-ego frame, in CAMERA_ORDER: `K (N, 3, 3) float64`,
+    """A keyframe's cameras in its key-ego frame, in the rig's order: `K (N, 3, 3) float64`,
     `T_keyego_from_cam (N, 4, 4) float64` (exact, through global), `image_size (N, 2) int64` (W, H).
     Built in one place (`SampleRecord.camera_rig`) for the store, the masks and the deploy rig."""
 
@@ -51,9 +52,9 @@ class CameraRig:
 
 @dataclass(frozen=True, eq=False)
 class LidarRecord:
-    """One LIDAR_TOP sweep: the keyframe's (its ego pose defines the sample's key-ego frame) or a
-    non-keyframe sweep (`SampleRecord.sweeps`). `T_ego_from_lidar`, `T_global_from_ego`: `(4, 4)
-    float64`, the latter at the sweep's own timestamp (microseconds)."""
+    """One LiDAR sweep: a keyframe's (the reference LiDAR's ego pose defines the sample's key-ego
+    frame) or a non-keyframe sweep (`SampleRecord.sweeps`). `T_ego_from_lidar`, `T_global_from_ego`:
+    `(4, 4) float64`, the latter at the sweep's own timestamp (microseconds)."""
 
     channel: str
     token: str  # sample_data token
@@ -68,7 +69,8 @@ class LidarRecord:
 
 @dataclass(frozen=True, eq=False)
 class SampleRecord:
-    """A keyframe sample: 6 cameras in CAMERA_ORDER and the LIDAR_TOP sweep."""
+    """A keyframe sample: its cameras in the rig's order, the reference LiDAR's keyframe sweep
+    (`lidar`) and the other LiDARs' (`extra_lidars`, rig order)."""
 
     token: str
     scene_token: str
@@ -87,6 +89,19 @@ class SampleRecord:
     # first keyframe: back to the start of its chain), nearest first. Empty unless the tables were
     # read with `sweeps=True`. `NuScenesDataset.lidar_history` continues across earlier keyframes.
     sweeps: tuple[LidarRecord, ...] = ()
+    # The rig's other LiDARs at this keyframe (their keyframe rows), and for each of them its non-keyframe
+    # sweeps since the previous keyframe, as `sweeps` is for the reference LiDAR.
+    extra_lidars: tuple[LidarRecord, ...] = ()
+    extra_sweeps: tuple[tuple[LidarRecord, ...], ...] = ()
+
+    @property
+    def lidars(self) -> tuple[LidarRecord, ...]:
+        """Every LiDAR's keyframe sweep, the reference first."""
+        return (self.lidar, *self.extra_lidars)
+
+    def sweeps_of(self, k: int) -> tuple[LidarRecord, ...]:
+        """The non-keyframe sweeps of LiDAR `k` (rig order; 0 = reference) since the previous keyframe."""
+        return self.sweeps if k == 0 else self.extra_sweeps[k - 1]
 
     @property
     def T_global_from_keyego(self) -> np.ndarray:
@@ -99,7 +114,7 @@ class SampleRecord:
         return invert_rigid(self.T_global_from_keyego) @ cam.T_global_from_ego @ cam.T_ego_from_cam
 
     def camera_rig(self) -> CameraRig:
-        """The 6 cameras' intrinsics, key-ego poses and image sizes (`CameraRig`)."""
+        """The cameras' intrinsics, key-ego poses and image sizes (`CameraRig`)."""
         return CameraRig(
             K=np.stack([c.K for c in self.cameras]),
             T_keyego_from_cam=np.stack([self.T_keyego_from_cam(i) for i in range(len(self.cameras))]),
@@ -141,6 +156,7 @@ class NuScenesDataset:
     samples: tuple[SampleRecord, ...]
     warnings: tuple[str, ...] = ()  # one line each: identical duplicate rows, nbr_samples disagreeing
     sweeps_loaded: bool = False  # read with `sweeps=True`: `SampleRecord.sweeps` are filled in
+    rig: Rig = NUSCENES_RIG  # the cameras and LiDARs read (`Rig.left_out`: the sensors that were not)
     _index: dict[str, int] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -179,12 +195,22 @@ class NuScenesDataset:
         included. Requires `sweeps_loaded` when `n > 0`."""
         if n <= 0:
             return ()
+        return self._history(index, n, 0)
+
+    def lidar_histories(self, index: int, n: int) -> tuple[LidarRecord, ...]:
+        """`lidar_history` for every LiDAR of the rig, in rig order, concatenated: up to `n` previous
+        sweeps of each (for nuScenes' one LiDAR, exactly `lidar_history`)."""
+        if n <= 0:
+            return ()
+        return tuple(r for k in range(len(self.rig.lidars)) for r in self._history(index, n, k))
+
+    def _history(self, index: int, n: int, k: int) -> tuple[LidarRecord, ...]:
         if not self.sweeps_loaded:
             raise ValueError("lidar_history needs the tables read with sweeps=True")
-        out = list(self.samples[index].sweeps)
+        out = list(self.samples[index].sweeps_of(k))
         j = index
         while len(out) < n and self.samples[j].index_in_scene > 0:
             j -= 1
-            out.append(self.samples[j].lidar)
-            out.extend(self.samples[j].sweeps)
+            out.append(self.samples[j].lidars[k])
+            out.extend(self.samples[j].sweeps_of(k))
         return tuple(out[:n])

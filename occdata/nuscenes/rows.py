@@ -14,7 +14,7 @@ import numpy as np
 from occdata.errors import OccDataError
 from occdata.geometry import rotation_from_quaternion_wxyz
 
-__all__ = ["RowProblem", "field", "floats", "integer", "pose", "ref", "rotation_matrix", "short"]
+__all__ = ["RowProblem", "field", "floats", "integer", "pose", "ref", "rotation_matrix", "short", "timestamp_us"]
 
 
 class RowProblem(Exception):
@@ -63,6 +63,21 @@ def integer(value: Any, where: str) -> int:
         raise RowProblem(f"{where} is not an integer ({short(value)})")
     if isinstance(value, float) and not value.is_integer():
         raise RowProblem(f"{where} is not an integer ({short(value)})")
+    return int(value)
+
+
+def timestamp_us(value: Any, where: str) -> int:
+    """A timestamp in microseconds: a JSON integer, or a finite float rounded to the nearest
+    microsecond (ties to even; Lyft Level 5 writes microseconds as floats such as 1557858039302414.8,
+    which at that size float64 holds to 0.25 us). Negative or non-numeric values are `RowProblem`s."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise RowProblem(f"{where} is not a number of microseconds ({short(value)})")
+    if isinstance(value, float):
+        if not np.isfinite(value):
+            raise RowProblem(f"{where} is not finite ({short(value)})")
+        value = round(value)
+    if value < 0:
+        raise RowProblem(f"{where} is negative ({value})")
     return int(value)
 
 

@@ -9,11 +9,12 @@ from typing import Any
 from occdata.errors import OccDataError
 from occdata.nuscenes.reader import load_nuscenes, validate_sample
 from occdata.nuscenes.records import NuScenesDataset
+from occdata.nuscenes.rig import RigChoice
 
 __all__ = ["scan_tree"]
 
 
-def scan_tree(root: Path, version: str | None, check_files: bool) -> dict[str, Any]:
+def scan_tree(root: Path, version: str | None, check_files: bool, rig: RigChoice | None = None) -> dict[str, Any]:
     """Read the tree and summarise it. Raises `OccDataError` on any broken reference and on any
     sample that `occdata build` would reject from its tables alone (unusable values, paths outside
     the root, NaN or non-rigid calibration and poses, invalid intrinsics; missing files with
@@ -21,8 +22,9 @@ def scan_tree(root: Path, version: str | None, check_files: bool) -> dict[str, A
 
     `sweeps`: the non-keyframe LIDAR_TOP sweeps between consecutive keyframes (min / mean / max
     over keyframes that have a previous keyframe), the total, and with `check_files` how many of
-    their files exist (none in a keyframe-only download: not an error)."""
-    ds = load_nuscenes(root, version, check_files=check_files, sweeps=True)
+    their files exist (none in a keyframe-only download: not an error). `rig`: the cameras and
+    LiDARs read (`rig` in the summary; `left_out` names every sensor that is not)."""
+    ds = load_nuscenes(root, version, check_files=check_files, sweeps=True, rig=rig)
     bad: list[str] = []
     for s in ds.samples:
         try:
@@ -42,6 +44,8 @@ def scan_tree(root: Path, version: str | None, check_files: bool) -> dict[str, A
         "samples": len(ds.samples),
         "samples_per_split": dict(sorted(per_split.items())),
         "scenes_per_split": dict(sorted(Counter(sc.split for sc in ds.scenes).items())),
+        "rig": ds.rig.as_attr(),
+        "left_out": list(ds.rig.left_out),
         "files_checked": check_files,
         "sweeps": _sweep_summary(ds, check_files),
         "warnings": list(ds.warnings),

@@ -35,6 +35,7 @@ from occdata.store.layout import (
     STATE_DONE,
     STATE_ERROR,
     STATE_PENDING,
+    camera_count,
     checksummed_names,
     grid_shape,
     has_flow,
@@ -140,10 +141,10 @@ def convert_block(job: ConvertJob) -> BlockSummary:
     checksums and last the state flags."""
     results = [sample.convert() for sample in job.samples]
     root = open_for_task(job.store)
-    flow = has_flow(root.attrs)
-    rows = _fixed_rows(root, results, per_sample(flow, grid_shape(root.attrs)))
+    flow, n_cams = has_flow(root.attrs), camera_count(root.attrs)
+    rows = _fixed_rows(root, results, per_sample(flow, grid_shape(root.attrs), n_cams))
     _write_rows([(root[n], job.i0, job.i1, a) for n, a in rows.items()])
-    payload = _payload(results)
+    payload = _payload(results, n_cams)
     errors = tuple((r.index, r.token, r.error) for r in results if r.error)
     needs = tuple(int(payload[f"{n}/rows"].sum()) for n in FLAT_ARRAYS)
     if any(need > e - a for need, (a, e) in zip(needs, job.regions, strict=True)):
@@ -200,13 +201,13 @@ def sample_checksums(arrays: dict[str, np.ndarray], flat: dict[str, bytes], flow
     return np.array(out, dtype=np.uint32)
 
 
-def _payload(results: list[SampleResult]) -> dict[str, Any]:
-    """Per flat array: `data` (all rows, sample then camera order), `rows` `(n, 6) int64` per
+def _payload(results: list[SampleResult], n_cams: int) -> dict[str, Any]:
+    """Per flat array: `data` (all rows, sample then camera order), `rows` `(n, C) int64` per
     (sample, camera), `sample_bytes` (the checksummed bytes of each sample)."""
     out: dict[str, Any] = {}
     for name, (row_shape, dtype, _) in FLAT_ARRAYS.items():
         row_bytes = int(np.dtype(dtype).itemsize * int(np.prod(row_shape, dtype=np.int64)))
-        rows = np.zeros((len(results), 6), dtype=np.int64)
+        rows = np.zeros((len(results), n_cams), dtype=np.int64)
         per_sample = []
         for k, r in enumerate(results):
             parts = list(r.jpeg) if name == "images/jpeg" else [u.tobytes() for u in r.uvd]

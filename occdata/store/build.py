@@ -21,6 +21,7 @@ import numpy as np
 import zarr
 
 from occdata.errors import OccDataError
+from occdata.nuscenes.rig import NUSCENES_RIG, Rig
 from occdata.runtime.cluster import cluster_client, run_tasks
 from occdata.runtime.lock import store_lock
 from occdata.runtime.storage import is_remote
@@ -57,6 +58,7 @@ class BuildReport:
     processed_now: int
     warnings: tuple[str, ...] = ()  # from reading the tables (identical duplicates, nbr_samples)
     flow: bool = False  # the labels were OpenOcc v2 files: the store has labels/flow
+    rig: Rig = NUSCENES_RIG  # the cameras and LiDARs stored; `rig.left_out` names the sensors that were not
 
 
 def build_store(config: BuildConfig, client: Any = None) -> BuildReport:
@@ -149,4 +151,5 @@ def _finish(config: BuildConfig, root: zarr.Group, out: str, inputs: BuildInputs
         processed_now=processed,
         warnings=inputs.ds.warnings,
         flow=inputs.flow,
+        rig=inputs.ds.rig,
     )

@@ -9,6 +9,7 @@ from typing import Literal
 
 from occdata.errors import OccDataError
 from occdata.grids import GridSpec
+from occdata.nuscenes.rig import RigChoice
 from occdata.runtime.cluster import ClusterConfig
 from occdata.store.sample import SampleOptions
 
@@ -42,7 +43,8 @@ class BuildConfig:
     None (no labels). `labels_required` (a named folder only): a folder in which no sample finds its
     file is an error (a wrong folder would give a silently unlabelled store). `cluster`: where the
     block tasks run. `grid`: the grid of the labels files (`--grid`; None: Occ3D's, or OpenOcc v2's
-    when the files have flow), which becomes the store's label grid."""
+    when the files have flow), which becomes the store's label grid. `rig`: the cameras and LiDARs
+    (`--cameras`, `--lidars`, `--reference-lidar`; default every one of the tables)."""
 
     root: Path
     out: Path | str
@@ -57,6 +59,7 @@ class BuildConfig:
     options: SampleOptions = field(default_factory=SampleOptions)
     progress: bool = True
     grid: GridSpec | None = None
+    rig: RigChoice = field(default_factory=RigChoice)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "root", Path(self.root))

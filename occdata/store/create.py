@@ -17,7 +17,7 @@ import zarr
 from zarr.codecs import ZstdCodec
 from zarr.core.sync import sync
 
-from occdata.constants import CAMERA_ORDER, CLASS_COLORS, CLASS_NAMES, FREE_LABEL
+from occdata.constants import CLASS_COLORS, CLASS_NAMES, FREE_LABEL
 from occdata.errors import OccDataError
 from occdata.fileio import remove_stale_temps
 from occdata.runtime.storage import is_remote, join, read_bytes, remove_tree, sibling
@@ -29,6 +29,7 @@ from occdata.store.layout import (
     SCHEMA_NAME,
     SCHEMA_VERSION,
     TOKEN_ARRAYS,
+    camera_count,
     checksummed_names,
     grid_shape,
     has_flow,
@@ -57,7 +58,7 @@ def create_arrays(root: zarr.Group, n: int, block: int, attrs: dict[str, Any], t
     the flat arrays are as long as its end from the start (None: empty plan, empty flat arrays)."""
     flow = has_flow(attrs)
     n_check = len(checksummed_names(flow))
-    for s in per_sample(flow, grid_shape(attrs)):
+    for s in per_sample(flow, grid_shape(attrs), camera_count(attrs)):
         shape = (n, *s.shape)
         if s.name == "status/checksum":
             shape = (n, n_check)
@@ -104,7 +105,9 @@ def root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str],
                label_format: str = "occ3d") -> dict[str, Any]:
     """The root attributes of a new store (`gts`: the labels folder read; `label_format` its files'
     format: "openocc-v2" makes a version-3 store with `labels/flow`, and says so in `flow` and in the
-    build identity; "occ3d" leaves every attribute as it was before flow existed)."""
+    build identity; "occ3d" leaves every attribute as it was before flow existed). The rig: cameras in
+    `camera_order`; a rig other than nuScenes' also in `rig` (nuScenes stores stay as they were)."""
+    rig = ds.rig
     flow = label_format == "openocc-v2"
     first = 0
     scenes = []
@@ -119,7 +122,7 @@ def root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str],
         "schema": SCHEMA_NAME,
         "schema_version": schema_version(flow),
         "n_samples": len(ds.samples),
-        "camera_order": list(CAMERA_ORDER),
+        "camera_order": list(rig.cameras),
         "class_names": list(CLASS_NAMES),
         "class_colors": [list(c) for c in CLASS_COLORS],
         "free_label": FREE_LABEL,
@@ -131,18 +134,19 @@ def root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str],
                    opts.image_scale != 1.0 else None},
         "depth": {"columns": ["u", "v", "depth"], "pixel_frame": "original image pixels",
                   "min_depth": opts.min_depth, "lidar_sweeps": opts.lidar_sweeps,
-                  "source": "keyframe LIDAR_TOP" + (f" + up to {opts.lidar_sweeps} previous sweeps, motion-"
-                                                    "compensated to each camera's timestamp" if opts.lidar_sweeps
-                                                    else "")},
+                  "source": f"keyframe {' + '.join(rig.lidars)}" + (
+                      f" + up to {opts.lidar_sweeps} previous sweeps{' of each' * (len(rig.lidars) > 1)}, motion-"
+                      "compensated to each camera's timestamp" if opts.lidar_sweeps else "")},
         "bev": {"encoding": "uint32 bit field, bit c = class c present in the column",
                 "free_bit": FREE_LABEL},
         "checksum_arrays": list(checksummed_names(flow)),
-        "checksum": "crc32 of each array's per-sample C-order bytes (flat arrays: its 6 camera slices)",
+        "checksum": f"crc32 of each array's per-sample C-order bytes (flat arrays: its {len(rig.cameras)} camera "
+                    "slices)",
         "build_identity": build_identity(config, ds, gts, label_format),
         "build_config": {"workers": config.cluster.workers, "on_error": config.on_error},
         "errors": [],
         "complete": False,
-    } | ({"flow": dict(_FLOW_ATTR)} if flow else {})
+    } | ({"flow": dict(_FLOW_ATTR)} if flow else {}) | ({} if rig.is_nuscenes else {"rig": rig.as_attr()})
 
 
 STAGING_SUFFIX = ".staging"  # <store>.staging: where schema-1 builds staged blocks (removed, never written now)

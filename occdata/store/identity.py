@@ -21,7 +21,8 @@ _IDENTITY_OPTION = {
     "block_samples": "--block-samples", "options.image_scale": "--image-scale",
     "options.jpeg_quality": "--jpeg-quality", "options.min_depth": "min_depth",
     "options.lidar_sweeps": "--lidar-sweeps", "labels_format": "the format of the --gts files",
-    "label_grid": "--grid / --voxel-size / --range",
+    "label_grid": "--grid / --voxel-size / --range", "rig.cameras": "--cameras", "rig.lidars": "--lidars",
+    "rig.reference_lidar": "--reference-lidar",
     "sample_tokens_crc32": "the sample list in the tables",
 }
 
@@ -31,8 +32,10 @@ def build_identity(config: BuildConfig, ds: NuScenesDataset, gts: Path | None,
     """What a resumed build must match (workers, resume and on_error may change between runs);
     `gts`: the labels folder the build reads (`config.labels().folder`); `label_format` its files'
     format, recorded only when not "occ3d" (identities from before flow stay as they were); the
-    labels' grid, recorded only when not Occ3D's (`config.grid`)."""
-    extra = {} if label_format == "occ3d" else {"labels_format": label_format}
+    labels' grid, recorded only when not Occ3D's (`config.grid`); the rig, only when not nuScenes'."""
+    extra: dict[str, Any] = {} if label_format == "occ3d" else {"labels_format": label_format}
+    if not ds.rig.is_nuscenes:
+        extra["rig"] = ds.rig.as_attr()
     if not is_default_grid(config.grid):
         g = config.grid.describe()  # type: ignore[union-attr]
         extra["label_grid"] = {k: g[k] for k in ("name", "voxel_size", "lower", "upper", "frame", "layout")}

@@ -11,7 +11,7 @@ from occdata.constants import CAMERA_ORDER
 from occdata.errors import OccDataError
 from occdata.fileio import atomic_open
 from occdata.store.bev import unpack_bev
-from occdata.store.layout import FLAT_ARRAYS, STATE_DONE, STATE_ERROR, STATE_PENDING, per_sample
+from occdata.store.layout import FLAT_ARRAYS, STATE_DONE, STATE_ERROR, STATE_PENDING, per_sample, store_rig
 from occdata.store.reader import StoreReader
 
 __all__ = ["DUMP_KEYS", "dump_sample", "grid_summary", "store_info"]
@@ -20,7 +20,7 @@ __all__ = ["DUMP_KEYS", "dump_sample", "grid_summary", "store_info"]
 def store_info(reader: StoreReader) -> dict[str, Any]:
     state = reader.state
     arrays = {}
-    for name in [s.name for s in per_sample(reader.has_flow, reader.grid_shape)] + list(FLAT_ARRAYS):
+    for name in [s.name for s in per_sample(reader.has_flow, reader.grid_shape, reader.n_cams)] + list(FLAT_ARRAYS):
         a = reader.group[name]
         shards = getattr(a, "shards", None)
         arrays[name] = {"shape": list(a.shape), "dtype": str(a.dtype), "chunks": list(a.chunks),
@@ -38,6 +38,7 @@ def store_info(reader: StoreReader) -> dict[str, Any]:
         "with_visibility": int(reader.group["visibility/present"][:].sum()),
         "flow": reader.has_flow,
         "grid": grid_summary(reader),
+        "rig": store_rig(reader.attrs),
         "scenes": len(scenes),
         "scene_table": scenes,
         "recorded_errors": errors,

@@ -41,6 +41,7 @@ from occdata.store.layout import (
     FLOW,
     STATE_PENDING,
     ArraySpec,
+    camera_count,
     checksummed_names,
     grid_shape,
     has_flow,
@@ -62,7 +63,7 @@ def crc_rows(data: np.ndarray) -> np.ndarray:
 
 def _specs(attrs: dict[str, Any]) -> dict[str, ArraySpec]:
     """Every per-sample array of a store with these attributes (its label grid's shapes)."""
-    return {s.name: s for s in (*per_sample(False, grid_shape(attrs)), FLOW)}
+    return {s.name: s for s in (*per_sample(False, grid_shape(attrs), camera_count(attrs)), FLOW)}
 
 
 class StoreIntegrity:

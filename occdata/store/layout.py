@@ -13,13 +13,14 @@ Occ3D's 200 x 200 x 16 by default and for every store whose `grid` attribute nam
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from occdata.constants import GRID
+from occdata.constants import CAMERA_ORDER, GRID, LIDAR_CHANNEL
 from occdata.errors import OccDataError
 
 __all__ = [
@@ -27,6 +28,8 @@ __all__ = [
     "FLAT_OF_OFFSETS",
     "MIN_TOKEN_BYTES",
     "N_CAM",
+    "camera_count",
+    "store_rig",
     "TOKEN_ARRAYS",
     "checksummed_names",
     "token_bytes",
@@ -96,6 +99,7 @@ PER_SAMPLE: tuple[ArraySpec, ...] = (
     ArraySpec("sample/index_in_scene", (), "int32"),
     ArraySpec("sample/timestamp", (), "int64"),
     ArraySpec("sample/lidar_token", (32,), "uint8"),
+    # Camera arrays: the second axis is widened to the store's cameras (`camera_count`).
     ArraySpec("cam/token", (N_CAM, 32), "uint8"),
     ArraySpec("cam/timestamp", (N_CAM,), "int64"),
     ArraySpec("cam/image_size", (N_CAM, 2), "int32"),
@@ -121,14 +125,44 @@ PER_SAMPLE: tuple[ArraySpec, ...] = (
 FLOW = ArraySpec("labels/flow", (*GRID.shape, 2), "float32", sharded=True)
 
 
-def per_sample(flow: bool = False, shape: tuple[int, int, int] = GRID.shape) -> tuple[ArraySpec, ...]:
-    """The per-sample arrays of a store with (or without) `labels/flow`, on a label grid of `shape`."""
+def per_sample(flow: bool = False, shape: tuple[int, int, int] = GRID.shape,
+               n_cams: int = N_CAM) -> tuple[ArraySpec, ...]:
+    """The per-sample arrays of a store with (or without) `labels/flow`, on a label grid of `shape`,
+    with `n_cams` cameras."""
+    specs = PER_SAMPLE if n_cams == N_CAM else tuple(_with_cameras(s, n_cams) for s in PER_SAMPLE)
     if tuple(shape) == GRID.shape:
-        return PER_SAMPLE + ((FLOW,) if flow else ())
+        return specs + ((FLOW,) if flow else ())
     if flow:
         raise OccDataError(f"labels/flow exists on Occ3D's grid only, not on {tuple(shape)}")
     labels = {s.name: s for s in label_arrays(tuple(shape))}  # type: ignore[arg-type]
-    return tuple(labels.get(s.name, s) for s in PER_SAMPLE)
+    return tuple(labels.get(s.name, s) for s in specs)
+
+
+def _with_cameras(spec: ArraySpec, n_cams: int) -> ArraySpec:
+    if spec.name.split("/")[0] in ("cam", "images", "depth") or spec.name in _CAMERA_CALIB:
+        return dataclasses.replace(spec, shape=(n_cams, *spec.shape[1:]))
+    return spec
+
+
+_CAMERA_CALIB = ("calib/K", "calib/T_ego_from_cam", "calib/T_keyego_from_cam", "pose/T_global_from_ego_cam")
+
+
+def store_rig(attrs: Any) -> dict[str, Any]:
+    """The rig a store (its root attributes) holds, as `Rig.as_attr`: its `rig` attribute, or for a
+    store without one (nuScenes' rig, and every store built before rigs were read) its `camera_order`
+    and LIDAR_TOP."""
+    rig = attrs.get("rig") if hasattr(attrs, "get") else None
+    if isinstance(rig, dict):
+        return dict(rig)
+    order = attrs.get("camera_order") if hasattr(attrs, "get") else None
+    cams = list(order) if isinstance(order, list) and order else list(CAMERA_ORDER)
+    return {"cameras": cams, "lidars": [LIDAR_CHANNEL], "reference_lidar": LIDAR_CHANNEL}
+
+
+def camera_count(attrs: Any) -> int:
+    """The number of cameras a store (its root attributes) holds: its `camera_order`; 6 when absent."""
+    order = attrs.get("camera_order") if hasattr(attrs, "get") else None
+    return len(order) if isinstance(order, list) and order else N_CAM
 
 
 def grid_shape(attrs: Any) -> tuple[int, int, int]:

@@ -22,7 +22,7 @@ import zarr
 
 from occdata.nuscenes import LidarRecord, SampleRecord
 from occdata.store.blocks import BlockSummary, ConvertJob
-from occdata.store.layout import FLAT_ARRAYS, N_CAM, STATE_DONE, STATE_PENDING
+from occdata.store.layout import FLAT_ARRAYS, STATE_DONE, STATE_PENDING
 from occdata.store.sample import SampleOptions
 
 __all__ = ["LIDAR_POINT_BYTES", "Coordinator", "Span", "align", "block_spans", "blocks_todo", "jpeg_bound",
@@ -68,11 +68,11 @@ def _points(path: Path) -> int:
 def payload_bounds(samples: Sequence[SampleRecord], histories: Sequence[tuple[LidarRecord, ...]],
                    options: SampleOptions, threads: int = 16) -> np.ndarray:
     """`(n, len(FLAT_ARRAYS)) int64` rows planned per sample in each flat array: JPEG bytes from the
-    image sizes in the tables (`jpeg_bound`); depth rows = 6 cameras x the points of the keyframe
-    sweep and of each history sweep (a point can land in several cameras), from the files' sizes
-    (one stat per distinct file, in `threads` threads: a network file system answers slowly)."""
+    image sizes in the tables (`jpeg_bound`); depth rows = cameras x the points of every LiDAR's
+    keyframe sweep and of each history sweep (a point can land in several cameras), from the files'
+    sizes (one stat per distinct file, in `threads` threads: a network file system answers slowly)."""
     files = list(dict.fromkeys(p for s, h in zip(samples, histories, strict=True)
-                               for p in (s.lidar.path, *(r.path for r in h))))
+                               for p in (*(r.path for r in s.lidars), *(r.path for r in h))))
     with ThreadPoolExecutor(max_workers=threads) as pool:
         points = dict(zip(files, pool.map(_points, files), strict=True))
     out = np.zeros((len(samples), len(FLAT_ARRAYS)), dtype=np.int64)
@@ -81,7 +81,7 @@ def payload_bounds(samples: Sequence[SampleRecord], histories: Sequence[tuple[Li
             if name == "images/jpeg":
                 out[i, f] = sum(jpeg_bound(c.width, c.height, options.image_scale) for c in s.cameras)
             else:
-                out[i, f] = N_CAM * sum(points[p] for p in (s.lidar.path, *(r.path for r in h)))
+                out[i, f] = len(s.cameras) * sum(points[r.path] for r in (*s.lidars, *h))
     return out
 
 

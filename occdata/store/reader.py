@@ -24,6 +24,7 @@ from occdata.store.layout import (
     STATE_ERROR,
     STATE_PENDING,
     TOKEN_ARRAYS,
+    camera_count,
     checksummed_names,
     grid_shape,
     has_flow,
@@ -70,6 +71,7 @@ class StoreReader:
         self.has_flow: bool = has_flow(attrs)  # `labels/flow` (schema version 3)
         self.grid: GridSpec = store_grid(attrs)  # the label grid (Occ3D's unless attrs["grid"] names another)
         self.grid_shape: tuple[int, int, int] = grid_shape(attrs)
+        self.n_cams: int = camera_count(attrs)  # the cameras of the store's rig (attrs camera_order)
         if self.grid.shape != self.grid_shape:
             raise OccDataError(f"store {self.path}: attribute grid has shape {list(self.grid_shape)}, but its "
                                f"range and voxel size make {list(self.grid.shape)}; the metadata was edited")
@@ -87,7 +89,7 @@ class StoreReader:
             raise OccDataError(f"store {self.path}: attribute n_samples is {n!r}, not a sample count")
         n_check = len(checksummed_names(self.has_flow))
         expected = {s.name: ((n, n_check) if s.name == "status/checksum" else (n, *s.shape), s.dtype)
-                    for s in per_sample(self.has_flow, self.grid_shape)}
+                    for s in per_sample(self.has_flow, self.grid_shape, self.n_cams)}
         for name, (row, dtype, _) in FLAT_ARRAYS.items():
             expected[name] = ((None, *row), dtype)
         # Token arrays are as wide as the store's longest token (>= 32 bytes), the same for all three.
@@ -191,7 +193,7 @@ class StoreReader:
     def sample_arrays(self, index: int, names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
         """Per-sample arrays (no sample axis) for one sample; all of the store's arrays by default."""
         self._check_index(index)
-        names = names or tuple(s.name for s in per_sample(self.has_flow, self.grid_shape))
+        names = names or tuple(s.name for s in per_sample(self.has_flow, self.grid_shape, self.n_cams))
         out = {}
         committed = self.state[index] != STATE_PENDING
         checked = set(checksummed_names(self.has_flow))

@@ -152,7 +152,7 @@ def process_sample(
     grid: GridSpec | None = None,
 ) -> SampleResult:
     """Read and convert one sample; the depth targets also take the points of `sweeps` (previous
-    LIDAR_TOP sweeps, `NuScenesDataset.lidar_history`). `label_format` "openocc-v2": the labels file
+    sweeps of each LiDAR, `NuScenesDataset.lidar_histories`). `label_format` "openocc-v2": the labels file
     is OpenOcc v2's (mapped to our ids, its flow kept as `labels/flow`). `grid`: the labels file is of
     this (non-Occ3D) grid, in its layout and ids (`occdata.gridfiles`; mapped to ours). Bad input gives
     a result with `error` set (never raises it)."""
@@ -214,15 +214,16 @@ def _read_grid(path: Path, spec: GridSpec) -> dict[str, np.ndarray]:
 def depth_points(
     sample: SampleRecord, sweeps: tuple[LidarRecord, ...], K: np.ndarray, image_size: np.ndarray, min_depth: float
 ) -> tuple[np.ndarray, ...]:
-    """Per camera `(M_c, 3) float32` (u, v, depth): the keyframe sweep's points, then each of `sweeps`
-    in order, projected into the ORIGINAL image through lidar(t_i) -> ego(t_i) -> global ->
-    ego(t_cam) -> camera -> K (each sweep's own pose: the car's motion is compensated exactly).
+    """Per camera `(M_c, 3) float32` (u, v, depth): the keyframe sweep's points of every LiDAR (rig
+    order, the reference first), then each of `sweeps` in order, projected into the ORIGINAL image
+    through lidar(t_i) -> ego(t_i) -> global -> ego(t_cam) -> camera -> K (each sweep's own pose and
+    calibration: the car's motion is compensated exactly).
     K `(C, 3, 3) float64`; image_size `(C, 2)` (W, H). Raises `OccDataError` for a missing or corrupt
     sweep file or a non-rigid sweep pose."""
     sizes = np.asarray(image_size).astype(np.int64)
     parts: list[list[np.ndarray]] = [[] for _ in sample.cameras]
-    for rec in (sample.lidar, *sweeps):
-        if rec is not sample.lidar:
+    for k, rec in enumerate((*sample.lidars, *sweeps)):
+        if k >= len(sample.lidars):  # the keyframe LiDARs are checked with the sample (validate_sample)
             _check_sweep(rec)
         T = np.stack([sample.T_cam_from_lidar(i, rec) for i in range(len(sample.cameras))])
         uvd_all, counts = project_to_cameras(load_lidar_points(rec.path), T, K, sizes, min_depth)
@@ -235,7 +236,7 @@ def _check_sweep(sweep: LidarRecord) -> None:
     for T, what in ((sweep.T_ego_from_lidar, "calibration"), (sweep.T_global_from_ego, "ego pose")):
         R = T[:3, :3]
         if not np.isfinite(T).all() or not np.allclose(R.T @ R, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
-            raise SampleError(f"LIDAR_TOP sweep {sweep.token!r}: {what} is not a finite rigid transform")
+            raise SampleError(f"{sweep.channel} sweep {sweep.token!r}: {what} is not a finite rigid transform")
 
 
 def temporal_indices(scene_index: np.ndarray, index_in_scene: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -43,7 +43,7 @@ def verify_store(reader: StoreReader, block: int = 32, progress: Callable[[int],
         raise OccDataError(f"{reader.path}: checksum table has {stored.shape[1]} columns, expected {len(names)}")
     problems: list[Problem] = []
     # Every array's chunks: an absent one must hold only fill values for each committed sample.
-    specs = per_sample(reader.has_flow, reader.grid_shape)
+    specs = per_sample(reader.has_flow, reader.grid_shape, reader.n_cams)
     for name in [s.name for s in specs if s.name != "status/state"] + list(FLAT_ARRAYS):
         try:
             absent = reader.integrity.problems_absent(name, state)
