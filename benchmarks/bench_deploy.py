@@ -1,4 +1,4 @@
-"""Deployment benchmark behind docs/benchmarks.md (deployment section) and docs/deploy.md.
+"""Deployment benchmark behind docs/benchmarks-deploy.md and docs/deploy.md.
 
 For each preset, in one process: end-to-end latency per frame through `fastocc.Predictor` (6 raw uint8
 1600x900 images -> preprocessing -> network -> semantics) for eager PyTorch, torch.compile and ONNX
