@@ -1,5 +1,8 @@
 """Does a recurrent model use its state? Score its checkpoints with the state zeroed at every frame.
 
+Research: one diagnostic of the recurrent fusion (docs/ablations.md, -4.3 mIoU without its state).
+Indexed in benchmarks/README.md.
+
     cd <ablation folder> && python -m benchmarks.ablations_nohistory --row hist16rec --json out.json
 
 Each checkpoint `RUNS/<row>-s<seed>/last.pt` is scored on the val split (`fastocc.infer.score`, mIoU
