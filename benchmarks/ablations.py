@@ -23,7 +23,7 @@ Steps:
     python -m benchmarks.ablations score                     # val mIoU (camera mask), RayIoU, geometry IoU
     python -m benchmarks.ablations latency                   # 3D-side latency of each head / FastOcc head
     python -m benchmarks.ablations steptime                  # training s/step per row, one run at a time
-    python -m benchmarks.ablations tables                    # docs/ablations.md, PNGs, from docs/ablations.json
+    python -m benchmarks.ablations tables                    # docs/ablations.md + img/ PNGs, from docs/results/
 
 `run` resumes a run whose folder holds last.pt; it records wall time per call in ablate_run.json in the
 run folder. `score` scores checkpoints with `fastocc.infer.score` (the project's metric code; learning
@@ -714,7 +714,7 @@ def _commands_section(epochs: int) -> list[str]:
             f"python -m benchmarks.ablations score --epochs {epochs}", "python -m benchmarks.ablations latency",
             "python -m benchmarks.ablations steptime   # on an idle machine",
             f"python -m benchmarks.ablations tables --epochs {epochs}", "```", "",
-            f"Rows: {', '.join(f'`{r}`' for r in ROWS)}. Raw numbers: `docs/ablations.json`.", ""]
+            f"Rows: {', '.join(f'`{r}`' for r in ROWS)}. Raw numbers: `docs/results/ablations.json`.", ""]
 
 
 def plot_curves(results: dict[str, Any], rows: Sequence[str], title: str, path: Path) -> bool:
@@ -753,9 +753,9 @@ def tables(results_path: Path, md_path: Path, epochs: int) -> str:
     if results.get("tta", {}).get("row"):
         groups.append(("tta", [results["tta"]["row"]], "best row (TTA table)"))
     for key, rows, title in groups:
-        path = md_path.parent / f"{md_path.stem}_{key}.png"
+        path = md_path.parent / "img" / f"{md_path.stem}_{key}.png"  # pictures live in docs/img/
         if plot_curves(results, rows, title, path):
-            png[key] = path.name
+            png[key] = f"img/{path.name}"
     readings = readings_of(md_path.read_text()) if md_path.is_file() else {}
     text = render_markdown(results, epochs, png, readings)
     md_path.write_text(text)
@@ -771,7 +771,7 @@ def _parser() -> argparse.ArgumentParser:
                         f"(default {DEFAULT_EPOCHS})")
     common.add_argument("--store", default=None, help="store (default: the recipe's, w8v.zarr)")
     common.add_argument("--runs-dir", type=Path, default=RUNS_DIR, help=f"run folders (default {RUNS_DIR})")
-    common.add_argument("--results", type=Path, default=DOCS / "ablations.json", help="raw results JSON")
+    common.add_argument("--results", type=Path, default=DOCS / "results" / "ablations.json", help="raw results JSON")
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run", parents=[common], help="train one row and seed (resumes a started run)")
     r.add_argument("row", choices=sorted(ROWS), help="; ".join(

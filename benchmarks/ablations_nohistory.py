@@ -1,11 +1,14 @@
 """Does a recurrent model use its state? Score its checkpoints with the state zeroed at every frame.
 
+Research: one diagnostic of the recurrent fusion (docs/ablations.md, -4.3 mIoU without its state).
+Indexed in benchmarks/README.md.
+
     cd <ablation folder> && python -m benchmarks.ablations_nohistory --row hist16rec --json out.json
 
 Each checkpoint `RUNS/<row>-s<seed>/last.pt` is scored on the val split (`fastocc.infer.score`, mIoU
 with the camera mask, RayIoU, geometry IoU) as if every frame started a sequence: the recurrent
 fusion's state is zero each time, so the network sees the current frame only. Compare with the row's
-own scores in docs/ablations.json (issue 35's reading in docs/ablations.md).
+own scores in docs/results/ablations.json (issue 35's reading in docs/ablations.md).
 """
 
 from __future__ import annotations

@@ -2,6 +2,9 @@
 process, then in one process per core at once, for a pure-Python loop, JPEG decoding + resizing with
 OpenCV (what a build task does most) and large memory copies.
 
+Research: the machine's own limit, read beside the build's scale figures (docs/scale.md). Indexed in
+benchmarks/README.md.
+
     python -m benchmarks.bench_cores [--processes 2] [--json out.json]
 
 The figure is the throughput ratio, P x (one process's time) / (from the first of P processes' start

@@ -1,4 +1,4 @@
-"""Model benchmark behind docs/benchmarks.md (model section).
+"""Model benchmark behind docs/benchmarks-model.md (per-stage latency).
 
 Runs, in one process: (1) inference per stage for the tiny preset with all three heads (FastOcc head vs
 3D FCN vs deconv on the same image features and V_B); (2) nano forward + backward per sample.

@@ -1,5 +1,8 @@
 """What the scene-sequential training plan costs in samples (docs/data.md).
 
+Research: the figures behind the choice of the equal-lanes plan (docs/data.md). Indexed in
+benchmarks/README.md.
+
     python -m benchmarks.bench_plan
 
 6 scenes of unequal length (40, 35, 30, 25, 20, 12 samples), 2 and 3 ranks, batch 1 and 2 per rank,

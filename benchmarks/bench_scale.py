@@ -6,7 +6,7 @@ depth maps, kept in `--world` for a rerun; plus ~5 min for `--profile`'s profile
 
     python -m benchmarks.bench_scale --world /tmp/bench_scale_world --synth-scenes 6 --synth-samples 240 \\
         --synth-seed 91 --block-samples 24 --lidar-sweeps 9 --rounds 2 --profile /tmp/bench_scale_profile \\
-        --json docs/bench_scale_issue33.json
+        --json docs/results/bench_scale_240kf.json
 
     python -m benchmarks.bench_scale --root TREE --gts TREE/gts ...  # an existing nuScenes-format tree
     python -m benchmarks.bench_scale --bytes-only --synth-samples 8 --block-samples 4 --lidar-sweeps 2

@@ -5,7 +5,7 @@
     # 2. val mIoU of every checkpoint of runs (snap_*.pt, epoch_*.pt, last.pt), with the shared evaluation;
     #    a run trained with noise_images = true is scored with noise images too; PNG of loss and mIoU
     python -m benchmarks.bench_train curve --store data.zarr --run runs/img --run runs/noise \\
-        --baseline baseline.json --png docs/train_curve.png --json curve.json
+        --baseline baseline.json --png docs/img/train_curve.png --json curve.json
 
 The metric code is the project's (`occdata.eval.metrics`, `fastocc.infer.score`); nothing is re-implemented.
 """

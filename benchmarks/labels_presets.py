@@ -1,7 +1,7 @@
 """One picture per label grid preset on the real scene-0916 (issue 32, docs/labels.md "Grids").
 
     python -m benchmarks.labels_presets [--root ../shared/data/nuscenes-real-seq] [--keyframe 20] \
-        [--pictures docs] [--json docs/labels_presets.json]
+        [--pictures docs/img] [--json docs/results/labels_presets.json]
 
 Runs `occdata labels` once with all four presets (`--grid occ3d --grid openocc-v2 --grid surroundocc
 --grid openoccupancy`, one aggregation) into a temporary folder (the real data stays outside the
@@ -69,7 +69,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--root", type=Path, default=SHARED_DATA / "nuscenes-real-seq")
     ap.add_argument("--keyframe", type=int, default=20)
-    ap.add_argument("--pictures", type=Path, default=Path("docs"))
+    ap.add_argument("--pictures", type=Path, default=Path("docs/img"))
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
     site = _site(a.root, a.keyframe)

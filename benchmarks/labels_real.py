@@ -1,7 +1,7 @@
 """`occdata labels` on the real scene-0916 (keyframes, boxes, no lidarseg, no sweep files): the
 moving-object figure (ours vs the global-aggregation control) and pictures of the generated labels.
 
-    python -m benchmarks.labels_real [--root ../shared/data/nuscenes-real-seq] [--pictures docs] [--json out.json]
+    python -m benchmarks.labels_real [--root ../shared/data/nuscenes-real-seq] [--pictures docs/img] [--json out.json]
 
 The real data stays outside the repository: labels go to a temporary folder; only the pictures
 (renderings of the generated labels, without the camera images) and the figures are written.

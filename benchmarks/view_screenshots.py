@@ -1,6 +1,6 @@
 """Screenshots of `occdata view` in headless Chromium for docs/view.md, on any store (the demo's):
 
-    python -m benchmarks.view_screenshots --store demo/data.zarr --pred demo/pred --split val --out docs/view
+    python -m benchmarks.view_screenshots --store demo/data.zarr --pred demo/pred --split val --out docs/img/view
 
 One viewer per view (`--view label | side | error`, the side view with the camera mask, the LiDAR
 layer on), each started on 127.0.0.1 with `--port 0`, shot once two screenshots in a row agree (the

@@ -1,5 +1,8 @@
 """Which camera-visibility definition reproduces Occ3D's `mask_camera`? Every variant tried, scored.
 
+Research: the search that chose the mask definition (docs/visibility.md); the product's masks are
+`occdata.visibility`. Kept to rerun the comparison; indexed in benchmarks/README.md.
+
 Input: the real Occ3D label (`semantics`, `mask_lidar`, `mask_camera`) and the camera rig of the real
 nuScenes keyframe (nominal calibration: the label's sample is unknown, the cameras are rigid on
 the car). Each variant predicts a camera mask from the label's semantics (+ mask_lidar where it says

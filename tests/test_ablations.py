@@ -128,9 +128,10 @@ def test_tables_command_writes_markdown_and_pngs(tmp_path: Path) -> None:
     res.write_text(json.dumps(_fake_results()))
     ab.tables(res, tmp_path / "ab.md", epochs=6)
     assert (tmp_path / "ab.md").read_text() == ab.render_markdown(
-        _fake_results(), 6, {"head": "ab_head.png", "components": "ab_components.png",
-                             "resolution": "ab_resolution.png"})
-    assert (tmp_path / "ab_head.png").stat().st_size > 1000 and not (tmp_path / "ab_history.png").exists()
+        _fake_results(), 6, {"head": "img/ab_head.png", "components": "img/ab_components.png",
+                             "resolution": "img/ab_resolution.png"})  # pictures beside the page, in img/
+    img = tmp_path / "img"
+    assert (img / "ab_head.png").stat().st_size > 1000 and not (img / "ab_history.png").exists()
 
 
 def test_status_lanes_run_every_missing_run_once_two_at_a_time(tmp_path: Path) -> None:

@@ -1,6 +1,6 @@
 """`occdata visibility-check` on the real Occ3D label with the real fixture's camera rig (docs/visibility.md).
 
-The figures are the ones reported in docs/visibility.md and docs/benchmarks.md: the test fails if the
+The figures are the ones reported in docs/visibility.md and docs/benchmarks-labels.md: the test fails if the
 definition regresses (or silently changes)."""
 
 from __future__ import annotations
