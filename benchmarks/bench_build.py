@@ -24,8 +24,8 @@ import numpy as np
 
 from benchmarks.common import SHARED_DATA, emit_json
 from benchmarks.provenance import REPO, machine
+from occdata.formats.occ3d import read_label
 from occdata.nuscenes import load_lidar_points, load_nuscenes
-from occdata.occ3d import read_label
 from occdata.sensors.jpeg_check import decode_jpeg_checked
 from occdata.sensors.projection import project_to_cameras
 from occdata.store.bev import bev_bits

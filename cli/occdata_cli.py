@@ -18,7 +18,7 @@ from cli.options import (
     root_options,
     store_option,
 )
-from occdata.grids import GRID_NAMES, GridSpec, grids_from_options
+from occdata.formats.gridspec import GRID_NAMES, GridSpec, grids_from_options
 
 if TYPE_CHECKING:
     from occdata.runtime.cluster import ClusterConfig

@@ -13,11 +13,10 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = {"occdata", "constants", "errors", "geometry", "fileio", "occ3d", "grids", "gridfiles"}
+SHARED = {"occdata", "constants", "errors", "geometry", "fileio", "formats"}
 # What each occdata stage may import besides the shared modules (and itself).
 ALLOWED: dict[str, set[str]] = {
-    "constants": set(), "errors": set(), "geometry": set(), "fileio": set(), "occ3d": set(), "grids": set(),
-    "gridfiles": set(),
+    "constants": set(), "errors": set(), "geometry": set(), "fileio": set(), "formats": set(),
     "nuscenes": set(),
     "sensors": set(),
     "runtime": set(),

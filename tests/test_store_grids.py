@@ -16,8 +16,8 @@ from click.testing import CliRunner
 from cli.occdata_cli import main as occdata_main
 from occdata.constants import FREE_LABEL
 from occdata.errors import OccDataError
-from occdata.gridfiles import LabelSite, grid_label_path, read_grid_label, to_occ3d_ids
-from occdata.grids import GRID_PRESETS, custom_grid, grid_preset
+from occdata.formats.gridfiles import LabelSite, grid_label_path, read_grid_label, to_occ3d_ids
+from occdata.formats.gridspec import GRID_PRESETS, custom_grid, grid_preset
 from occdata.store.build import BuildConfig, build_store
 from occdata.store.reader import open_store
 

@@ -26,7 +26,7 @@ from fastocc.model.config import ModelConfig
 from fastocc.storegrid import check_store_grid
 from occdata.errors import OccDataError
 from occdata.fileio import write_atomic
-from occdata.occ3d import label_path, write_label
+from occdata.formats.occ3d import label_path, write_label
 from occdata.store.reader import StoreReader, open_store
 from occdata.view.render import prediction_picture
 

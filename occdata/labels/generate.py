@@ -1,10 +1,10 @@
 """`occdata labels`: occupancy labels for every scene of a nuScenes-format tree, on one or more grids.
 
-Output per grid (`occdata.grids`; one aggregation per scene serves them all): the Occ3D grid in
+Output per grid (`occdata.formats.gridspec`; one aggregation per scene serves them all): the Occ3D grid in
 `<out>/<scene>/<sample_token>/labels.npz` (`semantics`, `mask_lidar`, `mask_camera`, uint8
 (200, 200, 16), 17 = free), exactly Occ3D's layout, so `occdata build --gts <out>` and every peer
 codebase read it; every other grid in `<out>/<grid name>/` in its benchmark's own layout
-(`occdata.gridfiles`). A scene is one task: its files are written atomically, then its record
+(`occdata.formats.gridfiles`). A scene is one task: its files are written atomically, then its record
 `<out>/.scenes/<scene>.json` (the scene is finished only once that exists), and at the end the
 manifest `<out>/labels.json` is assembled from the records (idempotent). `--resume` skips scenes
 with a record. The same input gives byte-identical files.
@@ -24,8 +24,8 @@ from typing import Any
 from occdata.constants import CLASS_NAMES
 from occdata.errors import OccDataError
 from occdata.fileio import remove_stale_temps, write_atomic
-from occdata.gridfiles import LAYOUT_FILES, LabelSite, write_grid_label
-from occdata.grids import GRID_PRESETS, GridSpec, LabelLayout
+from occdata.formats.gridfiles import LAYOUT_FILES, LabelSite, write_grid_label
+from occdata.formats.gridspec import GRID_PRESETS, GridSpec, LabelLayout
 from occdata.labels.scene import LabelOptions, SceneInputs, label_scene
 from occdata.nuscenes import NuScenesDataset, SampleRecord, find_version, load_nuscenes, validate_sample
 from occdata.nuscenes.annotations import load_annotations

@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from occdata.constants import EGO_BOX, FREE_LABEL, NUM_CLASSES, OccGrid
+from occdata.formats.gridspec import GRID_PRESETS, GridSpec, LabelFrame
 from occdata.geometry import invert_rigid, transform_points
-from occdata.grids import GRID_PRESETS, GridSpec, LabelFrame
 from occdata.labels.densify import densify
 from occdata.labels.kernels import NO_LABEL, NearestIndex, majority, points_in_boxes, vote_sources, vote_voxels
 from occdata.nuscenes import LidarRecord, NuScenesDataset, SampleRecord, SceneRecord, load_lidar_points

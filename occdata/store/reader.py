@@ -12,7 +12,7 @@ import numpy as np
 import zarr
 
 from occdata.errors import OccDataError
-from occdata.grids import GridSpec
+from occdata.formats.gridspec import GridSpec
 from occdata.store.grid import store_grid
 from occdata.store.integrity import CorruptStoreError, StoreIntegrity
 from occdata.store.layout import (

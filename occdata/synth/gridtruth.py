@@ -1,4 +1,4 @@
-"""The synthetic world's truth on any label grid (`occdata.grids.GridSpec`), in the grid's own frame.
+"""The synthetic world's truth on any label grid (`occdata.formats.gridspec.GridSpec`), in the grid's own frame.
 
 `world_semantics` (occdata.synth.labels) voxelises the world in a frame related to global by a yaw
 alone, the key ego of the Occ3D grid. A LiDAR-frame grid (SurroundOcc, OpenOccupancy) is tilted
