@@ -185,7 +185,7 @@ def _jpeg_check(s: Any, repeats: int) -> dict[str, float]:
 
 def _visibility(store: Path) -> dict[str, Any]:
     """Visibility recompute (camera + LiDAR masks by ray casting) of a built store, timed warm."""
-    from occdata.store.visibility_cmd import compute_visibility
+    from occdata.store.commands.visibility import compute_visibility
 
     compute_visibility(store, recompute=True, progress=False)  # numba compile
     vis = compute_visibility(store, recompute=True, progress=False)

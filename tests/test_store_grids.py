@@ -202,7 +202,7 @@ def test_fastocc_stops_at_start_on_a_store_of_another_grid(name: str, words: str
 def test_visibility_follows_a_key_ego_grid_and_refuses_a_lidar_one(stores: dict[str, Path], tmp_path: Path) -> None:
     import shutil
 
-    from occdata.store.visibility_cmd import compute_visibility
+    from occdata.store.commands.visibility import compute_visibility
 
     key, lidar = tmp_path / "key.zarr", tmp_path / "lidar.zarr"
     shutil.copytree(stores[OCC_08.name], key)

@@ -19,7 +19,7 @@ from occdata.nuscenes import LidarRecord, NuScenesDataset, load_nuscenes
 from occdata.nuscenes.reader import confined_path
 from occdata.store.blocks import SampleInput
 from occdata.store.config import BuildConfig
-from occdata.store.grid import is_default_grid
+from occdata.store.labelgrid import is_default_grid
 from occdata.store.sample import static_arrays, temporal_indices
 
 __all__ = ["BuildInputs", "check_sweep_files", "find_grid_label_files", "find_label_files", "label_format",
