@@ -15,11 +15,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from reference.eval_rayiou import march_reference
 from test_metrics import _random_dirs, _random_scene  # the same random scenes as the RayIoU kernel test
 
 from occdata.constants import CLASS_NAMES, FREE_LABEL, GRID, OccGrid
 from occdata.eval.flow import MOVING_CLASSES, RayFlowAccumulator, first_hit_voxels, occ_score
-from occdata.eval.rayiou import RayIoUAccumulator, first_hits, march_reference
+from occdata.eval.rayiou import RayIoUAccumulator, first_hits
 from occdata.formats.gridspec import GRID_PRESETS
 from occdata.formats.occ3d import openocc_to_occ3d
 

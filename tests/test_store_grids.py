@@ -82,7 +82,7 @@ def test_sparse_lidar_grid_store_holds_the_files_rows_in_our_ids(world: Path, st
 def test_key_ego_grid_store_holds_the_files_labels_and_masks(world: Path, stores: dict[str, Path]) -> None:
     r = open_store(stores[OCC_08.name])
     assert r.grid == OCC_08 and r.grid_shape == (100, 100, 8)
-    from occdata.store.bev import bev_bits_reference
+    from reference.store_bev import bev_bits_reference
 
     for i, site in _sites(r):
         a = r.sample_arrays(i)

@@ -7,11 +7,12 @@ import math
 
 import numpy as np
 import pytest
+from reference.synth_gridtruth import voxelize_tilted_reference
 
 from occdata.constants import FREE_LABEL, GRID, OccGrid
 from occdata.formats.gridspec import GRID_PRESETS
 from occdata.geometry import transform_points
-from occdata.synth.gridtruth import grid_semantics, level_frame, voxelize_tilted, voxelize_tilted_reference
+from occdata.synth.gridtruth import grid_semantics, level_frame, voxelize_tilted
 from occdata.synth.labels import CLASS_PRIORITY, world_semantics
 from occdata.synth.pipeline import ego_transform, keyframe_times, scene_world
 from occdata.synth.rig import RIG
