@@ -24,8 +24,8 @@ import numpy as np
 
 from benchmarks.common import SHARED_DATA, emit_json
 from benchmarks.provenance import REPO, machine
+from occdata.formats.occ3d import read_label
 from occdata.nuscenes import load_lidar_points, load_nuscenes
-from occdata.occ3d import read_label
 from occdata.sensors.jpeg_check import decode_jpeg_checked
 from occdata.sensors.projection import project_to_cameras
 from occdata.store.bev import bev_bits
@@ -185,7 +185,7 @@ def _jpeg_check(s: Any, repeats: int) -> dict[str, float]:
 
 def _visibility(store: Path) -> dict[str, Any]:
     """Visibility recompute (camera + LiDAR masks by ray casting) of a built store, timed warm."""
-    from occdata.store.visibility_cmd import compute_visibility
+    from occdata.store.commands.visibility import compute_visibility
 
     compute_visibility(store, recompute=True, progress=False)  # numba compile
     vis = compute_visibility(store, recompute=True, progress=False)

@@ -28,10 +28,10 @@ from occdata.constants import FREE_LABEL
 from occdata.nuscenes import load_nuscenes
 from occdata.sensors.depth_targets import DEPTH_MAX, DEPTH_MIN, depth_target
 from occdata.store.build import BuildConfig, build_store
+from occdata.store.commands.visibility import compute_visibility
 from occdata.store.layout import token_str
 from occdata.store.reader import open_store
 from occdata.store.sample import SampleOptions, depth_points
-from occdata.store.visibility_cmd import compute_visibility
 from occdata.synth import SynthConfig, pipeline, synthesize
 
 __all__ = ["build", "depth_figures", "free_coverage", "synth_world"]

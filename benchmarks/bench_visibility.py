@@ -27,9 +27,9 @@ from benchmarks.common import OCC3D_LABEL as LABEL  # noqa: E402
 from benchmarks.common import REAL_NUSCENES as ROOT  # noqa: E402
 from benchmarks.provenance import machine  # noqa: E402
 from occdata.constants import GRID  # noqa: E402
+from occdata.formats.occ3d import read_label  # noqa: E402
 from occdata.geometry import transform_points  # noqa: E402
 from occdata.nuscenes.reader import load_lidar_points, load_nuscenes  # noqa: E402
-from occdata.occ3d import read_label  # noqa: E402
 from occdata.visibility import camera_mask, lidar_mask, object_voxels  # noqa: E402
 from occdata.visibility.check import rig_of_sample  # noqa: E402
 

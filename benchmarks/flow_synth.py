@@ -20,12 +20,12 @@ from typing import Any
 import numpy as np
 
 from occdata.constants import FREE_LABEL, GRID
+from occdata.formats.gridfiles import LabelSite, write_grid_label
+from occdata.formats.gridspec import GRID_PRESETS
+from occdata.formats.occ3d import label_path, read_label
 from occdata.geometry import invert_rigid
-from occdata.gridfiles import LabelSite, write_grid_label
-from occdata.grids import GRID_PRESETS
 from occdata.labels import LabelOptions, LabelsConfig, generate_labels
 from occdata.nuscenes import load_nuscenes
-from occdata.occ3d import label_path, read_label
 from occdata.synth import SynthConfig, synthesize
 from occdata.synth.annotations import object_velocities
 from occdata.synth.labels import CLASS_PRIORITY, primitives_to_frame, voxelize_primitives

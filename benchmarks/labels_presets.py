@@ -6,7 +6,7 @@
 Runs `occdata labels` once with all four presets (`--grid occ3d --grid openocc-v2 --grid surroundocc
 --grid openoccupancy`, one aggregation) into a temporary folder (the real data stays outside the
 repository), reads keyframe `--keyframe` of each grid back the way its benchmark's loader does
-(`occdata.gridfiles.read_grid_label`), maps its ids back to our classes for the colours, and draws
+(`occdata.formats.gridfiles.read_grid_label`), maps its ids back to our classes for the colours, and draws
 each grid as it lies in its own frame: a 3D view and a top view (x up, y left, as the grid's axes;
 the LiDAR-frame grids therefore appear turned: LIDAR_TOP's x points to the car's right). Writes
 `labels_presets_kNN.png` and, with `--json`, the occupied-voxel counts per grid and class.
@@ -27,8 +27,8 @@ import numpy as np
 from benchmarks.common import SHARED_DATA, write_json
 from benchmarks.provenance import REPO, machine
 from occdata.constants import CLASS_NAMES, FREE_LABEL
-from occdata.gridfiles import LabelSite, grid_label_path, read_grid_label, to_occ3d_ids
-from occdata.grids import GRID_PRESETS, GridSpec, LabelFrame
+from occdata.formats.gridfiles import LabelSite, grid_label_path, read_grid_label, to_occ3d_ids
+from occdata.formats.gridspec import GRID_PRESETS, GridSpec, LabelFrame
 from occdata.nuscenes import load_nuscenes
 from occdata.view.render import View, bev_top_view, class_legend, render_voxels
 

@@ -28,7 +28,7 @@ from benchmarks.common import OCC3D_LABEL as LABEL
 from benchmarks.common import REAL_NUSCENES as ROOT
 from benchmarks.provenance import machine
 from occdata.constants import FREE_LABEL, GRID
-from occdata.occ3d import read_label
+from occdata.formats.occ3d import read_label
 from occdata.sensors.raycast import segment_advance, segment_setup
 from occdata.visibility import GROUND_CLASSES, camera_mask
 from occdata.visibility.check import rig_of_sample

@@ -19,7 +19,7 @@ from cli.options import (
     root_options,
     store_option,
 )
-from occdata.grids import GRID_NAMES, GridSpec, grids_from_options
+from occdata.formats.gridspec import GRID_NAMES, GridSpec, grids_from_options
 
 if TYPE_CHECKING:
     from occdata.nuscenes.rig import RigChoice
@@ -275,7 +275,7 @@ def bev_gt(store: str, progress: bool) -> None:
     One uint32 bit field per BEV cell (bit c: class c occurs in the column; bit 17 = free).
     `occdata build` already runs this when labels exist.
     """
-    from occdata.store.bevgt import compute_bev_gt
+    from occdata.store.commands.bev_gt import compute_bev_gt
     from occdata.store.reader import open_store
 
     open_store(store)  # validates the schema first
@@ -304,7 +304,7 @@ def visibility(store: str, recompute: bool, lidar_sweeps: int | None, root: str 
     sees with at most 7 object voxels before it on the ray. Stored as visibility/camera and
     visibility/lidar; only labelled samples are processed.
     """
-    from occdata.store.visibility_cmd import compute_visibility
+    from occdata.store.commands.visibility import compute_visibility
 
     report = compute_visibility(store, recompute=recompute, progress=progress, lidar_sweeps=lidar_sweeps,
                                 root=local_path(root, "--root") if root is not None else None)
@@ -385,7 +385,7 @@ def _one_grid(name: str | None, voxel_size: float | None, grid_range: tuple[floa
 def info(store: str, as_json: bool) -> None:
     """Samples, scenes, arrays (shapes, dtypes, chunks), attrs and recorded errors of a store."""
     from occdata.nuscenes.rig import describe_rig
-    from occdata.store.inspect import store_info
+    from occdata.store.commands.info import store_info
     from occdata.store.reader import open_store
 
     summary = store_info(open_store(store))
@@ -429,15 +429,15 @@ def verify(store: str, progress: bool, images: bool) -> None:
     """
     from tqdm import tqdm
 
+    from occdata.store.commands.verify import pending_samples, verify_store
     from occdata.store.reader import open_store
-    from occdata.store.verify import pending_samples, verify_store
 
     reader = open_store(store)
     with tqdm(total=reader.n_samples, desc="verify", unit="sample", disable=not progress) as bar:
         problems = verify_store(reader, progress=bar.update)
     pending = pending_samples(reader)
     if images:
-        from occdata.store.verify_images import verify_images
+        from occdata.store.commands.verify_images import verify_images
 
         with tqdm(total=len(reader.done_indices()), desc="images", unit="sample", disable=not progress) as bar:
             problems += verify_images(reader, progress=bar.update)
@@ -549,7 +549,7 @@ def dump(store: str, index: int, out: str) -> None:
     mask_lidar, mask_camera, bev (18,200,200) when labelled; visibility_camera/lidar when computed;
     prev_index, prev_valid; token; timestamp; camera_order.
     """
-    from occdata.store.inspect import dump_sample
+    from occdata.store.commands.info import dump_sample
     from occdata.store.reader import open_store
 
     keys = dump_sample(open_store(store), index, local_path(out, "--out"))
@@ -563,7 +563,7 @@ def dump(store: str, index: int, out: str) -> None:
 @friendly_errors
 def check_projection(store: str, index: int, out: str) -> None:
     """Draw the stored LiDAR depth targets on the 6 images (coloured by depth) into one PNG."""
-    from occdata.store.draw import draw_projection
+    from occdata.store.commands.check_projection import draw_projection
     from occdata.store.reader import open_store
 
     click.echo(str(draw_projection(open_store(store), index, local_path(out, "--out"))))

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from fastocc.model.config import ModelConfig
 from occdata.errors import OccDataError
-from occdata.grids import LabelFrame
+from occdata.formats.gridspec import LabelFrame
 from occdata.store.reader import StoreReader, open_store
 
 __all__ = ["check_store_grid"]

@@ -4,16 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from reference.sensors_depth_targets import depth_target_reference, min_pool_depth_reference, rasterise_depth_reference
+from reference.sensors_image_ops import normalise_chw_reference
 
-from occdata.sensors.depth_targets import (
-    depth_target,
-    depth_target_reference,
-    min_pool_depth,
-    min_pool_depth_reference,
-    rasterise_depth,
-    rasterise_depth_reference,
-)
-from occdata.sensors.image_ops import normalise_chw, normalise_chw_reference, normalise_lut
+from occdata.sensors.depth_targets import depth_target, min_pool_depth, rasterise_depth
+from occdata.sensors.image_ops import normalise_chw, normalise_lut
 
 
 def _random_A(rng: np.random.Generator) -> np.ndarray:

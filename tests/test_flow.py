@@ -18,8 +18,8 @@ import pytest
 from conftest import REAL_SEQ, missing_fixture
 
 from occdata.constants import FREE_LABEL, NUM_CLASSES
+from occdata.formats.gridspec import GRID_PRESETS
 from occdata.geometry import invert_rigid, points_in_box, transform_points
-from occdata.grids import GRID_PRESETS
 from occdata.labels.kernels import majority, vote_sources
 from occdata.labels.scene import LabelOptions, _flow, _held_static, box_class, label_scene
 from occdata.nuscenes.annotations import Annotations, BoxRecord, box_velocity, load_annotations

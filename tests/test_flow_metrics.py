@@ -15,13 +15,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from reference.eval_rayiou import march_reference
 from test_metrics import _random_dirs, _random_scene  # the same random scenes as the RayIoU kernel test
 
 from occdata.constants import CLASS_NAMES, FREE_LABEL, GRID, OccGrid
 from occdata.eval.flow import MOVING_CLASSES, RayFlowAccumulator, first_hit_voxels, occ_score
-from occdata.eval.rayiou import RayIoUAccumulator, first_hits, march_reference
-from occdata.grids import GRID_PRESETS
-from occdata.occ3d import openocc_to_occ3d
+from occdata.eval.rayiou import RayIoUAccumulator, first_hits
+from occdata.formats.gridspec import GRID_PRESETS
+from occdata.formats.occ3d import openocc_to_occ3d
 
 F = FREE_LABEL
 CAR, PED, MANMADE = CLASS_NAMES.index("car"), CLASS_NAMES.index("pedestrian"), CLASS_NAMES.index("manmade")

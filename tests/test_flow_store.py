@@ -17,13 +17,13 @@ from click.testing import CliRunner
 
 from cli.occdata_cli import main
 from occdata.errors import OccDataError
-from occdata.grids import GRID_PRESETS
+from occdata.formats.gridspec import GRID_PRESETS
+from occdata.formats.occ3d import openocc_to_occ3d, read_label, read_openocc_v2_label
 from occdata.labels import LabelOptions, LabelsConfig, generate_labels
-from occdata.occ3d import openocc_to_occ3d, read_label, read_openocc_v2_label
 from occdata.store.build import BuildConfig, build_store
-from occdata.store.inspect import dump_sample, store_info
+from occdata.store.commands.info import dump_sample, store_info
+from occdata.store.commands.verify import verify_store
 from occdata.store.reader import open_store
-from occdata.store.verify import verify_store
 
 # The checksum columns of every store built before flow existed (schema 2): they must not move.
 PRE_FLOW_CHECKSUM_ARRAYS = [

@@ -14,9 +14,9 @@ from click.testing import CliRunner
 from cli.occdata_cli import main
 from occdata.constants import CLASS_NAMES, FREE_LABEL
 from occdata.errors import OccDataError
+from occdata.formats.gridfiles import LabelSite, grid_label_path, read_grid_label, write_grid_label
+from occdata.formats.gridspec import GRID_PRESETS, custom_grid, grids_from_options
 from occdata.geometry import invert_rigid, transform_points
-from occdata.gridfiles import LabelSite, grid_label_path, read_grid_label, write_grid_label
-from occdata.grids import GRID_PRESETS, custom_grid, grids_from_options
 
 SITE = LabelSite("scene-0001", "sc0tok", "smp0tok", "lid0tok", "n008__LIDAR_TOP__1537297541450317.pcd.bin")
 CAR, OTHERS, ROAD = CLASS_NAMES.index("car"), CLASS_NAMES.index("others"), CLASS_NAMES.index("driveable_surface")

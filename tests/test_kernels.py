@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+from reference.sensors_projection import project_to_cameras_reference
+from reference.store_bev import bev_bits_reference
 
 from occdata.geometry import invert_rigid, transform_from_pose
-from occdata.sensors.projection import project_lidar_to_image, project_to_cameras, project_to_cameras_reference
-from occdata.store.bev import bev_bits, bev_bits_reference, unpack_bev
+from occdata.sensors.projection import project_lidar_to_image, project_to_cameras
+from occdata.store.bev import bev_bits, unpack_bev
 
 
 def _random_rig(rng: np.random.Generator, n_cam: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

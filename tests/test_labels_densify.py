@@ -5,19 +5,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from occdata.constants import FREE_LABEL
-from occdata.labels.densify import (
-    close_holes,
+from reference.labels_densify import (
     close_holes_reference,
-    densify,
-    fill_behind,
     fill_behind_reference,
-    fill_boxes,
     fill_boxes_reference,
-    seen_free,
     seen_free_reference,
 )
+
+from occdata.constants import FREE_LABEL
+from occdata.labels.densify import close_holes, densify, fill_behind, fill_boxes, seen_free
 
 F = FREE_LABEL
 LOWER = np.zeros(3)

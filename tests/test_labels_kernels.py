@@ -3,17 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+from reference.labels_kernels import nearest_labels_reference, points_in_boxes_reference, vote_voxels_reference
 
-from occdata.labels.kernels import (
-    NO_LABEL,
-    majority,
-    nearest_labels,
-    nearest_labels_reference,
-    points_in_boxes,
-    points_in_boxes_reference,
-    vote_voxels,
-    vote_voxels_reference,
-)
+from occdata.labels.kernels import NO_LABEL, majority, nearest_labels, points_in_boxes, vote_voxels
 
 
 def _box(cx: float, cy: float, cz: float, yaw: float) -> np.ndarray:

@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from reference.eval_miou import confusion_matrix_reference
+from reference.eval_rayiou import first_hits_reference
 
 from occdata.constants import FREE_LABEL, GRID, OccGrid
 from occdata.errors import OccDataError
@@ -13,9 +15,7 @@ from occdata.eval.metrics import (
     MIoUAccumulator,
     RayIoUAccumulator,
     confusion_matrix,
-    confusion_matrix_reference,
     first_hits,
-    first_hits_reference,
     lidar_ray_directions,
     ray_counts,
     ray_origins_keyego,

@@ -1,4 +1,4 @@
-"""occdata.occ3d: the one reader/writer of Occ3D label files, against the real label and bad files."""
+"""occdata.formats.occ3d: the one reader/writer of Occ3D label files, against the real label and bad files."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from occdata.errors import OccDataError
-from occdata.occ3d import label_path, list_label_files, read_label, read_prediction, write_label
+from occdata.formats.occ3d import label_path, list_label_files, read_label, read_prediction, write_label
 
 
 def test_real_occ3d_label_reads_with_its_masks(real_occ3d_label: Path) -> None:

@@ -6,17 +6,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 import torch.nn.functional as F
+from reference.model_sampling_kernels import bag_backward_numpy, bag_forward_numpy, bilinear_pairs_numpy
 
 from fastocc.model.inputs import synthetic_inputs
 from fastocc.model.interp import InterpolationSampler
-from fastocc.model.sampling_kernels import (
-    bag_backward,
-    bag_backward_numpy,
-    bag_forward,
-    bag_forward_numpy,
-    bilinear_pairs,
-    bilinear_pairs_numpy,
-)
+from fastocc.model.sampling_kernels import bag_backward, bag_forward, bilinear_pairs
 from occdata.constants import GRID
 
 HW, STRIDE = (96, 256), 16

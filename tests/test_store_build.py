@@ -18,12 +18,13 @@ import zarr
 from click.testing import CliRunner
 from gates import gated_tree
 from proc_tools import wait_for
+from reference.store_bev import bev_bits_reference
 from replicated_tree import make_replicated_tree
 from test_nuscenes_reader import DEVKIT_COUNTS
 
 from cli.occdata_cli import main
 from occdata.runtime.cluster import ClusterConfig
-from occdata.store.bev import bev_bits_reference, unpack_bev
+from occdata.store.bev import unpack_bev
 from occdata.store.build import BuildConfig, build_store
 from occdata.store.integrity import StoreIntegrity
 from occdata.store.layout import FLAT_ARRAYS, STATE_DONE

@@ -16,8 +16,8 @@ from click.testing import CliRunner
 from cli.occdata_cli import main as occdata_main
 from occdata.constants import FREE_LABEL
 from occdata.errors import OccDataError
-from occdata.gridfiles import LabelSite, grid_label_path, read_grid_label, to_occ3d_ids
-from occdata.grids import GRID_PRESETS, custom_grid, grid_preset
+from occdata.formats.gridfiles import LabelSite, grid_label_path, read_grid_label, to_occ3d_ids
+from occdata.formats.gridspec import GRID_PRESETS, custom_grid, grid_preset
 from occdata.store.build import BuildConfig, build_store
 from occdata.store.reader import open_store
 
@@ -82,7 +82,7 @@ def test_sparse_lidar_grid_store_holds_the_files_rows_in_our_ids(world: Path, st
 def test_key_ego_grid_store_holds_the_files_labels_and_masks(world: Path, stores: dict[str, Path]) -> None:
     r = open_store(stores[OCC_08.name])
     assert r.grid == OCC_08 and r.grid_shape == (100, 100, 8)
-    from occdata.store.bev import bev_bits_reference
+    from reference.store_bev import bev_bits_reference
 
     for i, site in _sites(r):
         a = r.sample_arrays(i)
@@ -202,7 +202,7 @@ def test_fastocc_stops_at_start_on_a_store_of_another_grid(name: str, words: str
 def test_visibility_follows_a_key_ego_grid_and_refuses_a_lidar_one(stores: dict[str, Path], tmp_path: Path) -> None:
     import shutil
 
-    from occdata.store.visibility_cmd import compute_visibility
+    from occdata.store.commands.visibility import compute_visibility
 
     key, lidar = tmp_path / "key.zarr", tmp_path / "lidar.zarr"
     shutil.copytree(stores[OCC_08.name], key)

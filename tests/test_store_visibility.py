@@ -14,7 +14,7 @@ from click.testing import CliRunner
 
 from cli.occdata_cli import main
 from occdata.store.build import BuildConfig, build_store
-from occdata.store.visibility_cmd import compute_visibility
+from occdata.store.commands.visibility import compute_visibility
 
 
 def _cli(*args: str) -> tuple[int, str]:

@@ -7,11 +7,12 @@ import math
 
 import numpy as np
 import pytest
+from reference.synth_gridtruth import voxelize_tilted_reference
 
 from occdata.constants import FREE_LABEL, GRID, OccGrid
+from occdata.formats.gridspec import GRID_PRESETS
 from occdata.geometry import transform_points
-from occdata.grids import GRID_PRESETS
-from occdata.synth.gridtruth import grid_semantics, level_frame, voxelize_tilted, voxelize_tilted_reference
+from occdata.synth.gridtruth import grid_semantics, level_frame, voxelize_tilted
 from occdata.synth.labels import CLASS_PRIORITY, world_semantics
 from occdata.synth.pipeline import ego_transform, keyframe_times, scene_world
 from occdata.synth.rig import RIG
@@ -119,9 +120,9 @@ def test_synth_writes_the_truth_on_every_preset(tmp_path) -> None:
     from click.testing import CliRunner
 
     from cli.occdata_cli import main
-    from occdata.gridfiles import LabelSite, grid_label_path, read_grid_label
+    from occdata.formats.gridfiles import LabelSite, grid_label_path, read_grid_label
+    from occdata.formats.occ3d import read_label
     from occdata.nuscenes import load_nuscenes
-    from occdata.occ3d import read_label
 
     args = ["synth", "--scenes", "1", "--samples", "2", "--seed", "2", "--width", "64", "--height", "36",
             "--no-progress"]

@@ -4,9 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from reference.synth_labels import voxelize_primitives_reference
+from reference.synth_render import (
+    build_cell_grid_reference,
+    cast_rays_reference,
+    hit_normals_reference,
+    render_camera_reference,
+)
 
 from occdata.synth import render
-from occdata.synth.labels import CLASS_PRIORITY, voxelize_primitives, voxelize_primitives_reference
+from occdata.synth.labels import CLASS_PRIORITY, voxelize_primitives
 
 
 def _random_prims(rng: np.random.Generator, n: int, extent: float = 30.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -32,7 +39,7 @@ def test_build_cell_grid_matches_reference(seed: int) -> None:
     rng = np.random.default_rng(seed)
     params, _, _ = _random_prims(rng, 40)
     for got, ref in zip(render.build_cell_grid(params, -40.0, -40.0, 7.0, 12, 11),
-                        render.build_cell_grid_reference(params, -40.0, -40.0, 7.0, 12, 11), strict=True):
+                        build_cell_grid_reference(params, -40.0, -40.0, 7.0, 12, 11), strict=True):
         np.testing.assert_array_equal(got, ref)
 
 
@@ -59,12 +66,12 @@ def test_cast_rays_matches_brute_force(seed: int) -> None:
     x0, y0, cell, nx, ny, cs, items, ztop = _grid(params, 4.0)
     z_top = params[:, 8].max() + 0.01
     t, hit = render.cast_rays(origin, dirs, 60.0, params, cs, items, ztop, x0, y0, cell, nx, ny, z_top)
-    t_ref, hit_ref = render.cast_rays_reference(origin, dirs, 60.0, params)
+    t_ref, hit_ref = cast_rays_reference(origin, dirs, 60.0, params)
     assert (hit >= 0).sum() > 200 and (hit == render.HIT_GROUND).sum() > 100 and (hit == render.HIT_NONE).sum() > 50
     np.testing.assert_array_equal(hit, hit_ref)
     np.testing.assert_allclose(t, t_ref, rtol=1e-9, atol=1e-9)
     n = render.hit_normals(origin, dirs, t, hit, params)
-    np.testing.assert_allclose(n, render.hit_normals_reference(origin, dirs, t, hit, params), atol=1e-6)
+    np.testing.assert_allclose(n, hit_normals_reference(origin, dirs, t, hit, params), atol=1e-6)
     assert np.allclose(np.linalg.norm(n[hit != render.HIT_NONE], axis=1), 1.0, atol=1e-5)
     # Normals face the incoming ray.
     assert (np.einsum("ij,ij->i", n[hit >= 0], dirs[hit >= 0]) < 1e-6).all()
@@ -93,7 +100,7 @@ def test_render_camera_kernel_matches_reference(seed: int) -> None:
     rgb, depth = render.render_camera_kernel(np.linalg.inv(K), R, origin, 64, 36, 80.0, params, cs, items, ztop,
                                              x0, y0, cell, nx, ny, 30.0, cls, style, codes, gx0, gy0, gcell,
                                              variants, render.SUN_DIR)
-    rgb_ref, depth_ref = render.render_camera_reference(K, R, origin, 64, 36, 80.0, params, cls, style, codes, gx0,
+    rgb_ref, depth_ref = render_camera_reference(K, R, origin, 64, 36, 80.0, params, cls, style, codes, gx0,
                                                         gy0, gcell, variants, render.SUN_DIR)
     np.testing.assert_allclose(depth, depth_ref, rtol=1e-6, atol=1e-6)
     assert np.abs(rgb.astype(int) - rgb_ref.astype(int)).max() <= 1

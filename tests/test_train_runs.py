@@ -182,7 +182,7 @@ def test_loss_weights_table_and_the_old_flat_keys(tmp_path: Path) -> None:
 # -- a stuck collective ---------------------------------------------------------------------------------
 _HANG = textwrap.dedent("""
     import os, sys, time
-    from fastocc.train import dist as D
+    from fastocc import dist as D
     info = D.setup("cpu", timeout_s=3)
     if info.rank == 1:
         time.sleep(3600)  # never joins the collective (the test kills it)

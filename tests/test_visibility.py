@@ -4,19 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from occdata.constants import FREE_LABEL
-from occdata.visibility import (
-    camera_mask,
+from reference.visibility_masks import (
     camera_mask_reference,
-    clearance_map,
     clearance_map_reference,
-    count_occluders,
     count_occluders_reference,
-    lidar_mask,
-    lidar_ray_mask,
     lidar_ray_mask_reference,
 )
+
+from occdata.constants import FREE_LABEL
+from occdata.visibility import camera_mask, clearance_map, count_occluders, lidar_mask, lidar_ray_mask
 
 LOWER = np.array([-2.0, -2.4, -0.8])
 VS = 0.4

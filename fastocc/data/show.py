@@ -19,7 +19,7 @@ from fastocc.data.dataset import load_batch
 from fastocc.data.sample import SampleConfig
 from occdata.constants import CLASS_COLORS, FREE_LABEL, GRID
 from occdata.sensors.image_ops import IMAGENET_MEAN, IMAGENET_STD
-from occdata.store.draw import check_image_path, write_image
+from occdata.store.commands.check_projection import check_image_path, write_image
 
 __all__ = ["ShowConfig", "lift_depth_targets", "render_batch", "show_batch"]
 

@@ -245,7 +245,7 @@ def run_eval(run: EvalRun) -> EvalReport:
 
     Under torchrun (WORLD_SIZE > 1) the processes join a process group, each scores its shard (whole
     scenes, so temporal queues are intact) and every rank returns the combined report."""
-    from fastocc.train import dist as D
+    from fastocc import dist as D
 
     check_device(run.predict.device)
     split_indices(run.predict.store, run.predict.split)  # unknown split / bad store before loading weights

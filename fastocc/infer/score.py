@@ -21,6 +21,7 @@ import torch
 from fastocc.checkpoint import load_model
 from fastocc.infer.evaluate import EvalReport, MaskKind, evaluate
 from fastocc.infer.predict import PredictConfig
+from fastocc.model.noise import noise_hook
 
 __all__ = ["NOISE_SEED", "report_metrics", "score_checkpoint"]
 
@@ -60,8 +61,6 @@ def score_checkpoint(
     """
     model, ckpt = load_model(checkpoint, device, prefer_ema=prefer_ema)
     if noise_images:
-        from fastocc.train.setup import noise_hook
-
         model.backbone.register_forward_pre_hook(noise_hook(NOISE_SEED))
     torch.manual_seed(0)  # any randomness in the network's forward repeats between calls
     cfg = PredictConfig(store=store, split=split, batch_size=batch_size, workers=workers, tta=tta, device=device)

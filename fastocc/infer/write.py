@@ -26,7 +26,7 @@ from fastocc.model.config import ModelConfig
 from fastocc.storegrid import check_store_grid
 from occdata.errors import OccDataError
 from occdata.fileio import write_atomic
-from occdata.occ3d import label_path, write_label
+from occdata.formats.occ3d import label_path, write_label
 from occdata.store.reader import StoreReader, open_store
 from occdata.view.render import prediction_picture
 
@@ -129,7 +129,7 @@ def run_predict(run: PredictRun) -> PredictSummary:
     Under torchrun (WORLD_SIZE > 1) the processes join a process group and each writes its shard of
     the split (whole scenes, so temporal queues are intact): the files are those of one process,
     byte for byte. Every rank returns the combined summary (all files, all pictures)."""
-    from fastocc.train import dist as D
+    from fastocc import dist as D
 
     check_device(run.predict.device)
     split_indices(run.predict.store, run.predict.split)  # unknown split / bad store before loading weights

@@ -1,4 +1,5 @@
-"""`fastocc train`: config, loop, state and distributed set-up (see docs/training.md)."""
+"""`fastocc train`: config, loop, state and run set-up (see docs/training.md); the distributed helpers
+are `fastocc.dist`, below both train and infer."""
 
 from fastocc.train.config import ConfigError, TrainConfig, load_config
 from fastocc.train.loop import NonFiniteLossError, TrainResult, train

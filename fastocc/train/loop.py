@@ -24,12 +24,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from fastocc import dist as D
 from fastocc.data.batch import Batch
 from fastocc.data.dataset import StoreDataset, loader_batches
 from fastocc.data.workers import start_iteration
 from fastocc.losses import LossTargets, occupancy_loss
 from fastocc.model.config import DepthBins, ModelConfig
-from fastocc.train import dist as D
 from fastocc.train.config import TrainConfig, config_to_toml
 from fastocc.train.preempt import StopRequest, stop_signals
 from fastocc.train.runlock import RunLock

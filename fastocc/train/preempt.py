@@ -14,7 +14,7 @@ import signal
 import threading
 from types import FrameType, TracebackType
 
-from fastocc.train import dist as D
+from fastocc import dist as D
 
 __all__ = ["EXIT_INTERRUPTED", "EXIT_PREEMPTED", "StopRequest", "stop_signals"]
 

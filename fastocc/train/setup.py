@@ -17,14 +17,15 @@ import numpy as np
 import torch
 from torch import nn
 
+from fastocc import dist as D
 from fastocc.checkpoint import CheckpointError, first_mismatch, load_checkpoint, load_weights
 from fastocc.data import BevAugConfig, ImageAugConfig, LoaderConfig, SampleConfig, make_loader
 from fastocc.losses import LossConfig, LossTargets, class_weights_from_counts, occupancy_loss
 from fastocc.model import FastOcc
 from fastocc.model.config import ModelConfig
 from fastocc.model.inputs import synthetic_inputs
+from fastocc.model.noise import noise_hook
 from fastocc.storegrid import check_store_grid
-from fastocc.train import dist as D
 from fastocc.train.config import TrainConfig, flat_config, incompatible_fields
 from fastocc.train.preempt import StopRequest
 from fastocc.train.state import EMA, TrainState, class_counts, load_resume
@@ -32,19 +33,8 @@ from occdata.errors import OccDataError
 from occdata.fileio import write_atomic
 
 __all__ = ["MetricsLog", "Run", "StepPace", "build_model", "check_writable", "estimate_step_seconds", "init_from",
-           "loader_config", "loss_config", "make_run", "new_state", "noise_hook", "pace_message", "prepare_out",
+           "loader_config", "loss_config", "make_run", "new_state", "pace_message", "prepare_out",
            "say_start"]
-
-
-def noise_hook(seed: int):
-    """Forward pre-hook for the backbone: its input images become Gaussian noise (the image ablation)."""
-    gen = torch.Generator().manual_seed(seed)
-
-    def hook(module: nn.Module, args: tuple) -> tuple:
-        (x,) = args
-        return (torch.randn(x.shape, generator=gen).to(x),)
-
-    return hook
 
 
 @dataclass

@@ -28,7 +28,7 @@ from occdata.errors import OccDataError
 from occdata.eval.flow import MOVING_CLASSES, RayFlowAccumulator
 from occdata.eval.metrics import MIoUAccumulator, MIoUResult, RayIoUAccumulator, RayIoUResult
 from occdata.eval.rays import store_ray_origins
-from occdata.occ3d import LABEL_FILE, label_keys, list_label_files, read_prediction_flow
+from occdata.formats.occ3d import LABEL_FILE, label_keys, list_label_files, read_prediction_flow
 
 __all__ = [
     "EvalConfig",
@@ -56,7 +56,7 @@ class EvalConfig:
     mask: MaskName = "camera"
     rayiou: bool = True
     progress: bool = True
-    pred_classes: str = "occ3d"  # or "openocc-v2": the prediction files' label ids (occdata.occ3d)
+    pred_classes: str = "occ3d"  # or "openocc-v2": the prediction files' label ids (occdata.formats.occ3d)
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from numba import njit
 from occdata.constants import FREE_LABEL, NUM_CLASSES
 from occdata.errors import OccDataError
 
-__all__ = ["MIoUAccumulator", "MIoUResult", "confusion_matrix", "confusion_matrix_reference"]
+__all__ = ["MIoUAccumulator", "MIoUResult", "confusion_matrix"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -42,18 +42,6 @@ def _confusion_kernel(gt: np.ndarray, pred: np.ndarray, mask: np.ndarray, use_ma
         for p in range(k):
             out[g, p] += tab[g * k + p]
     out[free, free] += ff
-
-
-def confusion_matrix_reference(gt: np.ndarray, pred: np.ndarray, mask: np.ndarray | None = None,
-                               num_classes: int = NUM_CLASSES) -> np.ndarray:
-    """Numpy twin of `confusion_matrix` (no label checks): `(K, K) int64`, rows = truth."""
-    g = np.asarray(gt).ravel().astype(np.int64)
-    p = np.asarray(pred).ravel().astype(np.int64)
-    keep = (p < num_classes) & (g < num_classes)
-    if mask is not None:
-        keep &= np.asarray(mask).ravel() != 0
-    flat = g[keep] * num_classes + p[keep]
-    return np.bincount(flat, minlength=num_classes * num_classes).reshape(num_classes, num_classes)
 
 
 def _as_labels(a: np.ndarray, what: str) -> np.ndarray:

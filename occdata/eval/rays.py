@@ -10,8 +10,8 @@ import numpy as np
 
 from occdata.errors import OccDataError
 from occdata.eval.metrics import ray_origins_keyego
+from occdata.formats.gridspec import LabelFrame
 from occdata.geometry import invert_rigid, transform_points
-from occdata.grids import LabelFrame
 from occdata.store.layout import STATE_DONE
 from occdata.store.reader import StoreReader
 

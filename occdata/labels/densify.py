@@ -19,7 +19,7 @@ ray crossed. Only free voxels are filled; an observed voxel keeps its class.
   classes are refused by a ray through the voxel below instead (`densify`: the ground is a height field).
 
 Grids are `(X, Y, Z) uint8` semantics (17 = free) in the grid frame, `lower (3,) float64` its lower
-corner, cubic voxels of `voxel_size` metres. Every numba kernel has a plain numpy twin.
+corner, cubic voxels of `voxel_size` metres. Every numba kernel has a plain numpy twin (tests/reference/).
 """
 
 from __future__ import annotations
@@ -28,12 +28,10 @@ import numpy as np
 from numba import njit
 
 from occdata.constants import FREE_LABEL, NUM_CLASSES
-from occdata.geometry import points_in_box
 from occdata.sensors.raycast import segment_advance, segment_setup
 from occdata.visibility import GROUND_CLASSES, MAX_OCCLUDERS
 
-__all__ = ["FREE_MARGIN", "GAP", "SOLID_STATIC", "close_holes", "close_holes_reference", "densify", "fill_behind",
-           "fill_behind_reference", "fill_boxes", "fill_boxes_reference", "seen_free", "seen_free_reference"]
+__all__ = ["FREE_MARGIN", "GAP", "SOLID_STATIC", "close_holes", "densify", "fill_behind", "fill_boxes", "seen_free"]
 
 # Metres of each ray before its return that count as no evidence: a ray that grazes a surface crosses
 # the voxels of that surface next to its return (the road in front of a ground return).
@@ -87,24 +85,6 @@ def _segment_hits_boxes(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.nda
     return t0 <= t1
 
 
-def seen_free_reference(origins: np.ndarray, endpoints: np.ndarray, lower: np.ndarray, voxel_size: float,
-                        shape: np.ndarray, margin: float) -> np.ndarray:
-    """Numpy twin of `seen_free`: every cut ray tested against every voxel's box."""
-    shape = tuple(int(s) for s in shape)
-    grid = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1).reshape(-1, 3)
-    lo = lower + grid * voxel_size
-    out = np.zeros(len(grid), bool)
-    for a, e in zip(np.asarray(origins, np.float64), np.asarray(endpoints, np.float64), strict=True):
-        length = np.linalg.norm(e - a)
-        if length <= margin:
-            continue
-        hit = _segment_hits_boxes(a, a + (e - a) * (1 - margin / length), lo, lo + voxel_size)
-        end = np.floor((e - lower) / voxel_size).astype(np.int64)
-        hit &= ~(grid == end).all(axis=1)
-        out |= hit
-    return out.reshape(shape).astype(np.uint8)
-
-
 @njit(cache=True)
 def fill_boxes(semantics: np.ndarray, free: np.ndarray, T_box_from_grid: np.ndarray, half_size: np.ndarray,
                lower: np.ndarray, voxel_size: float) -> np.ndarray:
@@ -134,17 +114,6 @@ def fill_boxes(semantics: np.ndarray, free: np.ndarray, T_box_from_grid: np.ndar
                             and abs(T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]) <= half_size[b, 1]
                             and abs(T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]) <= half_size[b, 2]):
                         out[i, j, k] = b
-    return out
-
-
-def fill_boxes_reference(semantics: np.ndarray, free: np.ndarray, T_box_from_grid: np.ndarray,
-                         half_size: np.ndarray, lower: np.ndarray, voxel_size: float) -> np.ndarray:
-    """Numpy twin of `fill_boxes`: every voxel centre tested against every box, the last box first."""
-    out = np.full(semantics.shape, -1, np.int32)
-    centres = lower + (np.argwhere(np.ones(semantics.shape, bool)) + 0.5) * voxel_size
-    for b in range(len(T_box_from_grid) - 1, -1, -1):
-        inside = points_in_box(centres, T_box_from_grid[b], half_size[b]).reshape(semantics.shape)
-        out[inside & (semantics == FREE_LABEL) & (free == 0)] = b
     return out
 
 
@@ -198,35 +167,6 @@ def fill_behind(semantics: np.ndarray, free: np.ndarray, solid: np.ndarray, orig
     return out
 
 
-def fill_behind_reference(semantics: np.ndarray, free: np.ndarray, solid: np.ndarray, origin_xy: np.ndarray,
-                          depth: int, lower: np.ndarray, voxel_size: float) -> np.ndarray:
-    """Numpy twin of `fill_behind`: the voxels of each walk found by sampling its line finely (every
-    1/512 voxel) instead of a DDA."""
-    X, Y, Z = semantics.shape
-    out = semantics.copy()
-    fine = np.arange(1, 512 * (depth + 2)) / 512 * voxel_size
-    for i, j, k in np.argwhere(np.asarray(solid)[semantics]):
-        c = semantics[i, j, k]
-        p = lower[:2] + (np.array([i, j]) + 0.5) * voxel_size
-        d = p - origin_xy
-        if not np.any(d):
-            continue
-        cells = np.floor((p + fine[:, None] * d / np.linalg.norm(d) - lower[:2]) / voxel_size).astype(np.int64)
-        keep = np.ones(len(cells), bool)
-        keep[1:] = (cells[1:] != cells[:-1]).any(axis=1)
-        cells = cells[keep]
-        cells = cells[(cells != (i, j)).any(axis=1)][:depth]
-        for a, b in cells:
-            if not (0 <= a < X and 0 <= b < Y) or free[a, b, k]:
-                break
-            if semantics[a, b, k] == FREE_LABEL:
-                if out[a, b, k] == FREE_LABEL:
-                    out[a, b, k] = c
-            elif semantics[a, b, k] != c:
-                break
-    return out
-
-
 @njit(cache=True)
 def close_holes(semantics: np.ndarray, free: np.ndarray, eligible: np.ndarray, gap: int) -> np.ndarray:
     """A copy of `semantics` where each free voxel not seen free (`free`) that has, along at least two of
@@ -271,41 +211,6 @@ def close_holes(semantics: np.ndarray, free: np.ndarray, eligible: np.ndarray, g
                         counts[s2] += 1
                 if axes >= 2:
                     out[i, j, k] = np.argmax(counts)
-    return out
-
-
-def close_holes_reference(semantics: np.ndarray, free: np.ndarray, eligible: np.ndarray, gap: int) -> np.ndarray:
-    """Numpy twin of `close_holes`: per axis and side, the nearest occupied voxel within `gap` found by
-    shifting whole grids."""
-    occ = semantics != FREE_LABEL
-    counts = np.zeros((NUM_CLASSES, *semantics.shape), np.int64)
-    axes = np.zeros(semantics.shape, np.int64)
-    for ax in range(3):
-        both = np.ones(semantics.shape, bool)
-        side_cls = []
-        for sign in (-1, 1):
-            cls = np.full(semantics.shape, FREE_LABEL, np.int64)
-            for g in range(gap, 0, -1):  # nearer overwrites farther
-                shifted = np.full(semantics.shape, FREE_LABEL, np.int64)
-                src = [slice(None)] * 3
-                dst = [slice(None)] * 3
-                n = semantics.shape[ax]
-                if sign > 0:
-                    src[ax], dst[ax] = slice(g, n), slice(0, n - g)
-                else:
-                    src[ax], dst[ax] = slice(0, n - g), slice(g, n)
-                shifted[tuple(dst)] = semantics[tuple(src)]
-                cls = np.where(shifted != FREE_LABEL, shifted, cls)
-            ok = (cls != FREE_LABEL) & np.asarray(eligible)[np.minimum(cls, FREE_LABEL)]
-            both &= ok
-            side_cls.append(cls)
-        axes += both
-        for cls in side_cls:
-            for c in range(NUM_CLASSES):
-                counts[c] += both & (cls == c)
-    take = ~occ & (free == 0) & (axes >= 2)
-    out = semantics.copy()
-    out[take] = np.argmax(counts, axis=0)[take]
     return out
 
 

@@ -1,10 +1,10 @@
 """`occdata labels`: occupancy labels for every scene of a nuScenes-format tree, on one or more grids.
 
-Output per grid (`occdata.grids`; one aggregation per scene serves them all): the Occ3D grid in
+Output per grid (`occdata.formats.gridspec`; one aggregation per scene serves them all): the Occ3D grid in
 `<out>/<scene>/<sample_token>/labels.npz` (`semantics`, `mask_lidar`, `mask_camera`, uint8
 (200, 200, 16), 17 = free), exactly Occ3D's layout, so `occdata build --gts <out>` and every peer
 codebase read it; every other grid in `<out>/<grid name>/` in its benchmark's own layout
-(`occdata.gridfiles`). A scene is one task: its files are written atomically, then its record
+(`occdata.formats.gridfiles`). A scene is one task: its files are written atomically, then its record
 `<out>/.scenes/<scene>.json` (the scene is finished only once that exists), and at the end the
 manifest `<out>/labels.json` is assembled from the records (idempotent). `--resume` skips scenes
 with a record. The same input gives byte-identical files.
@@ -24,9 +24,9 @@ from typing import Any
 from occdata.constants import CLASS_NAMES
 from occdata.errors import OccDataError
 from occdata.fileio import remove_stale_temps, write_atomic
-from occdata.gridfiles import LAYOUT_FILES, LabelSite, write_grid_label
-from occdata.grids import GRID_PRESETS, GridSpec, LabelLayout
-from occdata.labels.scene import LabelOptions, SceneInputs, label_scene
+from occdata.formats.gridfiles import LAYOUT_FILES, LabelSite, write_grid_label
+from occdata.formats.gridspec import GRID_PRESETS, GridSpec, LabelLayout
+from occdata.labels.scene import LabelOptions, LabelSources, label_scene
 from occdata.nuscenes import NuScenesDataset, SampleRecord, find_version, load_nuscenes, validate_sample
 from occdata.nuscenes.annotations import load_annotations
 from occdata.nuscenes.lidarseg import lidarseg_index_names, load_lidarseg_index, occ3d_lut
@@ -84,7 +84,7 @@ def scene_record_path(out: Path, scene: str) -> Path:
     return Path(out) / _RECORDS / f"{scene}.json"
 
 
-def load_inputs(cfg: LabelsConfig) -> tuple[SceneInputs, str]:
+def load_inputs(cfg: LabelsConfig) -> tuple[LabelSources, str]:
     """The tables (with sweeps when used), boxes and lidarseg of `cfg.root`; and the version read."""
     version = find_version(cfg.root, cfg.version)
     ds = load_nuscenes(cfg.root, version, sweeps=cfg.options.lidar_sweeps).select(cfg.splits)
@@ -97,7 +97,7 @@ def load_inputs(cfg: LabelsConfig) -> tuple[SceneInputs, str]:
         validate_sample(s)
     seg = load_lidarseg_index(cfg.root, version)
     lut = occ3d_lut(lidarseg_index_names(cfg.root, version)) if seg else None
-    return SceneInputs(ds, load_annotations(cfg.root, version), seg, lut), version
+    return LabelSources(ds, load_annotations(cfg.root, version), seg, lut), version
 
 
 def _only_scenes(ds: NuScenesDataset, names: set[str]) -> NuScenesDataset:
@@ -171,7 +171,7 @@ def _settings(header: dict[str, Any]) -> dict[str, Any]:
 @dataclass(frozen=True)
 class SceneJob:
     """One task: label scene `scene` of `cfg`'s tree. `inputs` is that scene's slice of what the
-    client read (`SceneInputs.for_scene`: its records, boxes and lidarseg paths, never the tables):
+    client read (`LabelSources.for_scene`: its records, boxes and lidarseg paths, never the tables):
     a worker holds only its task's rows and never opens a table file, so its memory does not grow
     with the number of scenes in the tree."""
 
@@ -179,7 +179,7 @@ class SceneJob:
     scene: str
     settings: str  # JSON of `_settings(header)`, copied into the scene's record
     keyframes: int
-    inputs: SceneInputs = field(compare=False, repr=False)
+    inputs: LabelSources = field(compare=False, repr=False)
 
     def __post_init__(self) -> None:
         names = [sc.name for sc in self.inputs.dataset.scenes]

@@ -1,4 +1,4 @@
-"""Numba kernels of label generation, each with a plain numpy twin (tests check they agree).
+"""Numba kernels of label generation, each with a plain numpy twin (tests/reference/: they agree).
 
 - `points_in_boxes`: which 3D box (if any) holds each point.
 - `vote_voxels`: transform points into a voxel grid's frame, one (voxel, class) vote key per point
@@ -18,19 +18,14 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from occdata.geometry import points_in_box
-
 __all__ = [
     "NO_LABEL",
     "NearestIndex",
     "nearest_labels",
-    "nearest_labels_reference",
     "points_in_boxes",
-    "points_in_boxes_reference",
     "majority",
     "vote_sources",
     "vote_voxels",
-    "vote_voxels_reference",
 ]
 
 NO_LABEL = 255  # a point without a class (no reference within the radius)
@@ -57,14 +52,6 @@ def points_in_boxes(points: np.ndarray, T_box_from_world: np.ndarray, half_size:
                 continue
             out[i] = b
             break
-    return out
-
-
-def points_in_boxes_reference(points: np.ndarray, T_box_from_world: np.ndarray, half_size: np.ndarray) -> np.ndarray:
-    """Numpy twin of `points_in_boxes`."""
-    out = np.full(len(points), -1, np.int32)
-    for b in range(len(T_box_from_world) - 1, -1, -1):  # reverse, so the first box wins
-        out[points_in_box(points, T_box_from_world[b], half_size[b])] = b
     return out
 
 
@@ -96,20 +83,6 @@ def vote_voxels(
             out[m] = ((ix * Y + iy) * Z + iz) * n_classes + c
             m += 1
     return out[:m]
-
-
-def vote_voxels_reference(
-    points: np.ndarray, classes: np.ndarray, T_grid_from_world: np.ndarray, lower: np.ndarray, voxel_size: float,
-    shape: np.ndarray, n_classes: int,
-) -> np.ndarray:
-    """Numpy twin of `vote_voxels`."""
-    shape = tuple(int(s) for s in shape)
-    keep = classes < n_classes
-    p = points[keep] @ T_grid_from_world[:3, :3].T + T_grid_from_world[:3, 3]
-    idx = np.floor((p - lower) / voxel_size).astype(np.int64)
-    ok = ((idx >= 0) & (idx < np.array(shape))).all(axis=1)
-    flat = np.ravel_multi_index(tuple(idx[ok].T), shape)
-    return flat * n_classes + classes[keep][ok].astype(np.int64)
 
 
 def majority(votes: list[np.ndarray], shape: tuple[int, int, int], n_classes: int, empty: int) -> np.ndarray:
@@ -248,14 +221,3 @@ class NearestIndex:
 def nearest_labels(query: np.ndarray, ref: np.ndarray, ref_cls: np.ndarray, radius: float) -> np.ndarray:
     """One-off `NearestIndex.build(ref, ref_cls, radius).query(query)`, classes only."""
     return NearestIndex.build(ref, ref_cls, radius).query(query)[0]
-
-
-def nearest_labels_reference(query: np.ndarray, ref: np.ndarray, ref_cls: np.ndarray, radius: float) -> np.ndarray:
-    """Numpy twin of `nearest_labels`: brute force over all references (small inputs only)."""
-    out = np.full(len(query), NO_LABEL, np.uint8)
-    for q in range(len(query)):
-        d2 = ((ref - query[q]) ** 2).sum(axis=1)
-        j = int(np.argmin(d2)) if len(ref) else -1
-        if j >= 0 and d2[j] <= radius * radius:
-            out[q] = ref_cls[j]
-    return out

@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from occdata.constants import EGO_BOX, FREE_LABEL, NUM_CLASSES, OccGrid
+from occdata.formats.gridspec import GRID_PRESETS, GridSpec, LabelFrame
 from occdata.geometry import invert_rigid, transform_points
-from occdata.grids import GRID_PRESETS, GridSpec, LabelFrame
 from occdata.labels.densify import densify
 from occdata.labels.kernels import NO_LABEL, NearestIndex, majority, points_in_boxes, vote_sources, vote_voxels
 from occdata.nuscenes import LidarRecord, NuScenesDataset, SampleRecord, SceneRecord, load_lidar_points
@@ -35,7 +35,7 @@ from occdata.nuscenes.annotations import Annotations, BoxRecord, boxes_for_lidar
 from occdata.nuscenes.lidarseg import DROP, OCC3D_FROM_LIDARSEG, read_lidarseg
 from occdata.visibility import GROUND_CLASSES, camera_mask, lidar_mask
 
-__all__ = ["LabelOptions", "SceneCounts", "SceneInputs", "label_scene"]
+__all__ = ["LabelOptions", "LabelSources", "SceneCounts", "label_scene"]
 
 # Densification casts about this many keyframes' worth of other keyframes' rays (`_static_rays`).
 STATIC_RAY_FRAMES = 8
@@ -80,7 +80,7 @@ class LabelOptions:
 
 
 @dataclass(frozen=True, eq=False)
-class SceneInputs:
+class LabelSources:
     """What labelling reads besides the LiDAR files: the tables (`dataset`, read with sweeps when
     sweeps are used), the boxes and the lidarseg files (`lidarseg`: sample_data token -> path; empty
     when the tree has none)."""
@@ -90,13 +90,13 @@ class SceneInputs:
     lidarseg: dict[str, object] = field(default_factory=dict)
     lidarseg_lut: np.ndarray | None = None  # (256,) uint8: lidarseg index -> Occ3D class or DROP
 
-    def for_scene(self, scene: SceneRecord) -> SceneInputs:
+    def for_scene(self, scene: SceneRecord) -> LabelSources:
         """What labelling `scene` reads and nothing else: its samples (with their sweeps), their
         boxes and lidarseg files. A task carries this slice, so a worker's memory does not grow with
         the tree (a sweep's boxes need only its own sample and that sample's `prev`, both in the scene)."""
         ds = self.dataset.scene_slice(scene)
         lidar_tokens = [rec.token for s in ds.samples for rec in (s.lidar, *s.sweeps)]
-        return SceneInputs(ds, self.annotations.for_samples(scene.sample_tokens),
+        return LabelSources(ds, self.annotations.for_samples(scene.sample_tokens),
                            {t: self.lidarseg[t] for t in lidar_tokens if t in self.lidarseg}, self.lidarseg_lut)
 
 
@@ -260,7 +260,7 @@ def _add_sweep(cloud: _Cloud, points: np.ndarray, boxes: tuple[BoxRecord, ...], 
     counts.static_points += int(labelled.sum())
 
 
-def _keyframe_classes(inputs: SceneInputs, rec: LidarRecord, n_points: int) -> np.ndarray | None:
+def _keyframe_classes(inputs: LabelSources, rec: LidarRecord, n_points: int) -> np.ndarray | None:
     """`(N,) uint8` Occ3D classes (DROP for noise / ego) of a keyframe's points from lidarseg, or None."""
     path = inputs.lidarseg.get(rec.token)
     if path is None or inputs.lidarseg_lut is None:
@@ -373,7 +373,7 @@ def _grid_labels(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tu
     return out
 
 
-def _box_velocities(inputs: SceneInputs, keyframe_boxes: list[tuple[BoxRecord, ...]],
+def _box_velocities(inputs: LabelSources, keyframe_boxes: list[tuple[BoxRecord, ...]],
                     held: list[tuple[BoxRecord, ...]]) -> list[np.ndarray]:
     """Per keyframe, `v_global (B, 3) float64` m/s of its boxes then its held boxes: the devkit's
     `box_velocity` of each annotated box (NaN, no usable neighbour: 0), 0 for a held (parked) one."""
@@ -424,7 +424,7 @@ def _no_stop() -> None:
     pass
 
 
-def label_scene(inputs: SceneInputs, scene: SceneRecord, opts: LabelOptions,
+def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
                 should_stop: Callable[[], None] = _no_stop, grids: tuple[GridSpec, ...] = (GRID_PRESETS["occ3d"],),
                 flow: bool | Collection[str] = False,
                 ) -> tuple[dict[str, dict[str, dict[str, np.ndarray]]], SceneCounts]:

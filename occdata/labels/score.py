@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
+from occdata.formats.occ3d import label_path, read_label
 from occdata.geometry import invert_rigid
 from occdata.labels.fidelity import Fidelity, score_scene
 from occdata.labels.scene import box_class
 from occdata.nuscenes import load_nuscenes
 from occdata.nuscenes.annotations import load_annotations
-from occdata.occ3d import label_path, read_label
 
 __all__ = ["TreeScore", "score_tree"]
 

@@ -10,7 +10,7 @@ Because the min over a patch of per-pixel minima is the min over all points in t
 kernel `depth_target` never materialises the full-resolution map; `rasterise_depth` + `min_pool_depth`
 are the two-step definition and the tests check that both agree.
 
-Each numba kernel has a plain numpy twin (`*_reference`) checked for equality on random inputs.
+Each numba kernel has a plain numpy twin (`*_reference`, tests/reference/) checked for equality on random inputs.
 """
 
 from __future__ import annotations
@@ -22,11 +22,8 @@ __all__ = [
     "DEPTH_MAX",
     "DEPTH_MIN",
     "depth_target",
-    "depth_target_reference",
     "min_pool_depth",
-    "min_pool_depth_reference",
     "rasterise_depth",
-    "rasterise_depth_reference",
 ]
 
 DEPTH_MIN, DEPTH_MAX = 1.0, 45.0  # the depth-bin range [1, 45) m of DESIGN §5.1
@@ -39,7 +36,6 @@ def _augmented_pixel(A: np.ndarray, u: float, v: float) -> tuple[float, float]:
     x = np.floor((A[0, 0] * u + A[0, 1] * v + A[0, 2]) / w + 0.5)
     y = np.floor((A[1, 0] * u + A[1, 1] * v + A[1, 2]) / w + 0.5)
     return x, y
-
 
 
 @numba.njit(cache=True, nogil=True)
@@ -74,19 +70,6 @@ def _transform_round(uvd: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.nda
     return x, y, uvd[:, 2].astype(np.float32)
 
 
-def rasterise_depth_reference(
-    uvd: np.ndarray, A: np.ndarray, height: int, width: int, d_min: float, d_max: float
-) -> np.ndarray:
-    """Numpy twin of `rasterise_depth`."""
-    x, y, d = _transform_round(uvd, A)
-    keep = (d >= d_min) & (d < d_max) & (x >= 0) & (x < width) & (y >= 0) & (y < height)
-    flat = y[keep].astype(np.int64) * width + x[keep].astype(np.int64)
-    best = np.full(height * width, np.inf, dtype=np.float32)
-    np.minimum.at(best, flat, d[keep])
-    best[np.isinf(best)] = 0
-    return best.reshape(height, width)
-
-
 @numba.njit(cache=True, nogil=True)
 def min_pool_depth(depth: np.ndarray, stride: int) -> np.ndarray:
     """`(H, W) float32` -> `(H // stride, W // stride) float32`: min positive depth per patch, 0 if none.
@@ -103,14 +86,6 @@ def min_pool_depth(depth: np.ndarray, stride: int) -> np.ndarray:
                 if cur == 0 or d < cur:
                     out[y // stride, x // stride] = d
     return out
-
-
-def min_pool_depth_reference(depth: np.ndarray, stride: int) -> np.ndarray:
-    """Numpy twin of `min_pool_depth`."""
-    h, w = depth.shape[0] // stride, depth.shape[1] // stride
-    patches = depth[: h * stride, : w * stride].reshape(h, stride, w, stride).astype(np.float32)
-    patches = np.where(patches > 0, patches, np.inf).min(axis=(1, 3))
-    return np.where(np.isinf(patches), 0, patches).astype(np.float32)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -134,10 +109,3 @@ def depth_target(
         if cur == 0 or d < cur:
             out[yi, xi] = d
     return out
-
-
-def depth_target_reference(
-    uvd: np.ndarray, A: np.ndarray, height: int, width: int, stride: int, d_min: float, d_max: float
-) -> np.ndarray:
-    """Numpy twin of `depth_target` (the two-step definition)."""
-    return min_pool_depth_reference(rasterise_depth_reference(uvd, A, height, width, d_min, d_max), stride)

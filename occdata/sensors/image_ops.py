@@ -1,7 +1,7 @@
 """Image normalisation kernel for the loader (no torch): HWC uint8 -> CHW float32 in one pass.
 
 A per-channel lookup table (256 entries) replaces subtract + divide + transpose, which numpy would
-do in three passes over a float copy. `normalise_chw_reference` is the plain numpy twin.
+do in three passes over a float copy. `normalise_chw_reference` (tests/reference/) is the numpy twin.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["IMAGENET_MEAN", "IMAGENET_STD", "normalise_chw", "normalise_chw_reference", "normalise_lut"]
+__all__ = ["IMAGENET_MEAN", "IMAGENET_STD", "normalise_chw", "normalise_lut"]
 
 IMAGENET_MEAN = (123.675, 116.28, 103.53)  # RGB, DESIGN §6
 IMAGENET_STD = (58.395, 57.12, 57.375)
@@ -31,11 +31,3 @@ def normalise_chw(img: np.ndarray, lut: np.ndarray, out: np.ndarray) -> None:
         for y in range(h):
             for x in range(w):
                 out[c, y, x] = lut[c, img[y, x, c]]
-
-
-def normalise_chw_reference(img: np.ndarray, mean: tuple[float, ...] = IMAGENET_MEAN,
-                            std: tuple[float, ...] = IMAGENET_STD) -> np.ndarray:
-    """Numpy twin of `normalise_chw` (computed directly, not through the table)."""
-    x = img.astype(np.float64)
-    out = (x - np.asarray(mean)) / np.asarray(std)
-    return np.ascontiguousarray(out.transpose(2, 0, 1)).astype(np.float32)

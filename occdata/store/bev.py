@@ -11,7 +11,7 @@ import numpy as np
 
 from occdata.constants import NUM_CLASSES
 
-__all__ = ["bev_bits", "bev_bits_reference", "unpack_bev"]
+__all__ = ["bev_bits", "unpack_bev"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -31,13 +31,6 @@ def bev_bits(semantics: np.ndarray) -> np.ndarray:
                     bits |= np.uint32(1) << np.uint32(c)
             out[i, j] = bits
     return out
-
-
-def bev_bits_reference(semantics: np.ndarray) -> np.ndarray:
-    """Numpy twin of `bev_bits`."""
-    sem = semantics.astype(np.uint32)
-    onehot = np.where(sem < 32, np.left_shift(np.uint32(1), np.minimum(sem, 31)), np.uint32(0))
-    return np.bitwise_or.reduce(onehot.astype(np.uint32), axis=2)
 
 
 def unpack_bev(bits: np.ndarray, num_classes: int = NUM_CLASSES) -> np.ndarray:

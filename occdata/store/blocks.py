@@ -26,7 +26,7 @@ import numpy as np
 import zarr
 
 from occdata.errors import OccDataError
-from occdata.grids import GridSpec
+from occdata.formats.gridspec import GridSpec
 from occdata.nuscenes import LidarRecord, SampleRecord
 from occdata.runtime.tasks import StopCheck, no_stop
 from occdata.store.layout import (
@@ -60,8 +60,8 @@ class SampleInput:
     label_path: Path | None
     options: SampleOptions
     sweeps: tuple[LidarRecord, ...] = ()
-    label_format: str = "occ3d"  # "openocc-v2": OpenOcc v2 files, with flow (occdata.occ3d)
-    grid: GridSpec | None = None  # the labels files' grid when not Occ3D's (occdata.gridfiles)
+    label_format: str = "occ3d"  # "openocc-v2": OpenOcc v2 files, with flow (occdata.formats.occ3d)
+    grid: GridSpec | None = None  # the labels files' grid when not Occ3D's (occdata.formats.gridfiles)
 
     def convert(self) -> SampleResult:
         return process_sample(self.index, self.sample, self.static, self.label_path, self.options, self.sweeps,

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Literal
 
 from occdata.errors import OccDataError
-from occdata.grids import GridSpec
+from occdata.formats.gridspec import GridSpec
 from occdata.nuscenes.rig import RigChoice
 from occdata.runtime.cluster import ClusterConfig
 from occdata.store.sample import SampleOptions

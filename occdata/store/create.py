@@ -21,8 +21,8 @@ from occdata.constants import CLASS_COLORS, CLASS_NAMES, FREE_LABEL
 from occdata.errors import OccDataError
 from occdata.fileio import remove_stale_temps
 from occdata.runtime.storage import is_remote, join, read_bytes, remove_tree, sibling
-from occdata.store.grid import grid_attr
 from occdata.store.identity import build_identity, identity_diff
+from occdata.store.labelgrid import grid_attr
 from occdata.store.layout import (
     FLAT_ARRAYS,
     REGIONS,

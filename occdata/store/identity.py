@@ -7,7 +7,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from occdata.store.grid import is_default_grid
+from occdata.store.labelgrid import is_default_grid
 
 if TYPE_CHECKING:
     from occdata.nuscenes import NuScenesDataset

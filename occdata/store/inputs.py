@@ -12,14 +12,14 @@ import numpy as np
 
 from occdata.constants import GRID
 from occdata.errors import OccDataError
-from occdata.gridfiles import LabelSite, grid_label_path, read_grid_label
-from occdata.grids import GridSpec, LabelLayout
+from occdata.formats.gridfiles import LabelSite, grid_label_path, read_grid_label
+from occdata.formats.gridspec import GridSpec, LabelLayout
+from occdata.formats.occ3d import LABEL_FILE, OPENOCC_V2, label_keys, label_relpaths
 from occdata.nuscenes import LidarRecord, NuScenesDataset, load_nuscenes
 from occdata.nuscenes.reader import confined_path
-from occdata.occ3d import LABEL_FILE, OPENOCC_V2, label_keys, label_relpaths
 from occdata.store.blocks import SampleInput
 from occdata.store.config import BuildConfig
-from occdata.store.grid import is_default_grid
+from occdata.store.labelgrid import is_default_grid
 from occdata.store.sample import static_arrays, temporal_indices
 
 __all__ = ["BuildInputs", "check_sweep_files", "find_grid_label_files", "find_label_files", "label_format",
@@ -175,7 +175,7 @@ def find_label_files(
 def find_grid_label_files(gts: Path, ds: NuScenesDataset, required: bool,
                           spec: GridSpec) -> tuple[list[Path | None], NuScenesDataset]:
     """Per sample, its label file of `spec` under `gts` in the grid's own layout
-    (`occdata.gridfiles.grid_label_path`), or None; `required` as in `find_label_files`."""
+    (`occdata.formats.gridfiles.grid_label_path`), or None; `required` as in `find_label_files`."""
     found: list[Path | None] = []
     samples = []
     for s in ds.samples:

@@ -12,9 +12,9 @@ import numpy as np
 import zarr
 
 from occdata.errors import OccDataError
-from occdata.grids import GridSpec
-from occdata.store.grid import store_grid
+from occdata.formats.gridspec import GridSpec
 from occdata.store.integrity import CorruptStoreError, StoreIntegrity
+from occdata.store.labelgrid import store_grid
 from occdata.store.layout import (
     FLAT_ARRAYS,
     MIN_TOKEN_BYTES,

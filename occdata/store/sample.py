@@ -14,10 +14,10 @@ import cv2
 import numpy as np
 
 from occdata.errors import OccDataError
-from occdata.gridfiles import IGNORE, read_grid_label, to_occ3d_ids
-from occdata.grids import GridSpec, LabelLayout
+from occdata.formats.gridfiles import IGNORE, read_grid_label, to_occ3d_ids
+from occdata.formats.gridspec import GridSpec, LabelLayout
+from occdata.formats.occ3d import OPENOCC_V2, label_keys, read_label, read_openocc_v2_label
 from occdata.nuscenes import LidarRecord, SampleRecord, load_lidar_points, validate_sample
-from occdata.occ3d import OPENOCC_V2, label_keys, read_label, read_openocc_v2_label
 from occdata.sensors.jpeg_check import decode_jpeg_checked
 from occdata.sensors.projection import project_to_cameras
 from occdata.store.bev import bev_bits
@@ -154,7 +154,7 @@ def process_sample(
     """Read and convert one sample; the depth targets also take the points of `sweeps` (previous
     sweeps of each LiDAR, `NuScenesDataset.lidar_histories`). `label_format` "openocc-v2": the labels file
     is OpenOcc v2's (mapped to our ids, its flow kept as `labels/flow`). `grid`: the labels file is of
-    this (non-Occ3D) grid, in its layout and ids (`occdata.gridfiles`; mapped to ours). Bad input gives
+    this (non-Occ3D) grid, in its layout and ids (`occdata.formats.gridfiles`; mapped to ours). Bad input gives
     a result with `error` set (never raises it)."""
     try:
         validate_sample(sample)

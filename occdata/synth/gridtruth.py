@@ -1,4 +1,4 @@
-"""The synthetic world's truth on any label grid (`occdata.grids.GridSpec`), in the grid's own frame.
+"""The synthetic world's truth on any label grid (`occdata.formats.gridspec.GridSpec`), in the grid's own frame.
 
 `world_semantics` (occdata.synth.labels) voxelises the world in a frame related to global by a yaw
 alone, the key ego of the Occ3D grid. A LiDAR-frame grid (SurroundOcc, OpenOccupancy) is tilted
@@ -23,7 +23,7 @@ from occdata.constants import FREE_LABEL, OccGrid
 from occdata.synth.labels import _OVERLAP_EPS, CLASS_PRIORITY, primitives_to_frame
 from occdata.synth.world import GroundRaster, Primitives
 
-__all__ = ["grid_semantics", "level_frame", "voxelize_tilted", "voxelize_tilted_reference"]
+__all__ = ["grid_semantics", "level_frame", "voxelize_tilted"]
 
 
 def level_frame(T_global_from_grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -115,30 +115,6 @@ def voxelize_tilted(semantics: np.ndarray, params: np.ndarray, cls: np.ndarray, 
     if len(params):
         ranges = _index_ranges(params, R, lower, voxel_size, semantics.shape)
         _paint(out, params, cls, priority, ranges, R, lower, float(voxel_size))
-    return out
-
-
-def voxelize_tilted_reference(semantics: np.ndarray, params: np.ndarray, cls: np.ndarray, priority: np.ndarray,
-                              R_level_from_grid: np.ndarray, lower: np.ndarray, voxel_size: float) -> np.ndarray:
-    """Numpy twin of `voxelize_tilted` (every voxel against each primitive, vectorised)."""
-    out = semantics.copy()
-    R, h, e = np.asarray(R_level_from_grid, np.float64), 0.5 * voxel_size, _OVERLAP_EPS
-    ex, ey, ez = h * np.abs(R).sum(1)
-    idx = np.stack(np.meshgrid(*[np.arange(n) for n in semantics.shape], indexing="ij"), -1)
-    q = (np.asarray(lower) + (idx + 0.5) * voxel_size) @ R.T
-    qx, qy, qz = q[..., 0], q[..., 1], q[..., 2]
-    for p, c in zip(params, cls, strict=True):
-        ok = (p[8] >= qz - ez - e) & (p[7] <= qz + ez + e)
-        rx, ry = qx - p[1], qy - p[2]
-        if p[0] == 0.0:
-            ac, as_ = abs(p[3]), abs(p[4])
-            ok &= (np.abs(rx) <= ex + ac * p[5] + as_ * p[6] + e) & (np.abs(ry) <= ey + as_ * p[5] + ac * p[6] + e)
-            ok &= np.abs(p[3] * rx + p[4] * ry) <= p[5] + ac * ex + as_ * ey + e
-            ok &= np.abs(-p[4] * rx + p[3] * ry) <= p[6] + as_ * ex + ac * ey + e
-        else:
-            ok &= np.maximum(np.abs(rx) - ex, 0) ** 2 + np.maximum(np.abs(ry) - ey, 0) ** 2 <= (p[5] + e) ** 2
-        ok &= priority[c] > priority[out]
-        out[ok] = c
     return out
 
 

@@ -14,10 +14,10 @@ from tqdm import tqdm
 
 from occdata.constants import CAMERA_ORDER, GRID, LIDAR_CHANNEL, OccGrid
 from occdata.errors import OccDataError
+from occdata.formats.gridfiles import LabelSite, write_grid_label
+from occdata.formats.gridspec import GridSpec, LabelFrame
+from occdata.formats.occ3d import label_path, write_label
 from occdata.geometry import invert_rigid, quaternion_wxyz_from_matrix, transform_points
-from occdata.gridfiles import LabelSite, write_grid_label
-from occdata.grids import GridSpec, LabelFrame
-from occdata.occ3d import label_path, write_label
 from occdata.synth import render
 from occdata.synth.annotations import (
     LIDARSEG_FROM_OCC3D,

@@ -11,7 +11,7 @@ import numpy as np
 from occdata.constants import GRID
 from occdata.errors import OccDataError
 from occdata.eval.evaluate import find_predictions
-from occdata.occ3d import read_prediction
+from occdata.formats.occ3d import read_prediction
 from occdata.store.layout import STATE_DONE
 from occdata.store.reader import StoreReader, open_store
 from occdata.view.voxels import FrustumParams, frustum_params, lift_depth_points

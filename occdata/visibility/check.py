@@ -14,8 +14,8 @@ import numpy as np
 
 from occdata.constants import CLASS_NAMES, FREE_LABEL, GRID
 from occdata.errors import OccDataError
+from occdata.formats.occ3d import read_label
 from occdata.nuscenes.reader import load_nuscenes
-from occdata.occ3d import read_label
 from occdata.visibility import MAX_OCCLUDERS, camera_mask
 
 __all__ = ["CheckConfig", "MaskAgreement", "agreement", "check_label", "rig_of_sample"]

@@ -20,8 +20,8 @@ import zarr
 
 from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES, OccGrid
 from occdata.errors import OccDataError
+from occdata.formats.gridspec import LabelFrame
 from occdata.geometry import invert_rigid, transform_points
-from occdata.grids import LabelFrame
 from occdata.nuscenes import LidarRecord, NuScenesDataset, load_lidar_points, load_nuscenes
 from occdata.runtime.lock import store_lock
 from occdata.store.build import check_sweep_files

@@ -2,7 +2,7 @@
 
 Four benchmarks' grids are named presets; `custom_grid` makes any other one. A grid spec says where a
 voxel is (`grid`, in `frame`), what its class ids mean (`class_map`: the target id of each of our 18
-Occ3D classes) and how its files look (`layout`; the writers and readers are `occdata.label_formats`).
+Occ3D classes) and how its files look (`layout`; the writers and readers are `occdata.formats.gridfiles`).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ class LabelFrame(StrEnum):
 
 
 class LabelLayout(StrEnum):
-    """How a grid's labels are stored (occdata.label_formats)."""
+    """How a grid's labels are stored (occdata.formats.gridfiles)."""
 
     OCC3D = "occ3d"  # <scene>/<sample token>/labels.npz: semantics, mask_lidar, mask_camera (X, Y, Z) uint8
     OPENOCC_V2 = "openocc-v2"  # <scene>/<sample token>/labels.npz: semantics (own class order), flow, masks

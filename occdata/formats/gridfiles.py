@@ -14,7 +14,7 @@ import numpy as np
 from occdata.constants import FREE_LABEL
 from occdata.errors import OccDataError
 from occdata.fileio import npz_bytes, write_atomic
-from occdata.grids import GridSpec, LabelLayout
+from occdata.formats.gridspec import GridSpec, LabelLayout
 
 __all__ = ["IGNORE", "LAYOUT_FILES", "LabelSite", "grid_label_path", "read_grid_label", "to_occ3d_ids",
            "write_grid_label"]

@@ -14,8 +14,8 @@ import cv2
 
 from occdata.errors import OccDataError
 from occdata.sensors.jpeg_check import decode_jpeg_checked
+from occdata.store.commands.verify import Problem
 from occdata.store.reader import StoreReader
-from occdata.store.verify import Problem
 
 __all__ = ["verify_images"]
 

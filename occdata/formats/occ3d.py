@@ -37,9 +37,9 @@ _OPENOCC_FREE = 16
 
 def openocc_to_occ3d() -> np.ndarray:
     """`(17,) uint8`: OpenOcc v2 class id -> our (Occ3D) id (free 16 -> 17): the openocc-v2 grid's own
-    class map, inverted (`occdata.gridfiles.to_occ3d_ids`)."""
-    from occdata.gridfiles import to_occ3d_ids
-    from occdata.grids import GRID_PRESETS
+    class map, inverted (`occdata.formats.gridfiles.to_occ3d_ids`)."""
+    from occdata.formats.gridfiles import to_occ3d_ids
+    from occdata.formats.gridspec import GRID_PRESETS
 
     return to_occ3d_ids(GRID_PRESETS[OPENOCC_V2], np.arange(_OPENOCC_FREE + 1, dtype=np.uint8))
 

@@ -14,7 +14,7 @@ from typing import Any
 
 from occdata.constants import GRID
 from occdata.errors import OccDataError
-from occdata.grids import GRID_PRESETS, GridSpec, LabelFrame
+from occdata.formats.gridspec import GRID_PRESETS, GridSpec, LabelFrame
 
 __all__ = ["OCC3D_GRID_ATTR", "grid_attr", "is_default_grid", "store_grid"]
 

@@ -1,4 +1,5 @@
-"""Distributed set-up: torchrun environment -> process group (gloo on CPU, nccl on CUDA), or one process.
+"""Distributed helpers, below train/ and infer/ (both use them): torchrun environment -> process group
+(gloo on CPU, nccl on CUDA), or one process.
 
 `torchrun --nproc_per_node N -m cli.fastocc_cli train ...` sets RANK / WORLD_SIZE / LOCAL_RANK and the
 rendezvous address; multi-node runs use torchrun's `--nnodes`, `--node_rank` / `--rdzv_endpoint`
