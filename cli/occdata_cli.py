@@ -17,12 +17,14 @@ from cli.options import (
     progress_option,
     rig_options,
     root_options,
+    split_source_options,
     store_option,
 )
 from occdata.formats.gridspec import GRID_NAMES, GridSpec, grids_from_options
 
 if TYPE_CHECKING:
     from occdata.nuscenes.rig import RigChoice
+    from occdata.nuscenes.splits import SplitChoice
     from occdata.runtime.cluster import ClusterConfig
 
 __all__ = ["main"]
@@ -87,8 +89,10 @@ def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: in
               help="Check that every keyframe image and LiDAR file exists.")
 @json_option("Print the summary as JSON.")
 @rig_options()
+@split_source_options()
 @friendly_errors
-def scan(root: str, version: str | None, check_files: bool, as_json: bool, rig: RigChoice) -> None:
+def scan(root: str, version: str | None, check_files: bool, as_json: bool, rig: RigChoice,
+         scene_splits: SplitChoice) -> None:
     """Read and validate a nuScenes-format tree; print scenes and samples per split.
 
     Every foreign key is resolved and every sample is checked as `occdata build` checks it from
@@ -99,7 +103,7 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool, rig: 
     from occdata.nuscenes.rig import describe_rig
     from occdata.nuscenes.summary import scan_tree
 
-    summary = scan_tree(local_path(root, "--root"), version, check_files, rig)
+    summary = scan_tree(local_path(root, "--root"), version, check_files, rig, scene_splits)
     for note in summary["warnings"]:
         click.echo(f"warning: {note}", err=True)
     if as_json:
@@ -155,12 +159,13 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool, rig: 
               help="Depth targets from the keyframe LiDAR sweep plus up to N previous sweeps (20 Hz, "
                    "motion-compensated to each camera; needs the sweeps/ files). 0: the keyframe alone.")
 @rig_options()
+@split_source_options()
 @progress_option()
 @friendly_errors
 def build(root: str, version: str | None, out: str, gts: str | None, grid_name: str | None,
           voxel_size: float | None, grid_range: tuple[float, ...] | None, splits: tuple[str, ...],
           cluster: ClusterConfig, resume: bool, on_error: str, block_samples: int, image_scale: float,
-          jpeg_quality: int, lidar_sweeps: int, progress: bool, rig: RigChoice) -> None:
+          jpeg_quality: int, lidar_sweeps: int, progress: bool, rig: RigChoice, scene_splits: SplitChoice) -> None:
     """Convert a nuScenes-format tree (+ Occ3D labels) into one chunked zarr store.
 
     Stores per keyframe: the rig's camera images (every camera of the tables unless --cameras),
@@ -179,7 +184,7 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
         resume=resume, on_error=on_error,  # type: ignore[arg-type]
         block_samples=block_samples, options=SampleOptions(image_scale=image_scale, jpeg_quality=jpeg_quality,
                                                              lidar_sweeps=lidar_sweeps),
-        progress=progress, grid=_one_grid(grid_name, voxel_size, grid_range), rig=rig,
+        progress=progress, grid=_one_grid(grid_name, voxel_size, grid_range), rig=rig, scene_splits=scene_splits,
     )
     click.echo(config.labels().note)
     with exit_on_interrupt(f"interrupted: every sample committed so far is kept in {out_path}; rerun the same "

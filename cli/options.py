@@ -7,6 +7,7 @@ import functools
 import importlib
 import typing
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, TypeVar
 
 import click
@@ -15,7 +16,7 @@ from cli._common import DEFAULT_STORE
 from occdata.errors import OccDataError
 
 __all__ = ["ConfigChoice", "cluster_options", "config_choice", "json_option", "progress_option", "rig_options",
-           "root_options", "store_option"]
+           "root_options", "split_source_options", "store_option"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -144,5 +145,32 @@ def rig_options() -> Callable[[F], F]:
                            help="The LiDAR whose keyframe timestamp and ego pose define the key-ego frame. "
                                 "Default: LIDAR_TOP where there is one, else the first LiDAR by name.")
         return cams(lids(ref(wrapper)))  # type: ignore[return-value]
+
+    return decorate
+
+
+def split_source_options() -> Callable[[F], F]:
+    """`--split-file` and `--unlisted-split`, handed to the command as one `scene_splits`
+    (occdata.nuscenes.splits.SplitChoice): where each scene's split comes from."""
+
+    def decorate(fn: F) -> F:
+        @functools.wraps(fn)
+        def wrapper(*args: Any, split_file: str | None, unlisted_split: str, **kwargs: Any) -> Any:
+            from occdata.nuscenes.splits import SplitChoice
+
+            try:
+                choice = SplitChoice(file=Path(split_file) if split_file else None, unlisted=unlisted_split)
+            except OccDataError as exc:
+                raise click.ClickException(str(exc)) from None
+            return fn(*args, scene_splits=choice, **kwargs)
+
+        file = click.option("--split-file", default=None, metavar="FILE",
+                            help='Each scene\'s split, as JSON: {"train": ["scene name", ...], "val": [...]}. It '
+                                 "decides for every scene it names, before nuScenes' official lists.")
+        unlisted = click.option("--unlisted-split", default="auto", show_default=True, metavar="NAME",
+                                help="The split of scenes that no list (split file, nuScenes' official lists, a "
+                                     "split=NAME tag in the scene description) names: auto = train, with one "
+                                     "scene in five (by a hash of its name) in val; or a name, e.g. unassigned.")
+        return file(unlisted(wrapper))  # type: ignore[return-value]
 
     return decorate

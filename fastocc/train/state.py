@@ -96,7 +96,9 @@ def class_counts(store: str | Path, split: str, use_camera_mask: bool, cache: Pa
     reader = open_store(store)
     idx = reader.split_indices(split)
     if not len(idx):
-        raise OccDataError(f"the store has no built samples in the {split!r} split")
+        counts = {s: len(reader.split_indices(s)) for s in reader.attrs.get("splits", [])}
+        raise OccDataError(f"the store has no built samples in the {split!r} split (its splits: {counts}); set "
+                           "train_split in a --config TOML, or rebuild with occdata build --split-file FILE")
     unlabelled = reader.split_indices(split, labelled=False)
     if len(unlabelled):
         raise OccDataError(f"{len(unlabelled)} sample(s) of the training split {split!r} have no labels "

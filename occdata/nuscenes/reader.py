@@ -23,7 +23,7 @@ from occdata.errors import OccDataError
 from occdata.nuscenes.records import CameraRecord, LidarRecord, NuScenesDataset, SampleRecord, SceneRecord
 from occdata.nuscenes.rig import Rig, RigChoice, resolve_rig, sensor_modalities
 from occdata.nuscenes.rows import RowProblem, field, floats, integer, pose, ref, short, timestamp_us
-from occdata.nuscenes.splits import official_split
+from occdata.nuscenes.splits import AUTO_SPLIT, SplitChoice, auto_split, official_split
 from occdata.nuscenes.tables import load_table, usable_as_file_name
 
 __all__ = [
@@ -208,14 +208,16 @@ def _keyframes_by_sample(
 
 def load_nuscenes(
     root: Path | str, version: str | None = None, check_files: bool = False, sweeps: bool = False,
-    rig: RigChoice | None = None,
+    rig: RigChoice | None = None, splits: SplitChoice | None = None,
 ) -> NuScenesDataset:
     """Read `<root>/<version>/*.json` into keyframe records.
 
     Scenes come in table order, samples per scene in time order (following `next` links from
-    `first_sample_token`). Each scene gets a split: the official one for nuScenes scene names
-    (mini_train/mini_val for v1.0-mini), else a `split=NAME` tag in its description, else
-    "unassigned". With `check_files`, every keyframe sensor file must be a readable regular file.
+    `first_sample_token`). Each scene gets a split (`SplitChoice`): the split file's when `splits`
+    names one, else the official one for nuScenes scene names (mini_train/mini_val for v1.0-mini), else
+    a `split=NAME` tag in its description, else `splits.unlisted` (default "auto": train, one scene in
+    five val, by a hash of its name). Scenes a split file names that the tables do not hold are noted.
+    With `check_files`, every keyframe sensor file must be a readable regular file.
     `NuScenesDataset.root` is `dataset_root(root)` and every record path is that root joined with the
     row's filename: symlinks (a symlinked root included) are kept, not resolved.
 
@@ -240,15 +242,21 @@ def load_nuscenes(
     version = find_version(root, version)
     idx = read_tables(root, version, sweeps, rig)
     notes = list(idx.notes)
+    choice = splits or SplitChoice()
+    split_table = choice.table()
     samples_per_scene = Counter(r.get("scene_token") for r in idx.samples.values())
     scenes: list[SceneRecord] = []
     samples: list[SampleRecord] = []
     for sc_tok, sc in idx.scenes.items():
-        scene = _scene_record(idx, sc_tok, sc, samples_per_scene[sc_tok], notes)
+        scene = _scene_record(idx, sc_tok, sc, samples_per_scene[sc_tok], notes, split_table, choice.unlisted)
         scenes.append(scene)
         for i, s_tok in enumerate(scene.sample_tokens):
             prev_keys = _lidar_tokens(idx, scene.sample_tokens[i - 1]) if i else {}
             samples.append(_sample_record(idx, s_tok, scene.name, i, prev_keys, check_files))
+    absent = sorted(set(split_table) - {sc.name for sc in scenes})
+    if absent:
+        notes.append(f"split file {choice.file}: {len(absent)} of its scenes are not in the tables "
+                     f"(first: {absent[0]!r})")
     return NuScenesDataset(
         root=root, version=version, scenes=tuple(scenes), samples=tuple(samples), warnings=tuple(notes),
         sweeps_loaded=sweeps, rig=idx.rig,
@@ -261,7 +269,8 @@ def _lidar_tokens(idx: TableIndex, sample_token: str) -> dict[str, str]:
     return {c: rows[c]["token"] for c in idx.rig.lidars if c in rows}
 
 
-def _scene_record(idx: TableIndex, sc_tok: str, sc: dict[str, Any], in_table: int, notes: list[str]) -> SceneRecord:
+def _scene_record(idx: TableIndex, sc_tok: str, sc: dict[str, Any], in_table: int, notes: list[str],
+                  split_table: dict[str, str], unlisted: str) -> SceneRecord:
     """One scene with its split and its samples in `next` order; a nbr_samples mismatch goes to `notes`."""
     name = field(sc, "name", "scene")
     if not isinstance(name, str) or not usable_as_file_name(name):
@@ -282,10 +291,10 @@ def _scene_record(idx: TableIndex, sc_tok: str, sc: dict[str, Any], in_table: in
     if nbr is not None and nbr != len(chain):
         notes.append(f"scene {name!r}: nbr_samples is {short(nbr)} but the tables hold {len(chain)} samples")
     description = str(sc.get("description", ""))
-    split = official_split(name, idx.version)
+    split = split_table.get(name) or official_split(name, idx.version)
     if split is None:
         tag = SPLIT_TAG.search(description)
-        split = tag.group(1) if tag else "unassigned"
+        split = tag.group(1) if tag else (auto_split(name) if unlisted == AUTO_SPLIT else unlisted)
     return SceneRecord(
         token=sc_tok, name=name, description=description, log_token=sc["log_token"],
         location=str(log.get("location", "")), split=split, sample_tokens=tuple(chain),

@@ -1,4 +1,4 @@
-"""Official nuScenes scene splits, kept as plain data.
+"""Scene splits: nuScenes' official lists, kept as plain data, and the user's own (`SplitChoice`).
 
 The scene lists are public facts taken from the nuScenes devkit (repository ``nutonomy/nuscenes-devkit``,
 file ``python-sdk/nuscenes/utils/splits.py``, read at commit ``0334132be5ee074ab7b8d4269441a072ea244897``).
@@ -11,12 +11,23 @@ mini_train is not a subset of train: scene-0553 and scene-0796 are val scenes in
 
 from __future__ import annotations
 
+import json
+import re
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+from occdata.errors import OccDataError
+
 __all__ = [
+    "AUTO_SPLIT",
     "MINI_TRAIN",
     "MINI_VAL",
     "TEST",
     "TRAIN",
     "VAL",
+    "SplitChoice",
+    "auto_split",
     "official_split",
 ]
 
@@ -128,3 +139,63 @@ def official_split(scene_name: str, version: str) -> str | None:
         if scene_name in scenes:
             return split_name
     return None
+
+
+AUTO_SPLIT = "auto"
+AUTO_VAL_EVERY = 5  # `auto`: one scene in 5 (by a hash of its name) goes to val, the others to train
+_SPLIT_NAME = re.compile(r"^[A-Za-z0-9_]+$")
+
+
+def auto_split(scene_name: str) -> str:
+    """The `auto` split of a scene that no list names: "val" when crc32(name) % 5 == 0, else "train".
+    A fixed function of the name, so a scene keeps its split whatever else the tree holds."""
+    return "val" if zlib.crc32(scene_name.encode("utf-8")) % AUTO_VAL_EVERY == 0 else "train"
+
+
+@dataclass(frozen=True)
+class SplitChoice:
+    """Where scene splits come from (`--split-file`, `--unlisted-split`). A scene's split is, in order:
+    the split file's (when one is given, it decides for every scene it names); nuScenes' official lists
+    (by scene name, for nuScenes versions); a `split=NAME` tag in the scene's description; else
+    `unlisted`: "auto" (`auto_split`: 4 in 5 scenes train, 1 in 5 val, by name) or a split name such
+    as "unassigned".
+
+    The split file is JSON: `{"train": ["scene-a", ...], "val": [...], ...}`."""
+
+    file: Path | None = None
+    unlisted: str = AUTO_SPLIT
+
+    def __post_init__(self) -> None:
+        if self.file is not None:
+            object.__setattr__(self, "file", Path(self.file))
+        if not _SPLIT_NAME.match(self.unlisted):
+            raise OccDataError(f"--unlisted-split {self.unlisted!r} is not a split name (letters, digits, _)")
+
+    def table(self) -> dict[str, str]:
+        """scene name -> split from the split file ({} without one). One line for an unreadable file,
+        a value that is not a list of scene names, a split name that is not a name, a scene named twice."""
+        if self.file is None:
+            return {}
+        try:
+            data = json.loads(self.file.read_text(encoding="utf-8"))
+        except OSError as exc:
+            raise OccDataError(f"split file {self.file}: cannot read it ({exc.strerror or exc})") from None
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise OccDataError(f"split file {self.file}: not JSON ({exc})") from None
+        if not isinstance(data, dict) or not data:
+            raise OccDataError(f'split file {self.file}: expected {{"train": ["scene name", ...], "val": [...]}}')
+        out: dict[str, str] = {}
+        for split, names in data.items():
+            if not _SPLIT_NAME.match(str(split)):
+                raise OccDataError(f"split file {self.file}: {split!r} is not a split name (letters, digits, _)")
+            if not isinstance(names, list) or not all(isinstance(n, str) and n for n in names):
+                raise OccDataError(f"split file {self.file}: split {split!r} is not a list of scene names")
+            for name in names:
+                if name in out and out[name] != split:
+                    raise OccDataError(f"split file {self.file}: scene {name!r} is in {out[name]!r} and {split!r}")
+                out[name] = split
+        return out
+
+    def describe(self) -> dict[str, str | None]:
+        """What the store's build identity records (a resumed build must split the same way)."""
+        return {"file": str(self.file.resolve()) if self.file else None, "unlisted": self.unlisted}

@@ -10,11 +10,13 @@ from occdata.errors import OccDataError
 from occdata.nuscenes.reader import load_nuscenes, validate_sample
 from occdata.nuscenes.records import NuScenesDataset
 from occdata.nuscenes.rig import RigChoice
+from occdata.nuscenes.splits import SplitChoice
 
 __all__ = ["scan_tree"]
 
 
-def scan_tree(root: Path, version: str | None, check_files: bool, rig: RigChoice | None = None) -> dict[str, Any]:
+def scan_tree(root: Path, version: str | None, check_files: bool, rig: RigChoice | None = None,
+              splits: SplitChoice | None = None) -> dict[str, Any]:
     """Read the tree and summarise it. Raises `OccDataError` on any broken reference and on any
     sample that `occdata build` would reject from its tables alone (unusable values, paths outside
     the root, NaN or non-rigid calibration and poses, invalid intrinsics; missing files with
@@ -23,8 +25,9 @@ def scan_tree(root: Path, version: str | None, check_files: bool, rig: RigChoice
     `sweeps`: the non-keyframe LIDAR_TOP sweeps between consecutive keyframes (min / mean / max
     over keyframes that have a previous keyframe), the total, and with `check_files` how many of
     their files exist (none in a keyframe-only download: not an error). `rig`: the cameras and
-    LiDARs read (`rig` in the summary; `left_out` names every sensor that is not)."""
-    ds = load_nuscenes(root, version, check_files=check_files, sweeps=True, rig=rig)
+    LiDARs read (`rig` in the summary; `left_out` names every sensor that is not); `splits`: where
+    each scene's split comes from."""
+    ds = load_nuscenes(root, version, check_files=check_files, sweeps=True, rig=rig, splits=splits)
     bad: list[str] = []
     for s in ds.samples:
         try:

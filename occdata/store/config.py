@@ -10,6 +10,7 @@ from typing import Literal
 from occdata.errors import OccDataError
 from occdata.formats.gridspec import GridSpec
 from occdata.nuscenes.rig import RigChoice
+from occdata.nuscenes.splits import SplitChoice
 from occdata.runtime.cluster import ClusterConfig
 from occdata.store.sample import SampleOptions
 
@@ -44,7 +45,8 @@ class BuildConfig:
     file is an error (a wrong folder would give a silently unlabelled store). `cluster`: where the
     block tasks run. `grid`: the grid of the labels files (`--grid`; None: Occ3D's, or OpenOcc v2's
     when the files have flow), which becomes the store's label grid. `rig`: the cameras and LiDARs
-    (`--cameras`, `--lidars`, `--reference-lidar`; default every one of the tables)."""
+    (`--cameras`, `--lidars`, `--reference-lidar`; default every one of the tables). `scene_splits`: where
+    each scene's split comes from (`--split-file`, `--unlisted-split`)."""
 
     root: Path
     out: Path | str
@@ -60,6 +62,7 @@ class BuildConfig:
     progress: bool = True
     grid: GridSpec | None = None
     rig: RigChoice = field(default_factory=RigChoice)
+    scene_splits: SplitChoice = field(default_factory=SplitChoice)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "root", Path(self.root))

@@ -7,6 +7,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from occdata.nuscenes.splits import SplitChoice
 from occdata.store.labelgrid import is_default_grid
 
 if TYPE_CHECKING:
@@ -22,7 +23,8 @@ _IDENTITY_OPTION = {
     "options.jpeg_quality": "--jpeg-quality", "options.min_depth": "min_depth",
     "options.lidar_sweeps": "--lidar-sweeps", "labels_format": "the format of the --gts files",
     "label_grid": "--grid / --voxel-size / --range", "rig.cameras": "--cameras", "rig.lidars": "--lidars",
-    "rig.reference_lidar": "--reference-lidar",
+    "rig.reference_lidar": "--reference-lidar", "scene_splits.file": "--split-file",
+    "scene_splits.unlisted": "--unlisted-split",
     "sample_tokens_crc32": "the sample list in the tables",
 }
 
@@ -36,6 +38,8 @@ def build_identity(config: BuildConfig, ds: NuScenesDataset, gts: Path | None,
     extra: dict[str, Any] = {} if label_format == "occ3d" else {"labels_format": label_format}
     if not ds.rig.is_nuscenes:
         extra["rig"] = ds.rig.as_attr()
+    if config.scene_splits != SplitChoice():  # the default split rule leaves the identity as it was
+        extra["scene_splits"] = config.scene_splits.describe()
     if not is_default_grid(config.grid):
         g = config.grid.describe()  # type: ignore[union-attr]
         extra["label_grid"] = {k: g[k] for k in ("name", "voxel_size", "lower", "upper", "frame", "layout")}

@@ -62,7 +62,8 @@ class BuildInputs:
 def read_inputs(config: BuildConfig) -> BuildInputs:
     """The tables, sweeps and labels files of `config`, checked before anything is written."""
     n_sweeps = config.options.lidar_sweeps
-    ds = load_nuscenes(config.root, config.version, sweeps=n_sweeps > 0, rig=config.rig).select(config.splits or None)
+    ds = load_nuscenes(config.root, config.version, sweeps=n_sweeps > 0, rig=config.rig,
+                       splits=config.scene_splits).select(config.splits or None)
     if not ds.samples:
         raise OccDataError(f"no samples selected under {config.root} (splits: {list(config.splits) or 'all'})")
     histories = tuple(ds.lidar_histories(i, n_sweeps) for i in range(len(ds.samples)))

@@ -181,7 +181,8 @@ class StoreReader:
             unknown = [s for s in wanted if s not in names]
             if unknown:
                 raise OccDataError(f"split {unknown[0]!r} is not in store {self.path}: unknown split (the store "
-                                   f"has {names})")
+                                   f"has {names}; a store's splits are set when it is built: occdata build "
+                                   "--split-file / --unlisted-split)")
             keep &= np.isin(self.small("sample/split"), [names.index(s) for s in wanted])
         if labelled is not None:
             keep &= self.small("labels/present").astype(bool) == labelled
