@@ -102,9 +102,11 @@ def _a_sweep(rows: list[dict], lidar_sweep_prefix: str = "sweeps/LIDAR_TOP/") ->
 
 
 @pytest.mark.parametrize("case, message", [
-    ("dangling", "not a LIDAR_TOP row of sample_data.json"),
-    ("next_disagrees", "but that row's next is"),
-    ("skips_to_keyframe", "not the previous keyframe's LIDAR_TOP"),
+    # the links are checked for every row first (every command reads them alike): a dangling or one-sided
+    # link is named there, before the LiDAR chain is followed
+    ("dangling", "refers to sample_data 'ffffffffffffffffffffffffffffffff', not in sample_data.json"),
+    ("next_disagrees", "but that row's prev is"),
+    ("skips_to_keyframe", "but that row's prev is"),
     ("cut", "before the previous keyframe's LIDAR_TOP"),
     ("other_scene", "a row of another scene"),
 ])

@@ -301,11 +301,14 @@ def _references(
 
 
 _WIDTH = {"translation": 3, "size": 3, "rotation": 4}
+# No road user is longer, wider or taller (the longest nuScenes boxes, articulated buses and trailers, are
+# under 20 m): a larger size is a corrupt row, not an object.
+MAX_BOX_SIZE_M = 100.0
 
 
 def _numbers(rows: list[_Row], key: str) -> np.ndarray:
-    """`(N, 3|4) float64` read-only column of a numeric field, checked: finite; sizes positive;
-    rotations unit quaternions (within 1e-3). `OccDataError` naming the first bad row."""
+    """`(N, 3|4) float64` read-only column of a numeric field, checked: finite; sizes positive and at
+    most `MAX_BOX_SIZE_M`; rotations unit quaternions (within 1e-3). `OccDataError` naming the first bad row."""
     n = _WIDTH[key]
     values = [getattr(row, key) for row in rows]
     try:
@@ -321,8 +324,11 @@ def _numbers(rows: list[_Row], key: str) -> np.ndarray:
     what = "is not finite"
     if key == "size" and not bad.any():
         bad, what = ~(arr > 0).all(axis=1), "is not positive"
+    if key == "size" and not bad.any():
+        bad, what = (arr > MAX_BOX_SIZE_M).any(axis=1), f"is not a plausible box size (over {MAX_BOX_SIZE_M:g} m)"
     if key == "rotation" and not bad.any():
-        bad, what = np.abs(np.linalg.norm(arr, axis=1) - 1.0) > 1e-3, "is not a unit quaternion"
+        with np.errstate(over="ignore", invalid="ignore"):  # a huge value is reported, not warned about
+            bad, what = ~(np.abs(np.linalg.norm(arr, axis=1) - 1.0) <= 1e-3), "is not a unit quaternion"
     if bad.any():
         i = int(np.argmax(bad))
         src = f"sample_annotation {rows[i].token!r}"

@@ -24,7 +24,7 @@ from occdata.nuscenes.records import CameraRecord, LidarRecord, NuScenesDataset,
 from occdata.nuscenes.rig import Rig, RigChoice, resolve_rig, sensor_modalities
 from occdata.nuscenes.rows import RowProblem, field, floats, integer, pose, ref, short, timestamp_us
 from occdata.nuscenes.splits import AUTO_SPLIT, SplitChoice, auto_split, official_split
-from occdata.nuscenes.tables import load_table, usable_as_file_name
+from occdata.nuscenes.tables import TokenSet, load_table, usable_as_file_name
 
 __all__ = [
     "SPLIT_TAG",
@@ -136,13 +136,17 @@ def read_tables(root: Path, version: str, sweeps: bool, rig: RigChoice | None = 
     calibs = load_table(vdir / "calibrated_sensor.json", warn=notes.append)
     logs = load_table(vdir / "log.json", warn=notes.append)
     scenes = load_table(vdir / "scene.json", warn=notes.append)
+    if not scenes:
+        raise OccDataError(f"{vdir / 'scene.json'} holds no scenes: nothing to read")
     samples = load_table(vdir / "sample.json", warn=notes.append)
     channel_of_calib = _channels_of_calibs(calibs, sensors)
     modalities = sensor_modalities(sensors)
     choice = rig or RigChoice()
     wanted = {c for c, m in modalities.items() if m in ("camera", "lidar")}
     keep = _sample_data_filter(calibs, channel_of_calib, modalities, wanted, sweeps)
-    sample_data = load_table(vdir / "sample_data.json", keep=keep, warn=notes.append)
+    all_sample_data = TokenSet()
+    sample_data = load_table(vdir / "sample_data.json", keep=keep, warn=notes.append, tokens=all_sample_data)
+    _check_links(sample_data, all_sample_data)
     keyframes = _keyframes_by_sample(sample_data, samples, channel_of_calib)
     resolved = resolve_rig(modalities, {c for per in keyframes.values() for c in per}, choice)
     used = set(resolved.channels)
@@ -187,6 +191,29 @@ def _sample_data_filter(
         return channel in wanted and (key or modalities.get(channel) == "lidar")
 
     return keep
+
+
+def _check_links(sample_data: dict[str, dict[str, Any]], every: TokenSet) -> None:
+    """Every kept sample_data row's `prev` / `next` is "" or a row of sample_data.json (kept or not);
+    where both ends are kept, the two links agree."""
+    for key in ("prev", "next"):
+        links = [(tok, sd.get(key, "")) for tok, sd in sample_data.items()]
+        for tok, link in links:
+            if not isinstance(link, str):
+                raise OccDataError(f"sample_data.json: row {tok!r} {key} is not a token ({short(link)})")
+        targets = [link for _, link in links if link and link not in sample_data]
+        found = set(every.hits(targets))
+        for tok, link in links:
+            if link and link not in sample_data and link not in found:
+                raise OccDataError(f"dangling token: sample_data {tok!r}.{key} refers to sample_data {link!r}, "
+                                   "not in sample_data.json")
+    back = {"prev": "next", "next": "prev"}
+    for tok, sd in sample_data.items():
+        for key in ("prev", "next"):
+            other = sample_data.get(sd.get(key, ""))
+            if other is not None and other.get(back[key], "") != tok:
+                raise OccDataError(f"sample_data.json: row {tok!r}.{key} is {sd[key]!r}, but that row's "
+                                   f"{back[key]} is {other.get(back[key], '')!r}")
 
 
 def _keyframes_by_sample(
@@ -312,8 +339,12 @@ def _scene_samples(idx: TableIndex, sc_tok: str, sc: dict[str, Any], name: str) 
             raise OccDataError(f"sample {tok!r} is linked from scene {name!r} but belongs to another scene")
         if len(chain) > len(idx.samples):
             raise OccDataError(f"scene {name!r}: the sample next-links form a cycle")
+        want_prev = chain[-1] if chain else ""
+        if field(row, "prev", "sample") != want_prev:
+            raise OccDataError(f"scene {name!r}: sample {tok!r}.prev is {short(row['prev'])}, but the scene's order "
+                               f"(next-links from first_sample_token) puts {want_prev or 'nothing'!r} before it")
         chain.append(tok)
-        tok = row.get("next", "")
+        tok = field(row, "next", "sample")
     last = field(sc, "last_sample_token", "scene")
     if chain and chain[-1] != last:
         raise OccDataError(f"scene {name!r}: the next-links end at {chain[-1]!r}, not last_sample_token {last!r}")

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from occdata.errors import OccDataError
+from occdata.nuscenes.annotations import load_annotations
 from occdata.nuscenes.reader import load_nuscenes, validate_sample
 from occdata.nuscenes.records import NuScenesDataset
 from occdata.nuscenes.rig import RigChoice
@@ -17,7 +18,8 @@ __all__ = ["scan_tree"]
 
 def scan_tree(root: Path, version: str | None, check_files: bool, rig: RigChoice | None = None,
               splits: SplitChoice | None = None) -> dict[str, Any]:
-    """Read the tree and summarise it. Raises `OccDataError` on any broken reference and on any
+    """Read the tree and summarise it. Raises `OccDataError` on any broken reference (the boxes' too:
+    `load_annotations`, as `occdata labels` reads them) and on any
     sample that `occdata build` would reject from its tables alone (unusable values, paths outside
     the root, NaN or non-rigid calibration and poses, invalid intrinsics; missing files with
     `check_files`): one line naming the first such sample and how many there are.
@@ -28,6 +30,7 @@ def scan_tree(root: Path, version: str | None, check_files: bool, rig: RigChoice
     LiDARs read (`rig` in the summary; `left_out` names every sensor that is not); `splits`: where
     each scene's split comes from."""
     ds = load_nuscenes(root, version, check_files=check_files, sweeps=True, rig=rig, splits=splits)
+    boxes = load_annotations(ds.root, ds.version)  # checked as `occdata labels` reads them (none: a test split)
     bad: list[str] = []
     for s in ds.samples:
         try:
@@ -49,6 +52,7 @@ def scan_tree(root: Path, version: str | None, check_files: bool, rig: RigChoice
         "scenes_per_split": dict(sorted(Counter(sc.split for sc in ds.scenes).items())),
         "rig": ds.rig.as_attr(),
         "left_out": list(ds.rig.left_out),
+        "boxes": sum(len(b) for b in boxes.boxes_by_sample.values()),
         "files_checked": check_files,
         "sweeps": _sweep_summary(ds, check_files),
         "warnings": list(ds.warnings),

@@ -8,13 +8,16 @@ stays proportional to the rows kept.
 from __future__ import annotations
 
 import json
+from array import array
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from occdata.errors import OccDataError
 
-__all__ = ["TABLE_NAMES", "iter_table_rows", "load_table", "usable_as_file_name"]
+__all__ = ["TABLE_NAMES", "TokenSet", "iter_table_rows", "load_table", "usable_as_file_name"]
 
 TABLE_NAMES: tuple[str, ...] = (
     "attribute",
@@ -128,25 +131,70 @@ def iter_table_rows(path: Path) -> Iterator[dict[str, Any]]:
         fh.close()
 
 
+class TokenSet:
+    """Every token of a table, kept as 8-byte hashes (the full trainval sample_data's 2.6 M tokens take
+    21 MB, not the rows' GBs): which tokens exist, for checking the references of the rows kept. Hashes
+    are Python's, valid in this process only; a false "exists" needs a 64-bit collision."""
+
+    def __init__(self) -> None:
+        self._buf = array("q")
+        self._sorted: np.ndarray | None = None
+
+    def add(self, token: str) -> None:
+        self._buf.append(hash(token))
+        self._sorted = None
+
+    def _hashes(self) -> np.ndarray:
+        if self._sorted is None:
+            self._sorted = np.unique(np.frombuffer(self._buf, dtype=np.int64))
+        return self._sorted
+
+    def __contains__(self, token: object) -> bool:
+        h = self._hashes()
+        i = int(np.searchsorted(h, hash(token)))
+        return i < len(h) and int(h[i]) == hash(token)
+
+    def repeated(self) -> set[int]:
+        """The hashes added more than once (a token that repeats, or a 64-bit collision)."""
+        raw = np.frombuffer(self._buf, dtype=np.int64)
+        if len(raw) < 2:
+            return set()
+        values, counts = np.unique(raw, return_counts=True)
+        return {int(v) for v in values[counts > 1]}
+
+    def hits(self, tokens: list[str]) -> list[str]:
+        """The `tokens` that are in the set."""
+        if not tokens:
+            return []
+        mask = np.isin(np.fromiter((hash(t) for t in tokens), np.int64, len(tokens)), self._hashes())
+        return [t for t, m in zip(tokens, mask, strict=True) if m]
+
+
 def load_table(
     path: Path,
     keep: Callable[[dict[str, Any]], bool] | None = None,
     warn: Callable[[str], None] | None = None,
+    tokens: TokenSet | None = None,
 ) -> dict[str, dict[str, Any]]:
-    """Rows of a table keyed by `token`, optionally filtered by `keep(row)`.
+    """Rows of a table keyed by `token`, optionally filtered by `keep(row)`; `tokens` (if given)
+    receives the token of every row, kept or not.
 
     Tokens must be usable as file names (`usable_as_file_name`): the Occ3D layout and the
-    prediction writer use them as folder names. A token that appears twice among the
-    kept rows with different content is an error naming the table and the token (otherwise the
-    last row would silently win); identical duplicates are kept once and reported through `warn`
+    prediction writer use them as folder names. A token that appears twice with different content
+    is an error naming the table and the token (otherwise the last row would silently win), whether
+    `keep` keeps both copies, one or none: every command refuses the same tree. Repeated tokens are
+    found through the hashes of all tokens and compared in a second read of the file, which only
+    happens when a token repeats. Identical duplicates are kept once and reported through `warn`
     (one message per table).
     """
     out: dict[str, dict[str, Any]] = {}
-    identical: list[str] = []
+    every = tokens if tokens is not None else TokenSet()
     for row in iter_table_rows(path):
+        token = row.get("token")
+        if isinstance(token, str):
+            every.add(token)
         if keep is not None and not keep(row):
             continue
-        token = row.get("token")
         if not isinstance(token, str):
             raise OccDataError(f"malformed table {path}: a row has no string 'token' field")
         if not usable_as_file_name(token):
@@ -155,20 +203,37 @@ def load_table(
                 "(tokens name folders of label and prediction files: no '/', '\\', NUL, '.' or '..')"
             )
         seen = out.get(token)
-        if seen is not None:
-            if seen != row:
-                raise OccDataError(
-                    f"duplicate token in {path.name}: {token!r} appears twice with different content "
-                    f"(fields {_differing(seen, row)} differ); remove one of the rows"
-                )
-            identical.append(token)
-            continue
-        out[token] = row
+        if seen is not None and seen != row:
+            raise _duplicate(path, token, seen, row)
+        out.setdefault(token, row)
+    identical = _compare_repeated(path, every.repeated())
     if identical and warn is not None:
-        warn(
-            f"{path.name}: {len(identical)} identical duplicate row(s) ignored (first token {identical[0]!r})"
-        )
+        warn(f"{path.name}: {len(identical)} identical duplicate row(s) ignored (first token {identical[0]!r})")
     return out
+
+
+def _duplicate(path: Path, token: str, a: dict[str, Any], b: dict[str, Any]) -> OccDataError:
+    return OccDataError(f"duplicate token in {path.name}: {token!r} appears twice with different content "
+                        f"(fields {_differing(a, b)} differ); remove one of the rows")
+
+
+def _compare_repeated(path: Path, repeated: set[int]) -> list[str]:
+    """Read the file again for the rows whose token hash repeats: copies that differ are an error;
+    returns the tokens of the identical extra copies, in file order."""
+    if not repeated:
+        return []
+    first: dict[str, dict[str, Any]] = {}
+    identical: list[str] = []
+    for row in iter_table_rows(path):
+        token = row.get("token")
+        if not isinstance(token, str) or hash(token) not in repeated:
+            continue
+        seen = first.setdefault(token, row)
+        if seen is not row:
+            if seen != row:
+                raise _duplicate(path, token, seen, row)
+            identical.append(token)
+    return identical
 
 
 def usable_as_file_name(name: str) -> bool:
