@@ -21,7 +21,7 @@ _IDENTITY_OPTION = {
     "block_samples": "--block-samples", "options.image_scale": "--image-scale",
     "options.jpeg_quality": "--jpeg-quality", "options.min_depth": "min_depth",
     "options.lidar_sweeps": "--lidar-sweeps", "labels_format": "the format of the --gts files",
-    "label_grid": "--grid / --voxel-size / --range",
+    "label_grid": "--gts-grid / --voxel-size / --range",
     "sample_tokens_crc32": "the sample list in the tables",
 }
 
