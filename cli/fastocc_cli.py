@@ -41,7 +41,8 @@ def main() -> None:
 @click.option("--head", type=config_choice(HEAD_SOURCE, "all"), default="fastocc",
               help="'all' compares the heads in one run.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu")
-@click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True)
+@click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Samples per forward pass (synthetic inputs).")
 @renamed_option("--batch", "--batch-size", "batch_size", type=click.IntRange(min=1))
 @click.option("--repeats", type=click.IntRange(min=1), default=5, help="Timed runs; the median is reported.")
 @click.option("--warmup", type=click.IntRange(min=0), default=1, help="Untimed runs first.")

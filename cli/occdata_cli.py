@@ -563,7 +563,7 @@ def check_projection(store: str, index: int, out: str) -> None:
 @store_option()
 @click.option("--pred", default=None, metavar="DIR", help="Prediction folder (as `occdata eval --pred`).")
 @click.option("--scene", default=None, help="Scene to show first (the one exported with --export).")
-@split_option(default=None, help="Only the scenes of this dataset split (default: all).")
+@split_option(default=None, help="Only the scenes of this dataset split; default: all")
 @click.option("--view", "view_name", type=config_choice("occdata.view.config:VIEWS"), default=None,
               help="Initial view (default: side with --pred, else label). speed: the labels coloured by "
                    "|flow| (stores with flow).")

@@ -83,12 +83,12 @@ def store_option(default: str | None = DEFAULT_STORE, help: str = STORE_HELP) ->
 def split_option(default: str | None = "val", help: str = "Dataset split to run on.") -> Callable[[F], F]:
     """`--split SPLIT`: one dataset split (`--split` means a dataset split in every command)."""
     return click.option("--split", default=default, show_default=default is not None, metavar="SPLIT",
-                        help=f"{help} ({SPLITS})")
+                        help=f"{help.rstrip('.')} ({SPLITS}).")
 
 
 def splits_option(help: str = "Only scenes of this split (repeatable)") -> Callable[[F], F]:
     """`--split SPLIT`, repeatable, handed to the command as the tuple `splits` (empty: every split)."""
-    return click.option("--split", "splits", multiple=True, metavar="SPLIT", help=f"{help}: {SPLITS}.")
+    return click.option("--split", "splits", multiple=True, metavar="SPLIT", help=f"{help}: {SPLITS}")
 
 
 def renamed_option(old: str, new: str, param: str, **kwargs: Any) -> Callable[[F], F]:
