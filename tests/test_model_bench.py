@@ -59,4 +59,4 @@ def test_bench_split_reports_2d_2dto3d_3d_per_preset_with_ratios_and_the_paper()
     for k, v in tiny["torch"].items():  # the ratio is a quotient of the measured times (no speed asserted here)
         assert tiny["torch_ratio_to_nano"][k] == pytest.approx(v / nano_ms[k])
     bad = CliRunner().invoke(main, ["bench", "--preset", "nano", "--preset", "tiny"])
-    assert bad.exit_code == 2 and "--split" in bad.output
+    assert bad.exit_code == 2 and "--stage-split" in bad.output
