@@ -163,7 +163,7 @@ TABLES: tuple[Table, ...] = (
         TableRow("nano, 128x352", "nano128"),
     ), "The paper's Table III varies the backbone (ResNet-50 / 101) and the input (320x800, 640x1600) at full "
        "size; its rows are not comparable with nano's, so no paper column. Its latency split 2D / 2D-to-3D / 3D "
-       "is `fastocc bench --split --preset tiny --preset small --preset base` (docs/benchmarks.md)."),
+       "is `fastocc bench --stage-split --preset tiny --preset small --preset base` (docs/benchmarks.md)."),
 )
 
 

@@ -38,13 +38,13 @@ __all__ = ["VARIANTS"]
 
 VARIANTS = {  # name: (extra CLI options, drop lidarseg)
     "boxes-keyframes": ([], False),
-    "boxes-sweeps": (["--lidar-sweeps"], False),
-    "control-sweeps": (["--lidar-sweeps", "--no-boxes"], False),
-    "boxes-sweeps-noseg": (["--lidar-sweeps"], True),
-    "boxes-sweeps-densify": (["--lidar-sweeps", "--densify"], False),
-    "control-sweeps-noseg": (["--lidar-sweeps", "--no-boxes"], True),
+    "boxes-sweeps": (["--all-sweeps"], False),
+    "control-sweeps": (["--all-sweeps", "--no-boxes"], False),
+    "boxes-sweeps-noseg": (["--all-sweeps"], True),
+    "boxes-sweeps-densify": (["--all-sweeps", "--densify"], False),
+    "control-sweeps-noseg": (["--all-sweeps", "--no-boxes"], True),
     # Issue 32: every benchmark's grid from one aggregation (scored on the occ3d grid, which is the same)
-    "boxes-sweeps-4grids": (["--lidar-sweeps", "--grid", "occ3d", "--grid", "openocc-v2", "--grid", "surroundocc",
+    "boxes-sweeps-4grids": (["--all-sweeps", "--grid", "occ3d", "--grid", "openocc-v2", "--grid", "surroundocc",
                              "--grid", "openoccupancy"], False),
 }
 

@@ -125,7 +125,7 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, nargs="+", default=[10, 850], help="scenes in the tables")
     ap.add_argument("--real-scenes", type=int, default=2, help="rendered scenes (the ones built and labelled)")
     ap.add_argument("--samples", type=int, default=4, help="keyframes per rendered scene")
-    ap.add_argument("--sweeps", type=int, default=9, help="build --lidar-sweeps (labels always use sweeps)")
+    ap.add_argument("--sweeps", type=int, default=9, help="build --lidar-sweeps N (labels always use --all-sweeps)")
     ap.add_argument("--commands", nargs="+", default=["build", "labels", "scan"])
     ap.add_argument("--trees", type=Path, help="keep the trees here (reused when present)")
     ap.add_argument("--json", type=Path)

@@ -28,7 +28,7 @@ busy share. Sections (`--sections`):
    trip per empty task, peak RSS per worker;
 3. s3: the same build to a local S3 server (moto, a separate process on 127.0.0.1, its CPU counted
    apart);
-4. labels: `occdata labels --lidar-sweeps` (one task per scene), 1 and 2 workers (keyframes/s; the
+4. labels: `occdata labels --all-sweeps` (one task per scene), 1 and 2 workers (keyframes/s; the
    warm run labels one scene per worker);
 5. write: the write path alone, P writer processes (`--writers`), each writing its own blocks
    (random payloads of nuScenes-like sizes, the store's layout and codecs) to local disk and (unless
@@ -194,7 +194,7 @@ def build_job(world: World, base: Path | str, lidar_sweeps: int, block: int, nam
 
 
 def labels_job(world: World, tmp: Path) -> Job:
-    """`occdata labels --lidar-sweeps` into `tmp/<tag>`; the warm run labels one scene per worker."""
+    """`occdata labels --all-sweeps` into `tmp/<tag>`; the warm run labels one scene per worker."""
     from occdata.labels import LabelOptions, LabelsConfig, generate_labels
 
     def run(tag: str, client: Any, workers: int, scenes: tuple[str, ...] | None = None) -> int:
@@ -258,7 +258,7 @@ def bench_build(world: World, base: Path | str, workers: Sequence[int], rounds: 
 
 
 def bench_labels(world: World, tmp: Path, workers: Sequence[int], rounds: int) -> dict[str, Any]:
-    """`occdata labels --lidar-sweeps` (one task per scene) at each worker count (keyframes/s)."""
+    """`occdata labels --all-sweeps` (one task per scene) at each worker count (keyframes/s)."""
     sizes = [n for _, n in world.scenes]
     out = {"scenes": len(sizes), **{f"ceiling_{w}_over_1": block_ceiling(sizes, w) for w in workers if w > 1}}
     return out | bench_scaling(labels_job(world, tmp), workers, rounds)
@@ -516,7 +516,7 @@ def format_table(res: dict[str, Any]) -> str:
              f"  {'':40}{'1 worker':>12}{'2 workers':>14}{'2/1':>8}"]
     for key, title, unit in (("build", "occdata build, local disk", "sample"),
                              ("build_s3", "occdata build, S3 (moto on 127.0.0.1)", "sample"),
-                             ("labels", "occdata labels --lidar-sweeps", "keyframe")):
+                             ("labels", "occdata labels --all-sweeps", "keyframe")):
         if key in res:
             lines += _section_table(title, res[key], unit)
     if "bytes" in res:

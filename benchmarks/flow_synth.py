@@ -3,7 +3,7 @@ a truth store whose flow is the world's own motion (docs/labels.md "Flow", figur
 
     python -m benchmarks.flow_synth --out /tmp/flow_synth [--scenes 2 --samples 6 --seed 11] [--json]
 
-Steps: `occdata synth`; `occdata labels --grid openocc-v2` (with `--lidar-sweeps`); a truth tree in
+Steps: `occdata synth`; `occdata labels --grid openocc-v2` (with `--all-sweeps`); a truth tree in
 OpenOcc v2's layout whose semantics are the world's own labels (`gts/`) and whose flow is, on each voxel an
 actor wins, that actor's true velocity (`object_velocities`, rotated into key ego), 0 elsewhere; a store
 from that tree (`occdata build --gts`), another from the generated labels; then `occdata eval` of the

@@ -9,14 +9,21 @@ from pathlib import Path
 import click
 
 from cli._common import exit_on_interrupt, friendly_errors, stop_on_sigterm
-from cli.options import config_choice, json_option, progress_option, store_option
+from cli.options import (
+    STORE_HELP,
+    config_choice,
+    json_option,
+    progress_option,
+    renamed_option,
+    split_option,
+    store_option,
+)
 
 __all__ = ["main"]
 
 # Choices from the configs that define them (read when first used: these modules import torch).
 PRESET_SOURCE = "fastocc.model.config:PRESETS"
 HEAD_SOURCE = "fastocc.model.config:HeadKind"
-STORE_HELP = "Store path or fsspec URL."
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -30,11 +37,13 @@ def main() -> None:
 
 @main.command()
 @click.option("--preset", "preset_names", type=config_choice(PRESET_SOURCE), multiple=True,
-              help="Model preset (default nano); with --split repeat it (default tiny, small and base).")
+              help="Model preset (default nano); with --stage-split repeat it (default tiny, small and base).")
 @click.option("--head", type=config_choice(HEAD_SOURCE, "all"), default="fastocc",
               help="'all' compares the heads in one run.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu")
-@click.option("--batch", type=click.IntRange(min=1), default=1)
+@click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Samples per forward pass (synthetic inputs).")
+@renamed_option("--batch", "--batch-size", "batch_size", type=click.IntRange(min=1))
 @click.option("--repeats", type=click.IntRange(min=1), default=5, help="Timed runs; the median is reported.")
 @click.option("--warmup", type=click.IntRange(min=0), default=1, help="Untimed runs first.")
 @click.option("--mode", type=config_choice("fastocc.bench:BenchConfig.mode"), default="infer",
@@ -43,22 +52,24 @@ def main() -> None:
 @click.option("--runtime", "runtimes", multiple=True, type=config_choice("fastocc.bench:RUNTIMES", "all"),
               help="End-to-end latency per frame (raw images -> preprocessing -> semantics) through the Predictor "
               "for eager PyTorch, torch.compile and/or ONNX Runtime in one run; repeat or use 'all'.")
-@click.option("--split", is_flag=True, help="The paper's Table III split: 2D / 2D-to-3D / 3D / total per preset, "
+@click.option("--stage-split", "stage_split", is_flag=True,
+              help="The paper's Table III timing split: 2D / 2D-to-3D / 3D / total per preset, "
               "eager PyTorch and ONNX Runtime (--runtime torch|onnx to keep one), ratios between presets.")
 @click.option("--input-hw", "input_hw", type=(int, int), default=None,
-              help="With --split: network input H W for every preset (default: each preset's).")
+              help="With --stage-split: network input H W for every preset (default: each preset's).")
+@renamed_option("--split", "--stage-split", "stage_split", is_flag=True)
 @json_option()
 def bench(
     preset_names: tuple[str, ...],
     head: str,
     device: str,
-    batch: int,
+    batch_size: int,
     repeats: int,
     warmup: int,
     mode: str,
     threads: int | None,
     runtimes: tuple[str, ...],
-    split: bool,
+    stage_split: bool,
     input_hw: tuple[int, int] | None,
     as_json: bool,
 ) -> None:
@@ -69,11 +80,12 @@ def bench(
     from fastocc.bench import BenchConfig, format_report, run_benchmark  # torch import only when used
     from fastocc.model import HeadKind
 
-    if split:
+    if stage_split:
         from fastocc.bench import SPLIT_RUNTIMES, SplitBenchConfig, format_split_report, run_split_benchmark
 
         if head != "fastocc" or mode != "infer" or device != "cpu" or "compile" in runtimes:
-            raise click.UsageError("--split measures the fastocc head in infer mode on the CPU, torch and/or onnx")
+            raise click.UsageError("--stage-split measures the fastocc head in infer mode on the CPU, torch "
+                                   "and/or onnx")
         chosen = SPLIT_RUNTIMES if not runtimes or "all" in runtimes else tuple(dict.fromkeys(runtimes))
         scfg = SplitBenchConfig(presets=tuple(dict.fromkeys(preset_names)) or ("tiny", "small", "base"),
                                 runtimes=chosen, repeats=repeats, warmup=warmup, threads=threads, input_hw=input_hw)
@@ -81,7 +93,7 @@ def bench(
         click.echo(json.dumps(sresult, indent=2) if as_json else format_split_report(sresult))
         return
     if len(preset_names) > 1:
-        raise click.UsageError("several --preset values need --split")
+        raise click.UsageError("several --preset values need --stage-split")
     preset_name = preset_names[0] if preset_names else "nano"
     if runtimes:
         from fastocc.bench import RUNTIMES, RuntimeBenchConfig, format_runtime_report, run_runtime_benchmark
@@ -102,7 +114,7 @@ def bench(
         preset=preset_name,
         heads=heads,
         device=device,
-        batch=batch,
+        batch=batch_size,
         repeats=repeats,
         warmup=warmup,
         mode=mode,  # type: ignore[arg-type]
@@ -164,7 +176,7 @@ def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height
 
 
 @main.command()
-@store_option(default=None, help="Store path or fsspec URL (default data.zarr, or the config file's).")
+@store_option(default=None, help=f"{STORE_HELP} Default: data.zarr, or the config file's.")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="TOML file of TrainConfig fields (a [train] table or top level); options below override it.")
 @click.option("--preset", "preset_name", type=config_choice(PRESET_SOURCE), default=None,
@@ -239,7 +251,7 @@ def train(config_file: Path | None, resume: bool, progress: bool, **options: obj
 _STORE = store_option(help=STORE_HELP)
 _CKPT = click.option("--checkpoint", "checkpoint", required=True, type=click.Path(path_type=Path),
                      help="A checkpoint written by fastocc (carries its model config; no preset flags).")
-_SPLIT = click.option("--split", default="val", show_default=True, help="Store split to run on.")
+_SPLIT = split_option(help="Dataset split of the store to run on.")
 _TTA = click.option("--tta", is_flag=True, help="Average the class probabilities of the 4 BEV flips (x, y, both).")
 _BATCH = click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True)
 _DEVICE = click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)

@@ -15,9 +15,12 @@ from cli.options import (
     config_choice,
     json_option,
     progress_option,
+    renamed_option,
     rig_options,
     root_options,
+    split_option,
     split_source_options,
+    splits_option,
     store_option,
 )
 from occdata.formats.gridspec import GRID_NAMES, GridSpec, grids_from_options
@@ -133,16 +136,16 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool, rig: 
                    "which no sample finds its file is an error. An OpenOcc v2 tree (files with 'flow', e.g. "
                    "`occdata labels --grid openocc-v2` output) is read in its class ids and its flow is stored "
                    "(labels/flow); a tree must hold one format.")
-@click.option("--grid", "grid_name", type=click.Choice(list(GRID_NAMES)), default=None,
-              help="The grid of the --gts labels, in its benchmark's layout (e.g. gts/surroundocc/ from "
+@click.option("--gts-grid", "grid_name", type=click.Choice(list(GRID_NAMES)), default=None,
+              help="The one grid of the --gts labels, in its benchmark's layout (e.g. gts/surroundocc/ from "
                    "`occdata labels|synth --grid surroundocc`): the store's label arrays get its shape, "
                    "in our 18 Occ3D class ids. Default: Occ3D's grid.")
 @click.option("--voxel-size", type=click.FloatRange(0.05, 2.0), default=None,
               help="The --gts labels are a custom Occ3D-style grid of this voxel size (m), e.g. gts/occ3d-0.8m/.")
+@renamed_option("--grid", "--gts-grid", "grid_name", type=click.Choice(list(GRID_NAMES)))
 @click.option("--range", "grid_range", type=float, nargs=6, default=None, metavar="XMIN YMIN ZMIN XMAX YMAX ZMAX",
               help="That custom grid's range in metres (key ego; default Occ3D's -40 -40 -1 40 40 5.4).")
-@click.option("--split", "splits", multiple=True,
-              help="Keep only scenes of this split (repeatable): train, val, test, mini_train, mini_val, ...")
+@splits_option("Keep only scenes of this split (repeatable)")
 @cluster_options()
 @click.option("--resume", is_flag=True, help="Continue an interrupted build of the same inputs and options.")
 @click.option("--on-error", type=config_choice("occdata.store.build:BuildConfig.on_error"), default="fail",
@@ -211,10 +214,11 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
 @click.option("--out", required=True, metavar="DIR",
               help="Output folder: <out>/<scene>/<sample_token>/labels.npz (Occ3D's layout), other grids in "
                    "<out>/<grid>/, and the manifest labels.json.")
-@click.option("--split", "splits", multiple=True, help="Only scenes of this split (repeatable).")
+@splits_option()
 @click.option("--scene", "scenes", multiple=True, help="Only this scene (repeatable), e.g. scene-0916.")
-@click.option("--lidar-sweeps", is_flag=True,
+@click.option("--all-sweeps", "all_sweeps", is_flag=True,
               help="Also aggregate the non-keyframe LiDAR sweeps (needs the sweeps/ files): denser labels.")
+@renamed_option("--lidar-sweeps", "--all-sweeps", "all_sweeps", is_flag=True)
 @click.option("--static-class", type=click.IntRange(0, 16), default=0, show_default=True,
               help="Without lidarseg only: the Occ3D class given to every point outside a box (0 = others, "
                    "i.e. 'occupied, not an annotated object'). Recorded in labels.json.")
@@ -241,7 +245,7 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
 @progress_option()
 @friendly_errors
 def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], scenes: tuple[str, ...],
-           lidar_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, densify: bool,
+           all_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, densify: bool,
            grids: tuple[str, ...],
            voxel_size: float | None, grid_range: tuple[float, ...] | None, cluster: ClusterConfig,
            resume: bool, progress: bool) -> None:
@@ -261,7 +265,7 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
         report = generate_labels(LabelsConfig(
             root=local_path(root, "--root"), out=out_path, version=version, splits=splits or None,
             scenes=scenes or None, resume=resume, progress=progress,
-            options=LabelOptions(lidar_sweeps=lidar_sweeps, static_class=static_class, knn_radius=knn_radius,
+            options=LabelOptions(lidar_sweeps=all_sweeps, static_class=static_class, knn_radius=knn_radius,
                                  use_boxes=not no_boxes, densify=densify),
             cluster=cluster, grids=specs,
         ))
@@ -378,7 +382,7 @@ def _one_grid(name: str | None, voxel_size: float | None, grid_range: tuple[floa
     if name is None and voxel_size is None and grid_range is None:
         return None
     if name is not None and (voxel_size is not None or grid_range is not None):
-        raise click.UsageError("give either --grid or --voxel-size/--range (one labels grid), not both")
+        raise click.UsageError("give either --gts-grid or --voxel-size/--range (one labels grid), not both")
     (spec,) = grids_from_options(() if name is None else (name,), voxel_size, grid_range)
     return spec
 
@@ -462,8 +466,9 @@ def verify(store: str, progress: bool, images: bool) -> None:
 
 @main.command()
 @store_option()
-@click.option("--train-split", default="train", show_default=True, help="Split whose labels are counted.")
-@click.option("--split", default="val", show_default=True, help="Split to score.")
+@click.option("--train-split", default="train", show_default=True, metavar="SPLIT",
+              help="Dataset split whose labels are counted.")
+@split_option(help="Dataset split to score.")
 @json_option("Print the results as JSON (fractions).")
 @friendly_errors
 def baseline(store: str, train_split: str, split: str, as_json: bool) -> None:
@@ -496,7 +501,7 @@ def baseline(store: str, train_split: str, split: str, as_json: bool) -> None:
               help="The predictions' label ids: occ3d (17 = free) or openocc-v2 (OpenOcc v2's order, 16 = free; "
                    "e.g. `occdata labels --grid openocc-v2` output).")
 @store_option(help="The occdata store holding the ground truth and poses (a folder or an fsspec URL).")
-@click.option("--split", default="val", show_default=True, help="Split to score (every labelled sample of it).")
+@split_option(help="Dataset split to score (every labelled sample of it).")
 @click.option("--mask", type=config_choice("occdata.eval.evaluate:MaskName"), default="camera", show_default=True,
               help="Visibility mask for mIoU (Occ3D uses camera). RayIoU uses no mask.")
 @click.option("--no-rayiou", is_flag=True, help="Skip RayIoU (mIoU only, much faster).")
@@ -578,7 +583,7 @@ def check_projection(store: str, index: int, out: str) -> None:
 @store_option()
 @click.option("--pred", default=None, metavar="DIR", help="Prediction folder (as `occdata eval --pred`).")
 @click.option("--scene", default=None, help="Scene to show first (the one exported with --export).")
-@click.option("--split", default=None, help="Only the scenes of this split (default: all).")
+@split_option(default=None, help="Only the scenes of this dataset split; default: all")
 @click.option("--view", "view_name", type=config_choice("occdata.view.config:VIEWS"), default=None,
               help="Initial view (default: side with --pred, else label). speed: the labels coloured by "
                    "|flow| (stores with flow).")

@@ -11,17 +11,19 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import click
+from click.core import ParameterSource
 
 from cli._common import DEFAULT_STORE
 from occdata.errors import OccDataError
 
-__all__ = ["ConfigChoice", "cluster_options", "config_choice", "json_option", "progress_option", "rig_options",
-           "root_options", "split_source_options", "store_option"]
+__all__ = ["ConfigChoice", "cluster_options", "config_choice", "json_option", "progress_option", "renamed_option",
+           "rig_options", "root_options", "split_option", "split_source_options", "splits_option", "store_option"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
 ROOT_HELP = "nuScenes-format dataset root (a folder or a file:// URL)."
 STORE_HELP = "An occdata zarr store: a folder or an fsspec URL (file://, s3://, ...)."
+SPLITS = "train, val, test, mini_train, mini_val, ..."
 
 
 class ConfigChoice(click.Choice):  # type: ignore[type-arg]
@@ -77,6 +79,40 @@ def store_option(default: str | None = DEFAULT_STORE, help: str = STORE_HELP) ->
     """`--store STORE`. A plain string, not click.Path: click would turn an fsspec URL such as
     file:///x/y.zarr into file:/x/y.zarr."""
     return click.option("--store", default=default, show_default=default is not None, metavar="STORE", help=help)
+
+
+def split_option(default: str | None = "val", help: str = "Dataset split to run on.") -> Callable[[F], F]:
+    """`--split SPLIT`: one dataset split (`--split` means a dataset split in every command)."""
+    return click.option("--split", default=default, show_default=default is not None, metavar="SPLIT",
+                        help=f"{help.rstrip('.')} ({SPLITS}).")
+
+
+def splits_option(help: str = "Only scenes of this split (repeatable)") -> Callable[[F], F]:
+    """`--split SPLIT`, repeatable, handed to the command as the tuple `splits` (empty: every split)."""
+    return click.option("--split", "splits", multiple=True, metavar="SPLIT", help=f"{help}: {SPLITS}")
+
+
+def renamed_option(old: str, new: str, param: str, **kwargs: Any) -> Callable[[F], F]:
+    """The old spelling `old` of the option `new` (whose value the command gets as `param`), hidden from
+    --help and still accepted for a while: it prints a one-line note on stderr and stands for `new`.
+    `kwargs` are the old option's click arguments (its type, or `is_flag=True`)."""
+    dest = f"renamed_{param}"
+
+    def decorate(fn: F) -> F:
+        @functools.wraps(fn)
+        def wrapper(*args: Any, **kw: Any) -> Any:
+            value = kw.pop(dest)
+            ctx = click.get_current_context()
+            if ctx.get_parameter_source(dest) is ParameterSource.COMMANDLINE:
+                if ctx.get_parameter_source(param) is ParameterSource.COMMANDLINE:
+                    raise click.UsageError(f"give {new} alone ({old} is its old spelling)")
+                click.echo(f"note: {old} is now {new} (the old spelling still works, for a while)", err=True)
+                kw[param] = value
+            return fn(*args, **kw)
+
+        return click.option(old, dest, hidden=True, **kwargs)(wrapper)  # type: ignore[return-value]
+
+    return decorate
 
 
 def progress_option(help: str = "No progress bar.") -> Callable[[F], F]:

@@ -1,5 +1,5 @@
 """The one check that a store's label grid is the model's output grid, for `fastocc train`, `eval` and
-`predict`: a store built on another grid (`occdata build --grid ...`) stops the command at start in one
+`predict`: a store built on another grid (`occdata build --gts-grid ...`) stops the command at start in one
 line, instead of a shape error deep in the loss, the metric or the loader."""
 
 from __future__ import annotations

@@ -113,7 +113,7 @@ def digest(work: Path) -> dict[str, Any]:
          "--width", "320", "--height", "180", "--no-progress")
     _run("cli.occdata_cli", "build", "--root", str(world), "--gts", str(world / "gts"), "--out", str(store),
          "--lidar-sweeps", "2", "--block-samples", "3", "--no-progress")
-    _run("cli.occdata_cli", "labels", "--root", str(world), "--out", str(labels), "--lidar-sweeps",
+    _run("cli.occdata_cli", "labels", "--root", str(world), "--out", str(labels), "--all-sweeps",
          "--no-progress")
     ev = json.loads(_run("cli.occdata_cli", "eval", "--pred", str(labels), "--store", str(store), "--split", "val",
                          "--json", "--no-progress"))

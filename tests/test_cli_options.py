@@ -76,3 +76,108 @@ def test_cluster_options_are_validated_by_cluster_config_in_one_line(command: st
     assert r.exit_code == 1
     assert r.stderr.strip().splitlines()[-1] == "Error: --workers must be >= 1, got 0"
     assert not (tmp_path / "o").exists()
+
+
+# -- one name, one meaning (issue 41 item 5) ---------------------------------------------------------------
+def _visible_options(group: click.Group) -> list[tuple[str, str, click.Option]]:
+    return [(name, opt, p) for name, cmd in group.commands.items() for p in cmd.params
+            if isinstance(p, click.Option) and not p.hidden for opt in p.opts]
+
+
+def test_an_option_is_a_flag_everywhere_or_nowhere() -> None:
+    """`--lidar-sweeps` was a flag in `labels` and a number in `build`; `--split` a flag in `bench`."""
+    kinds: dict[str, set[tuple[str, bool]]] = {}
+    for group in (occdata_main, fastocc_main):
+        for name, opt, p in _visible_options(group):
+            kinds.setdefault(opt, set()).add((f"{group.name} {name}", p.is_flag))
+    mixed = {opt: sorted(k) for opt, k in kinds.items() if len({flag for _, flag in k}) > 1}
+    assert not mixed, mixed
+
+
+def test_split_is_a_dataset_split_wherever_it_is_declared() -> None:
+    found = [(group.name, name, p) for group in (occdata_main, fastocc_main)
+             for name, opt, p in _visible_options(group) if opt == "--split"]
+    assert len(found) >= 7
+    for group_name, name, p in found:
+        assert not p.is_flag and p.metavar == "SPLIT", (group_name, name)
+        assert "train, val, test" in (p.help or ""), (group_name, name, p.help)
+    assert not [n for n, opt, _ in _visible_options(fastocc_main) if opt == "--batch"]
+
+
+class _Called(Exception):
+    """Raised by a stand-in for the function a command calls, carrying what the command handed it."""
+
+
+def _stand_in(monkeypatch: pytest.MonkeyPatch, target: str) -> None:
+    def called(*args: object, **kwargs: object) -> None:
+        raise _Called(args, kwargs)
+
+    monkeypatch.setattr(target, called)
+
+
+def _call(monkeypatch: pytest.MonkeyPatch, group: click.Group, args: list[str], target: str) -> tuple[object, str]:
+    """What the command hands `target` for `args`, and its stderr."""
+    _stand_in(monkeypatch, target)
+    r = CliRunner().invoke(group, args)
+    assert isinstance(r.exception, _Called), (r.output, r.exception)
+    call_args, call_kwargs = r.exception.args
+    return (call_args[0] if call_args else next(iter(call_kwargs.values()))), r.stderr
+
+
+@pytest.mark.parametrize(("new", "old"), [(["--all-sweeps"], ["--lidar-sweeps"])])
+def test_labels_all_sweeps_and_its_old_spelling(monkeypatch: pytest.MonkeyPatch, tmp_path, new: list[str],
+                                                old: list[str]) -> None:
+    base = ["labels", "--root", str(tmp_path), "--out", str(tmp_path / "o")]
+    cfg, err = _call(monkeypatch, occdata_main, base + new, "occdata.labels.generate_labels")
+    assert cfg.options.lidar_sweeps is True and err == ""
+    cfg, err = _call(monkeypatch, occdata_main, base + old, "occdata.labels.generate_labels")
+    assert cfg.options.lidar_sweeps is True
+    assert err == "note: --lidar-sweeps is now --all-sweeps (the old spelling still works, for a while)\n"
+    cfg, err = _call(monkeypatch, occdata_main, base, "occdata.labels.generate_labels")
+    assert cfg.options.lidar_sweeps is False and err == ""
+
+
+def _called_kwargs(monkeypatch: pytest.MonkeyPatch, group: click.Group, args: list[str],
+                   target: str) -> tuple[typing.Any, dict[str, typing.Any]]:
+    _stand_in(monkeypatch, target)
+    r = CliRunner().invoke(group, args)
+    assert isinstance(r.exception, _Called), (r.output, r.exception)
+    return r, r.exception.args[1]
+
+
+def test_build_gts_grid_and_its_old_spelling(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
+    base = ["build", "--root", str(tmp_path), "--out", str(tmp_path / "o.zarr")]
+    target = "occdata.store.build.BuildConfig"
+    r, kwargs = _called_kwargs(monkeypatch, occdata_main, base + ["--gts-grid", "surroundocc"], target)
+    assert kwargs["grid"].name == "surroundocc" and r.stderr == ""
+    r, kwargs = _called_kwargs(monkeypatch, occdata_main, base + ["--grid", "surroundocc"], target)
+    assert kwargs["grid"].name == "surroundocc"
+    assert r.stderr == "note: --grid is now --gts-grid (the old spelling still works, for a while)\n"
+    r, kwargs = _called_kwargs(monkeypatch, occdata_main, base, target)
+    assert kwargs["grid"] is None and r.stderr == ""
+    r = CliRunner().invoke(occdata_main, base + ["--grid", "occ3d", "--gts-grid", "occ3d"])
+    assert r.exit_code == 2 and "give --gts-grid alone (--grid is its old spelling)" in r.stderr
+
+
+def test_bench_batch_size_and_stage_split_and_their_old_spellings(monkeypatch: pytest.MonkeyPatch) -> None:
+    cfg, err = _call(monkeypatch, fastocc_main, ["bench", "--batch-size", "3"], "fastocc.bench.run_benchmark")
+    assert cfg.batch == 3 and err == ""
+    cfg, err = _call(monkeypatch, fastocc_main, ["bench", "--batch", "3"], "fastocc.bench.run_benchmark")
+    assert cfg.batch == 3
+    assert err == "note: --batch is now --batch-size (the old spelling still works, for a while)\n"
+    cfg, err = _call(monkeypatch, fastocc_main, ["bench", "--stage-split", "--preset", "nano"],
+                     "fastocc.bench.run_split_benchmark")
+    assert cfg.presets == ("nano",) and err == ""
+    cfg, err = _call(monkeypatch, fastocc_main, ["bench", "--split", "--preset", "nano"],
+                     "fastocc.bench.run_split_benchmark")
+    assert cfg.presets == ("nano",)
+    assert err == "note: --split is now --stage-split (the old spelling still works, for a while)\n"
+
+
+def test_store_help_is_written_once() -> None:
+    import cli.fastocc_cli
+    import cli.options
+
+    assert cli.fastocc_cli.STORE_HELP is cli.options.STORE_HELP
+    helps = [p.help for _, opt, p in _visible_options(fastocc_main) if opt == "--store"]
+    assert len(helps) >= 4 and all(h.startswith(cli.options.STORE_HELP) for h in helps), helps

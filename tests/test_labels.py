@@ -199,7 +199,7 @@ def test_missing_sweep_is_one_line(world: Path, tmp_path: Path) -> None:
         if p.name != "sweeps":
             (root / p.name).symlink_to(p)
     r = subprocess.run([sys.executable, "-m", "cli.occdata_cli", "labels", "--root", str(root), "--out",
-                        str(tmp_path / "o"), "--lidar-sweeps", "--no-progress"], capture_output=True, text=True,
+                        str(tmp_path / "o"), "--all-sweeps", "--no-progress"], capture_output=True, text=True,
                        cwd=REPO)
     assert r.returncode != 0
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
@@ -309,7 +309,7 @@ def test_sigterm_stops_mid_scene_and_resume_completes(world: Path, generated: di
     root, out = tmp_path / "world", tmp_path / "o"
     gate, real = _gated_copy(world, root)
     cmd = [sys.executable, "-m", "cli.occdata_cli", "labels", "--root", str(root), "--out", str(out),
-           "--lidar-sweeps", "--no-progress"]
+           "--all-sweeps", "--no-progress"]
     proc = subprocess.Popen(cmd, cwd=REPO, stderr=subprocess.PIPE, text=True)
     fd = _open_when_read(gate, timeout=120)  # the run is reading a sweep in the middle of the scene
     proc.send_signal(signal.SIGTERM)

@@ -36,13 +36,13 @@ def test_bench_cli_rejects_cuda_without_gpu_in_one_line() -> None:
 
 
 def test_bench_split_reports_2d_2dto3d_3d_per_preset_with_ratios_and_the_paper() -> None:
-    """`fastocc bench --split` (Table III): every stage of every preset, eager and ONNX Runtime, ratios to the
+    """`fastocc bench --stage-split` (Table III): every stage of every preset, eager and ONNX Runtime, ratios to the
     first preset, the paper's tiny split beside ours. Tiny sizes here (plumbing, not figures)."""
     import pytest
 
     pytest.importorskip("onnxruntime")
-    result = CliRunner().invoke(main, ["bench", "--split", "--preset", "nano", "--preset", "tiny", "--input-hw", "64",
-                                       "176", "--repeats", "1", "--warmup", "0", "--threads", "1", "--json"])
+    result = CliRunner().invoke(main, ["bench", "--stage-split", "--preset", "nano", "--preset", "tiny", "--input-hw",
+                                       "64", "176", "--repeats", "1", "--warmup", "0", "--threads", "1", "--json"])
     assert result.exit_code == 0, result.output
     report = json.loads(result.output)
     assert list(report["presets"]) == ["nano", "tiny"]
@@ -59,4 +59,4 @@ def test_bench_split_reports_2d_2dto3d_3d_per_preset_with_ratios_and_the_paper()
     for k, v in tiny["torch"].items():  # the ratio is a quotient of the measured times (no speed asserted here)
         assert tiny["torch_ratio_to_nano"][k] == pytest.approx(v / nano_ms[k])
     bad = CliRunner().invoke(main, ["bench", "--preset", "nano", "--preset", "tiny"])
-    assert bad.exit_code == 2 and "--split" in bad.output
+    assert bad.exit_code == 2 and "--stage-split" in bad.output

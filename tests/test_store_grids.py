@@ -172,10 +172,10 @@ def test_occ3d_store_is_unchanged(world: Path, stores: dict[str, Path], tmp_path
 def test_wrong_grid_for_the_files_is_one_line(world: Path, tmp_path: Path) -> None:
     runner = CliRunner()
     res = runner.invoke(occdata_main, ["build", "--root", str(world), "--gts", str(world / "gts" / OCC_08.name),
-                                       "--out", str(tmp_path / "a.zarr"), "--no-progress"])  # 0.8 m files, no --grid
-    assert res.exit_code == 1 and "Traceback" not in res.output and "--grid" in res.output, res.output
+                                       "--out", str(tmp_path / "a.zarr"), "--no-progress"])  # 0.8 m, no grid
+    assert res.exit_code == 1 and "Traceback" not in res.output and "--gts-grid" in res.output, res.output
     res = runner.invoke(occdata_main, ["build", "--root", str(world), "--gts", str(world / "gts" / OCC_08.name),
-                                       "--grid", "surroundocc", "--out", str(tmp_path / "b.zarr"), "--no-progress"])
+                                       "--gts-grid", "surroundocc", "--out", str(tmp_path / "b.zarr"), "--no-progress"])
     assert res.exit_code == 1 and "no surroundocc label file" in res.output, res.output
     with pytest.raises(OccDataError, match="shape"):  # Occ3D files read as the 0.8 m grid: each sample fails
         build_store(BuildConfig(root=world, out=tmp_path / "c.zarr", gts=world / "gts", progress=False, grid=OCC_08))

@@ -22,7 +22,7 @@ _IDENTITY_OPTION = {
     "block_samples": "--block-samples", "options.image_scale": "--image-scale",
     "options.jpeg_quality": "--jpeg-quality", "options.min_depth": "min_depth",
     "options.lidar_sweeps": "--lidar-sweeps", "labels_format": "the format of the --gts files",
-    "label_grid": "--grid / --voxel-size / --range", "rig.cameras": "--cameras", "rig.lidars": "--lidars",
+    "label_grid": "--gts-grid / --voxel-size / --range", "rig.cameras": "--cameras", "rig.lidars": "--lidars",
     "rig.reference_lidar": "--reference-lidar", "scene_splits.file": "--split-file",
     "scene_splits.unlisted": "--unlisted-split",
     "sample_tokens_crc32": "the sample list in the tables",

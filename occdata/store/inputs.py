@@ -94,7 +94,7 @@ def _check_first_label(labels: list[Path | None], grid: GridSpec | None) -> None
     if first is None:
         return
     want = GRID.shape if grid is None else grid.shape
-    hint = ("pass --grid NAME or --voxel-size V [--range ...] as the labels were written (occdata labels/synth "
+    hint = ("pass --gts-grid NAME or --voxel-size V [--range ...] as the labels were written (occdata labels/synth "
             "put each grid in gts/<grid>/)")
     name = "occ3d" if grid is None else grid.name
     try:
@@ -166,7 +166,7 @@ def find_label_files(
             f"no label file under {gts} matches any of the {len(ds.samples)} samples; expected "
             f"{gts}/<scene name>/<sample token>/{LABEL_FILE} or {gts}/<sample token>/{LABEL_FILE}, "
             f"e.g. {gts / nested} (check --gts; leave it out for samples without labels, e.g. the test split; "
-            "labels of another grid need --grid NAME or --voxel-size)"
+            "labels of another grid need --gts-grid NAME or --voxel-size)"
         )
     if any(s.problem for s in samples):
         ds = dataclasses.replace(ds, samples=tuple(samples))
