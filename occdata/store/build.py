@@ -93,7 +93,23 @@ def _build_locked(config: BuildConfig, client: Any, inputs: BuildInputs) -> Buil
     regions = root[REGIONS][:]
     grow_flat(root, regions)  # a run killed between a relocation and the grow
     consolidate(out)  # what every task reads first: current before any task runs
-    coord = Coordinator(root, config.on_error)
+    coord = Coordinator(config.on_error)
+    try:
+        converted = _run_waves(config, client, inputs, root, out, state, todo, regions, coord)
+    except BaseException:  # Ctrl-C, a lost scheduler, --on-error fail, a bug: keep the reasons found so far
+        if coord.errors:
+            with contextlib.suppress(Exception):  # e.g. the disk that just filled up: the first error counts
+                root.attrs["errors"] = coord.recorded()
+                consolidate(out)
+        raise
+    return _finish(config, root, out, inputs, coord, converted)
+
+
+def _run_waves(config: BuildConfig, client: Any, inputs: BuildInputs, root: zarr.Group, out: str,
+               state: np.ndarray, todo: set[int], regions: np.ndarray, coord: Coordinator) -> int:
+    """The tasks, in at most two waves (the second: blocks that outgrew their region); returns the
+    samples converted. No metadata is written while tasks run (see `Coordinator`)."""
+    spans = block_spans(len(inputs.ds.samples), config.block_samples)
     converted = [0]
 
     def on_result(job: ConvertJob, result: BlockSummary) -> list[ConvertJob]:
@@ -123,7 +139,7 @@ def _build_locked(config: BuildConfig, client: Any, inputs: BuildInputs) -> Buil
             f"sample {i} ({token}) failed: {reason}. Everything before it is committed; fix the input and rerun "
             "with --resume (or use --on-error skip)."
         )
-    return _finish(config, root, out, inputs, converted[0])
+    return converted[0]
 
 
 def _convert_job(config: BuildConfig, inputs: BuildInputs, out: str, span: Span, regions: np.ndarray,
@@ -133,11 +149,13 @@ def _convert_job(config: BuildConfig, inputs: BuildInputs, out: str, span: Span,
                       tuple((int(a), int(e)) for a, e in regions[b]), config.on_error)
 
 
-def _finish(config: BuildConfig, root: zarr.Group, out: str, inputs: BuildInputs, processed: int) -> BuildReport:
-    """The final commit (idempotent, in no block order): completeness, the run's options, metadata."""
+def _finish(config: BuildConfig, root: zarr.Group, out: str, inputs: BuildInputs, coord: Coordinator,
+            processed: int) -> BuildReport:
+    """The final commit (idempotent, in no block order): completeness, the run's options and errors,
+    metadata."""
     final_state = root["status/state"][:]
     complete = bool((final_state != STATE_PENDING).all())
-    root.attrs.update({"complete": complete,
+    root.attrs.update({"complete": complete, "errors": coord.recorded(),
                        "build_config": {"workers": config.cluster.workers, "on_error": config.on_error}})
     consolidate(out)
     return BuildReport(
