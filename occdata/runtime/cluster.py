@@ -161,10 +161,12 @@ def _reason(exc: BaseException) -> str:
 
 
 class _StopSignals:
-    """SIGINT and SIGTERM set a flag (checked between waits); a second SIGINT interrupts at once."""
+    """SIGINT and SIGTERM set a flag (checked between waits); a second SIGINT interrupts at once.
+    `extra`: another stop condition checked with the flag (it raises what ends the run)."""
 
-    def __init__(self) -> None:
+    def __init__(self, extra: Callable[[], None] | None = None) -> None:
         self.signum: int | None = None
+        self.extra = extra
         self._prev: dict[int, Any] = {}
 
     def _handler(self, signum: int, frame: Any) -> None:
@@ -187,16 +189,21 @@ class _StopSignals:
         """The stop check handed to tasks run in this process: raises `Interrupted` once a signal came."""
         if self.signum is not None:
             raise Interrupted(self.signum)
+        if self.extra is not None:
+            self.extra()
 
 
 def run_tasks(client: Client | None, tasks: Sequence[T], *, desc: str, unit: str = "task",
               progress: bool = True, on_result: Callable[[T, Any], Sequence[T] | None] | None = None,
-              keep: Callable[[T], bool] | None = None, window: int | None = None) -> None:
+              keep: Callable[[T], bool] | None = None, window: int | None = None,
+              check: Callable[[], None] | None = None) -> None:
     """Run every task (`client` None: here, one after the other, each given the stop check).
 
     `on_result(task, result)` runs in this process as each task finishes (in any order) and may
     return follow-up tasks, which run before the remaining ones. `keep(task)`, asked just before a
-    task is submitted, drops it when False. The bar counts `task.units` in `unit`s. Raises
+    task is submitted, drops it when False. `check()`, polled with the stop signals (every 0.25 s,
+    and between and inside tasks run here), ends the run with what it raises (a store's lease that
+    was lost: `occdata.runtime.lock.StoreLock.check`). The bar counts `task.units` in `unit`s. Raises
     `Interrupted` on Ctrl-C/SIGTERM (queued tasks are cancelled), a task's own exception (the rest
     is cancelled first), or `OccDataError` for anything else on the cluster side: a lost scheduler,
     or an error that is not the connection's, named as what it is (`_not_lost`).
@@ -204,7 +211,7 @@ def run_tasks(client: Client | None, tasks: Sequence[T], *, desc: str, unit: str
     bar = tqdm(total=sum(t.units for t in tasks), desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)
     queue = _Queue(list(tasks), keep)
     try:
-        with _StopSignals() as stop:
+        with _StopSignals(check) as stop:
             if client is None:
                 _run_here(queue, stop, bar, on_result)
             else:
