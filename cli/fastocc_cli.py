@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from cli._common import exit_on_interrupt, friendly_errors, stop_on_sigterm
+from cli._common import debug_option, exit_on_interrupt, friendly_errors, stop_on_sigterm
 from cli.options import config_choice, json_option, progress_option, store_option
 
 __all__ = ["main"]
@@ -20,6 +20,7 @@ STORE_HELP = "Store path or fsspec URL."
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@debug_option
 @click.version_option(package_name="fastocc")
 def main() -> None:
     """FastOcc: camera-only 3D semantic occupancy prediction in pure PyTorch.
