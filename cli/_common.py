@@ -1,4 +1,5 @@
-"""Shared CLI plumbing: turn user-facing errors into one line and a non-zero exit."""
+"""Shared CLI plumbing: turn every error into one line and a non-zero exit (the traceback only with
+`--debug` or `OCCDATA_DEBUG=1`), and `OccDataWarning`s into one `warning:` line each."""
 
 from __future__ import annotations
 
@@ -7,16 +8,22 @@ import functools
 import os
 import signal
 import sys
+import traceback
 import urllib.parse
+import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
 import click
 
-from occdata.errors import OccDataError
+from occdata.errors import OccDataError, OccDataWarning
 
-__all__ = ["DEFAULT_STORE", "EXIT_TERMINATED", "exit_on_interrupt", "friendly_errors", "local_path", "stop_on_sigterm"]
+__all__ = ["DEBUG_ENV", "DEFAULT_STORE", "EXIT_TERMINATED", "debug_option", "exit_on_interrupt", "friendly_errors",
+           "local_path", "stop_on_sigterm"]
+
+DEBUG_ENV = "OCCDATA_DEBUG"  # "1": print an error's traceback before its line, as --debug does
+_DEBUG_KEY = "occdata.debug"
 
 EXIT_TERMINATED = 143  # 128 + SIGTERM, as a shell reports a process killed by it
 
@@ -25,22 +32,67 @@ DEFAULT_STORE = "data.zarr"  # what `occdata build` writes by default and every 
 F = TypeVar("F", bound=Callable[..., Any])
 
 
+def _set_debug(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+    if value:
+        ctx.meta[_DEBUG_KEY] = True  # `meta` is shared with the sub-command's context
+
+
+debug_option = click.option("--debug", is_flag=True, expose_value=False, is_eager=True, callback=_set_debug,
+                            help=f"On an error, print its traceback before the one line (or set {DEBUG_ENV}=1).")
+
+
+def _debug() -> bool:
+    if os.environ.get(DEBUG_ENV, "").strip().lower() in ("1", "true", "yes", "on"):
+        return True
+    ctx = click.get_current_context(silent=True)
+    return bool(ctx is not None and ctx.meta.get(_DEBUG_KEY))
+
+
+def _one_line(exc: Exception) -> str:
+    """The message of an error: ours as it is; an OSError's reason and file; anything else (a bug)
+    its type, message and the frame that raised it, with the way to see the traceback."""
+    if isinstance(exc, OccDataError):
+        return str(exc)
+    if isinstance(exc, FileNotFoundError):
+        return f"file not found: {exc.filename or exc}"
+    if isinstance(exc, OSError):  # a full disk, a read-only folder, ...: the reason and the file
+        where = f": {exc.filename}" if exc.filename else ""
+        return f"{exc.strerror or exc}{where}"
+    text = str(exc).strip().splitlines()
+    frames = traceback.extract_tb(exc.__traceback__)
+    at = f" at {os.path.basename(frames[-1].filename)}:{frames[-1].lineno} in {frames[-1].name}" if frames else ""
+    return (f"unexpected {type(exc).__name__}: {text[0][:300] if text else '(no message)'}{at} (rerun with --debug "
+            f"or {DEBUG_ENV}=1 for the traceback)")
+
+
+def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                  file: Any = None, line: str | None = None) -> None:
+    """Ours as one `warning:` line; any other warning as Python shows it."""
+    if issubclass(category, OccDataWarning):
+        click.echo(f"warning: {message}", err=True)
+    else:
+        sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+
+
 def friendly_errors(fn: F) -> F:
-    """Report `OccDataError`, missing files and bad values as `Error: ...` (exit 1), no traceback."""
+    """Report every error as `Error: ...` (exit 1) and nothing else: `OccDataError`, missing files
+    and OS errors by their message, anything else by type, message and where it was raised. With
+    `--debug` or `OCCDATA_DEBUG=1` the traceback comes first. Click's own exits pass through."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
-            return fn(*args, **kwargs)
+            with warnings.catch_warnings():
+                warnings.showwarning = _show_warning
+                return fn(*args, **kwargs)
         except BrokenPipeError:
             _quiet_broken_pipe()
-        except OccDataError as exc:
-            raise click.ClickException(str(exc)) from None
-        except FileNotFoundError as exc:
-            raise click.ClickException(f"file not found: {exc.filename or exc}") from None
-        except OSError as exc:  # a full disk, a read-only folder, ...: the reason and the file, one line
-            where = f": {exc.filename}" if exc.filename else ""
-            raise click.ClickException(f"{exc.strerror or exc}{where}") from None
+        except (click.ClickException, click.exceptions.Exit, click.Abort):
+            raise
+        except Exception as exc:  # noqa: BLE001 - every error is one line; the traceback only when asked for
+            if _debug():
+                click.echo("".join(traceback.format_exception(exc)).rstrip(), err=True)
+            raise click.ClickException(_one_line(exc)) from None
 
     return wrapper  # type: ignore[return-value]
 

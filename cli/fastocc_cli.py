@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from cli._common import exit_on_interrupt, friendly_errors, stop_on_sigterm
+from cli._common import debug_option, exit_on_interrupt, friendly_errors, stop_on_sigterm
 from cli.options import (
     STORE_HELP,
     config_choice,
@@ -27,6 +27,7 @@ HEAD_SOURCE = "fastocc.model.config:HeadKind"
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@debug_option
 @click.version_option(package_name="fastocc")
 def main() -> None:
     """FastOcc: camera-only 3D semantic occupancy prediction in pure PyTorch.

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 import click
 import numpy as np
 
-from cli._common import DEFAULT_STORE, exit_on_interrupt, friendly_errors, local_path, stop_on_sigterm
+from cli._common import DEFAULT_STORE, debug_option, exit_on_interrupt, friendly_errors, local_path, stop_on_sigterm
 from cli.options import (
     cluster_options,
     config_choice,
@@ -34,6 +34,7 @@ __all__ = ["main"]
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@debug_option
 @click.version_option(package_name="fastocc")
 def main() -> None:
     """occdata: nuScenes-format data and Occ3D labels -> one chunked zarr store.

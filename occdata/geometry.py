@@ -11,6 +11,7 @@ __all__ = [
     "invert_rigid",
     "points_in_box",
     "project_points",
+    "quaternion_problem",
     "quaternion_wxyz_from_matrix",
     "rotation_from_quaternion_wxyz",
     "transform_from_pose",
@@ -24,12 +25,33 @@ def rotation_from_quaternion_wxyz(q_wxyz: Sequence[float] | np.ndarray, normalis
     The one quaternion-to-matrix rule of the package (calibrations, poses, boxes, the synthetic rig).
     `normalise=False` keeps a non-unit quaternion's scale, so a rigidity check downstream can reject it."""
     q = np.asarray(q_wxyz, dtype=np.float64)
-    w, x, y, z = q / np.linalg.norm(q) if normalise else q
-    return np.array([
-        [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
-    ])
+    # Quietly: a bad quaternion gives NaN/inf entries that the caller's check names (no numpy warning).
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        w, x, y, z = q / np.linalg.norm(q) if normalise else q
+        return np.array([
+            [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
+        ])
+
+
+QUATERNION_LENGTH_MAX = 1e3  # a file's rotation quaternion has length 1 up to rounding; 1000 is no rounding
+
+
+def quaternion_problem(q_wxyz: Sequence[float] | np.ndarray) -> str | None:
+    """What makes `[w, x, y, z]` unusable as a rotation before any arithmetic on it, for an error
+    message ("is not finite", "is implausibly large (|q| = 1e+300 ...)"), or None. Computed without
+    numpy warnings (|q| of 1e300 overflows a plain norm). A moderately non-unit quaternion is None:
+    the rigidity check of its matrix reports it."""
+    q = np.asarray(q_wxyz, dtype=np.float64)
+    if not np.isfinite(q).all():
+        return "is not finite (NaN or inf)"
+    scale = float(np.abs(q).max())
+    with np.errstate(over="ignore"):
+        length = scale * float(np.sqrt(np.sum((q / scale) ** 2))) if scale > 0 else 0.0
+    if length > QUATERNION_LENGTH_MAX:
+        return f"is implausibly large (|q| = {length:.3g}; a rotation's quaternion has length 1)"
+    return None
 
 
 def quaternion_wxyz_from_matrix(R: np.ndarray) -> list[float]:

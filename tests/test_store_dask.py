@@ -342,7 +342,8 @@ def test_resume_converts_only_the_blocks_not_committed(tree, reference, tmp_path
     _verify(out)
 
 
-@pytest.mark.parametrize("exc_name", ["CommClosedError", "FutureCancelledError", "CancelledError", "asyncio"])
+@pytest.mark.parametrize("exc_name", ["CommClosedError", "FutureCancelledError", "CancelledError", "asyncio",
+                                      "ConnectionResetError", "TimeoutError", "ConnectTimeout", "ClosedClientError"])
 def test_every_way_of_losing_the_scheduler_says_the_same_line(exc_name: str) -> None:
     """Whichever call notices first (a result's gather, a cancelled future), one message with the
     address: the exceptions distributed really raises (a task's own error comes back as TaskFailed)."""
@@ -350,17 +351,118 @@ def test_every_way_of_losing_the_scheduler_says_the_same_line(exc_name: str) -> 
     import concurrent.futures
     from types import SimpleNamespace
 
-    from distributed.client import FutureCancelledError
+    from distributed.client import ClosedClientError, FutureCancelledError
     from distributed.comm.core import CommClosedError
 
     from occdata.runtime.cluster import _result
 
     exc = {"CommClosedError": CommClosedError("in <TCP (closed) ConnectionPool.gather>: Stream is closed"),
            "FutureCancelledError": FutureCancelledError("k", "scheduler-connection-lost"),
-           "CancelledError": concurrent.futures.CancelledError(), "asyncio": asyncio.CancelledError()}[exc_name]
+           "CancelledError": concurrent.futures.CancelledError(), "asyncio": asyncio.CancelledError(),
+           "ConnectionResetError": ConnectionResetError(104, "Connection reset by peer"),
+           "TimeoutError": TimeoutError(),
+           "ConnectTimeout": OSError("Timed out trying to connect to tcp://127.0.0.1:1 after 30 s"),
+           "ClosedClientError": ClosedClientError("Client is closed. Can't send update-graph message.")}[exc_name]
 
     def boom() -> None:
         raise exc
 
     with pytest.raises(OccDataError, match=r"^lost the Dask scheduler at tcp://127.0.0.1:1 \(.*--resume$"):
         _result(SimpleNamespace(result=boom), "tcp://127.0.0.1:1")
+
+
+# --- errors that are not a lost scheduler (issue 40, item 3) -----------------------------------------
+_LOST = "lost the Dask scheduler"
+
+
+@dataclass(frozen=True)
+class _HoldsALock:
+    """A task that does not pickle (Dask pickles a task when it is submitted)."""
+
+    lock: object
+    units: int = 1
+
+    def run(self, should_stop) -> int:
+        return 0
+
+
+@dataclass(frozen=True)
+class _ReturnsALock:
+    """A task whose result does not pickle: the worker fails to send it back (not a TaskFailed)."""
+
+    units: int = 1
+
+    def run(self, should_stop) -> object:
+        return threading.Lock()
+
+
+def test_a_task_that_does_not_pickle_is_named_not_a_lost_scheduler(client) -> None:
+    with pytest.raises(OccDataError) as info:
+        run_tasks(client, [_Square(1), _HoldsALock(threading.Lock())], desc="t", progress=False)
+    text = str(info.value)
+    assert _LOST not in text and "--resume" not in text, text
+    assert text.startswith("submitting a t task (_HoldsALock) failed: TypeError:"), text
+    assert "cannot pickle '_thread.lock' object" in text and "\n" not in text, text
+
+
+def test_a_result_that_does_not_pickle_is_named_not_a_lost_scheduler(client) -> None:
+    with pytest.raises(OccDataError) as info:
+        run_tasks(client, [_ReturnsALock()], desc="t", progress=False)
+    text = str(info.value)
+    assert _LOST not in text and "--resume" not in text, text
+    assert text.startswith("a t task (_ReturnsALock) failed: TypeError: Could not serialize object of type lock"), text
+    assert "\n" not in text, text
+
+
+def test_a_bug_in_submit_is_named_and_the_committed_blocks_stay(tree, reference, client, tmp_path,
+                                                                monkeypatch) -> None:
+    """`client.submit` raising ValueError at the 6th of 6 blocks (a bug on the client side, after at
+    least two blocks came back: the window is 4): one line naming it, not resume advice; the blocks
+    committed before stay committed, and --resume then completes with the same bytes."""
+    out = tmp_path / "sb.zarr"
+    real_submit = client.submit
+    calls = [0]
+
+    def submit(*args, **kw):
+        calls[0] += 1
+        if calls[0] == 6:
+            raise ValueError("planted bug in submit")
+        return real_submit(*args, **kw)
+
+    monkeypatch.setattr(client, "submit", submit)
+    with pytest.raises(OccDataError) as info:
+        build_store(_config(tree, out), client=client)
+    text = str(info.value)
+    assert _LOST not in text, text
+    assert text.startswith("submitting a build task (ConvertJob) failed: ValueError: planted bug in submit at "
+                           "test_store_dask.py:"), text
+    assert text.endswith("everything committed so far is kept"), text
+    monkeypatch.undo()
+    state = zarr.open_group(str(out), mode="r")["status/state"][:]
+    assert (state == 1).sum() >= 8 and all(len(set(state[i0 : i0 + 4])) == 1 for i0 in range(0, N, 4)), state
+    build_store(_config(tree, out, resume=True), client=client)
+    assert store_digest(out) == reference
+
+
+@pytest.mark.parametrize("exc_name", ["TypeError", "RuntimeError", "FileNotFoundError", "KeyError"])
+def test_errors_that_are_not_the_connections_are_not_a_lost_scheduler(exc_name: str) -> None:
+    """What the cluster path raises besides a lost connection (a result that did not serialize, the
+    scheduler failing to decode a task, a bug): named with its type, never resume advice."""
+    from types import SimpleNamespace
+
+    from occdata.runtime.cluster import _result
+
+    exc = {"TypeError": TypeError("Could not serialize object of type lock", "<graph>"),
+           "RuntimeError": RuntimeError("Error during deserialization of the task graph."),
+           "FileNotFoundError": FileNotFoundError(2, "No such file or directory", "/x"),
+           "KeyError": KeyError("k")}[exc_name]
+
+    def boom() -> None:
+        raise exc
+
+    with pytest.raises(OccDataError) as info:
+        _result(SimpleNamespace(result=boom), "tcp://127.0.0.1:1")
+    text = str(info.value)
+    assert _LOST not in text and "--resume" not in text, text
+    assert text.startswith(f"a task failed: {exc_name}: "), text
+    assert "in boom" in text and "<graph>" not in text, text

@@ -23,7 +23,7 @@ from proc_tools import alive, descendants, wait_for
 from test_store_build import store_digest
 
 from cli.occdata_cli import main
-from occdata.runtime.lock import StoreLockedError, store_lock
+from occdata.runtime.lock import LeaseLostError, StoreLockedError, store_lock
 from occdata.store.build import BuildConfig, build_store
 
 pytest.importorskip("s3fs")
@@ -124,6 +124,149 @@ def test_s3_lease_of_another_host_refuses(s3, synth_root: Path) -> None:
         with store_lock(url, "build"):
             pass
     s3.rm(f"{BUCKET}/lease.zarr.lock")
+
+
+# --- one host holds the lease (issue 40, item 5) -----------------------------------------------------
+def _plant_lease(s3, key: str, host: str = "elsewhere") -> None:
+    """Another host's fresh lease, written as that host would (its writer took over ours)."""
+    import json
+
+    s3.pipe(key, json.dumps({"host": host, "pid": 1, "command": "build", "beat": time.time(),
+                             "nonce": "theirs"}).encode())
+
+
+def _holder(s3, key: str) -> str:
+    import json
+
+    return json.loads(s3.cat(key))["host"]
+
+
+def test_s3_writers_of_eight_hosts_racing_exactly_one_wins(s3, tmp_path: Path, monkeypatch) -> None:
+    """Was: read, then write: writers that read before any wrote all took the lease. Eight threads,
+    each standing for a host (its own host name and local lock file), start together: one holds the
+    lease, the seven others are refused naming it, and the lease names the winner until it ends."""
+    from types import SimpleNamespace
+
+    import occdata.runtime.lock as lock_mod
+
+    local = threading.local()
+    monkeypatch.setattr(lock_mod, "socket", SimpleNamespace(gethostname=lambda: local.host))
+    monkeypatch.setattr(lock_mod, "lock_path", lambda store: tmp_path / f"{local.host}.lock")
+    url, key, n = f"s3://{BUCKET}/race.zarr", f"{BUCKET}/race.zarr.lock", 8
+    start, done = threading.Barrier(n), threading.Event()
+    won: list[str] = []
+    refused: list[str] = []
+
+    def writer(i: int) -> None:
+        local.host = f"host{i}"
+        start.wait()
+        try:
+            with store_lock(url, "build"):
+                won.append(local.host)
+                done.wait(30)
+        except StoreLockedError as exc:
+            refused.append(str(exc))
+
+    threads = [threading.Thread(target=writer, args=(i,)) for i in range(n)]
+    for t in threads:
+        t.start()
+    assert wait_for(lambda: len(won) + len(refused) == n, 30), (won, refused)
+    try:
+        assert len(won) == 1, won
+        assert _holder(s3, key) == won[0]
+        assert all(f"from host {won[0]}" in r or "being taken by another writer" in r for r in refused), refused
+    finally:
+        done.set()
+        for t in threads:
+            t.join(30)
+    assert not s3.exists(key)
+
+
+def test_s3_a_build_whose_lease_was_taken_stops(s3, synth_root: Path, monkeypatch) -> None:
+    """Was: the heartbeat overwrote whatever lease it found and swallowed its errors, so a writer whose
+    lease another host had taken kept writing. Here another host takes the lease while block 1 of 3
+    converts: the build stops before block 2 with one line, and leaves the other host's lease alone."""
+    import zarr
+
+    import occdata.runtime.lock as lock_mod
+    import occdata.store.blocks as blocks
+
+    monkeypatch.setattr(lock_mod, "LEASE_RENEW_S", 0.1)
+    url, key = f"s3://{BUCKET}/taken.zarr", f"{BUCKET}/taken.zarr.lock"
+    real_convert = blocks.convert_block
+
+    def taken_during_block_1(job):
+        if job.block == 1:
+            _plant_lease(s3, key)
+            time.sleep(1.0)  # ten heartbeats: the first one finds the lease changed
+        return real_convert(job)
+
+    monkeypatch.setattr(blocks, "convert_block", taken_during_block_1)
+    code, text = _cli(*_args(synth_root, url))
+    assert code == 1, text
+    lines = [ln for ln in text.splitlines() if ln.startswith("Error:")]  # (before it: the labels line)
+    assert len(lines) == 1 and lines[0].startswith(f"Error: lost the write lease s3://{key}"), text
+    assert "another writer holds it now" in text and "Traceback" not in text
+    state = zarr.open_group(url, mode="r")["status/state"][:]
+    assert (state[:2] == 1).all() and (state[4:] == 0).all(), state  # block 2 never started
+    assert _holder(s3, key) == "elsewhere"
+    s3.rm(key)
+
+
+def test_s3_a_heartbeat_that_keeps_failing_stops_the_writer(s3, monkeypatch) -> None:
+    """A store that stops answering renewals: once no renewal succeeded for LEASE_STALE_S -
+    LEASE_RENEW_S (others may take the lease over soon), `check()` raises; was: errors swallowed."""
+    import occdata.runtime.lock as lock_mod
+
+    def unreachable(self, data, tag):
+        raise ConnectionRefusedError(111, "Connection refused")
+
+    monkeypatch.setattr(lock_mod, "LEASE_RENEW_S", 0.05)
+    monkeypatch.setattr(lock_mod, "LEASE_STALE_S", 0.5)
+    monkeypatch.setattr(lock_mod._S3Object, "replace", unreachable)
+    url = f"s3://{BUCKET}/lapse.zarr"
+    t0 = time.monotonic()
+    with pytest.raises(LeaseLostError, match=r"no heartbeat for 0 s \(ConnectionRefusedError"):
+        with store_lock(url, "build") as lock:
+            while time.monotonic() - t0 < 10:
+                lock.check()
+                time.sleep(0.02)
+    assert time.monotonic() - t0 < 5
+    s3.rm(f"{BUCKET}/lapse.zarr.lock")  # left in place: this writer cannot tell whose it is now
+
+
+def test_s3_release_leaves_another_holders_lease(s3) -> None:
+    """Was: the final delete removed the lease whoever held it. A lease taken over by another host
+    while this writer still ran (before a heartbeat noticed): the release keeps it, and the writer
+    is told, since its last writes raced with the other one's."""
+    url, key = f"s3://{BUCKET}/keep.zarr", f"{BUCKET}/keep.zarr.lock"
+    with pytest.raises(LeaseLostError, match="another writer holds it now"):
+        with store_lock(url, "build"):
+            _plant_lease(s3, key)
+    assert _holder(s3, key) == "elsewhere"
+    s3.rm(key)
+
+
+def test_lease_without_conditional_writes_warns_and_still_refuses_a_second_host(tmp_path: Path) -> None:
+    """memory:// stands for an fsspec store without conditional requests: one warning line says the
+    lease is checked, then written; a live lease of another host is still refused, and the holder
+    deletes only its own lease."""
+    import fsspec
+
+    from occdata.errors import OccDataWarning
+
+    fs = fsspec.filesystem("memory")
+    url = "memory://leases/plain.zarr"
+    with pytest.warns(OccDataWarning, match="no conditional write known to occdata"):
+        with store_lock(url, "build"):
+            assert fs.exists("/leases/plain.zarr.lock")
+    assert not fs.exists("/leases/plain.zarr.lock")
+    _plant_lease(fs, "/leases/plain.zarr.lock")
+    with pytest.warns(OccDataWarning), pytest.raises(StoreLockedError, match="from host elsewhere"):
+        with store_lock(url, "build"):
+            pass
+    assert _holder(fs, "/leases/plain.zarr.lock") == "elsewhere"
+    fs.rm("/leases/plain.zarr.lock")
 
 
 @pytest.mark.slow

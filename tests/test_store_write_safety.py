@@ -299,3 +299,104 @@ def test_a_schema_1_store_reads_but_does_not_resume(synth_root: Path, store: Pat
     code, text = _cli(*_build_args(synth_root, store, "--resume"))
     line = _one_error_line(text)
     assert code == 1 and "store schema 1" in line and "new --out" in line
+
+
+# --- no metadata write while tasks run (issue 40, item 4) ---------------------------------------------
+def _arrays_on_disk(out: Path) -> set[str]:
+    return {str(p.parent.relative_to(out)) for p in out.rglob("zarr.json")
+            if json.loads(p.read_text())["node_type"] == "array"}
+
+
+def _consolidated_arrays(out: Path) -> set[str]:
+    meta = json.loads((out / "zarr.json").read_text()).get("consolidated_metadata") or {"metadata": {}}
+    return {k for k, v in meta["metadata"].items() if v["node_type"] == "array"}
+
+
+def _spy_on_the_run(monkeypatch: pytest.MonkeyPatch, out: Path) -> tuple[list[str], list[bool]]:
+    """Metadata keys written while `run_tasks` runs (by the tasks, here in this process, or by the client
+    between them), and after each task whether the consolidated metadata still lists every array."""
+    from zarr.storage import LocalStore
+
+    import occdata.store.build as build_mod
+
+    running, written, intact = [False], [], []
+    real_set, real_run = LocalStore.set, build_mod.run_tasks
+
+    async def spy_set(self, key, value):
+        if running[0] and key.endswith("zarr.json"):
+            written.append(key)
+        return await real_set(self, key, value)
+
+    def spy_run(client, tasks, **kw):
+        def on_result(task, result):
+            follow_ups = kw["on_result"](task, result)
+            intact.append(_consolidated_arrays(out) == _arrays_on_disk(out))
+            return follow_ups
+
+        running[0] = True
+        try:
+            return real_run(client, tasks, **{**kw, "on_result": on_result})
+        finally:
+            running[0] = False
+
+    monkeypatch.setattr(LocalStore, "set", spy_set)
+    monkeypatch.setattr(build_mod, "run_tasks", spy_run)
+    return written, intact
+
+
+def _break_first_keyframe_jpeg(world: Path) -> str:
+    rows = json.loads((world / "v1.0-mini" / "sample_data.json").read_text())
+    row = next(r for r in rows if r["filename"].endswith(".jpg") and r["is_key_frame"])
+    jpg = world / row["filename"]
+    jpg.write_bytes(jpg.read_bytes()[:1000])
+    return row["sample_token"]
+
+
+def test_skipped_errors_are_written_once_after_the_tasks(world: Path, monkeypatch: pytest.MonkeyPatch,
+                                                         tmp_path: Path) -> None:
+    """Was: each block's skipped errors rewrote the root attributes while later tasks ran, which drops
+    the consolidated metadata every task opens (and a task could read a half-written zarr.json). Now no
+    zarr.json is written while tasks run, the consolidated metadata lists every array after each task
+    and at the end, and the error is recorded."""
+    token = _break_first_keyframe_jpeg(world)
+    out = tmp_path / "e.zarr"
+    written, intact = _spy_on_the_run(monkeypatch, out)
+    report = build_store(BuildConfig(root=world, out=out, gts=world / "gts", block_samples=1, on_error="skip",
+                                     progress=False))
+    assert report.n_errors == 1 and report.n_done == 5
+    assert written == [], written
+    assert len(intact) == 6 and all(intact), intact
+    assert _consolidated_arrays(out) == _arrays_on_disk(out) and len(_arrays_on_disk(out)) > 10
+    (err,) = zarr.open_consolidated(str(out), mode="r").attrs["errors"]
+    assert err["token"] == token and "JPEG" in err["reason"], err
+    assert open_store(out).state[err["index"]] == STATE_ERROR
+
+
+def test_skipped_errors_are_kept_when_the_run_stops(world: Path, monkeypatch: pytest.MonkeyPatch,
+                                                    tmp_path: Path) -> None:
+    """A run that stops after a skipped error (here a bug in a later block's task) still records it,
+    once, with the consolidated metadata rewritten; --resume then redoes that block."""
+    import occdata.store.blocks as blocks
+
+    token = _break_first_keyframe_jpeg(world)
+    out = tmp_path / "k.zarr"
+    real_convert = blocks.convert_block
+
+    def bug_in_block_5(job):
+        if job.block == 5:
+            raise RuntimeError("planted bug in block 5")
+        return real_convert(job)
+
+    monkeypatch.setattr(blocks, "convert_block", bug_in_block_5)
+    with pytest.raises(RuntimeError, match="planted bug"):
+        build_store(BuildConfig(root=world, out=out, gts=world / "gts", block_samples=1, on_error="skip",
+                                progress=False))
+    group = zarr.open_consolidated(str(out), mode="r")
+    (err,) = group.attrs["errors"]
+    assert err["token"] == token and group.attrs["complete"] is False
+    assert _consolidated_arrays(out) == _arrays_on_disk(out)
+    monkeypatch.undo()
+    report = build_store(BuildConfig(root=world, out=out, gts=world / "gts", block_samples=1, on_error="skip",
+                                     progress=False, resume=True))
+    assert report.n_errors == 1 and report.n_done == 5
+    assert [e["token"] for e in zarr.open_group(str(out), mode="r").attrs["errors"]] == [token]

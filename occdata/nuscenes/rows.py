@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from occdata.errors import OccDataError
-from occdata.geometry import rotation_from_quaternion_wxyz
+from occdata.geometry import quaternion_problem, rotation_from_quaternion_wxyz
 
 __all__ = ["RowProblem", "field", "floats", "integer", "pose", "ref", "rotation_matrix", "short", "timestamp_us"]
 
@@ -84,8 +84,10 @@ def timestamp_us(value: Any, where: str) -> int:
 def rotation_matrix(q_wxyz: Any, where: str) -> np.ndarray:
     """`(3, 3) float64` rotation of a (w, x, y, z) quaternion. Rounding in the files is normalised
     away; a quaternion far from unit length is kept as is, so a later rigidity check reports it.
-    A value that is not 4 numbers raises `RowProblem`."""
+    A value that is not 4 numbers, not finite or implausibly large raises `RowProblem`."""
     q = floats(q_wxyz, (4,), f"{where} rotation (quaternion w, x, y, z)")
+    if (problem := quaternion_problem(q)) is not None:
+        raise RowProblem(f"{where} rotation (quaternion w, x, y, z) {problem}")
     n = np.linalg.norm(q)
     return rotation_from_quaternion_wxyz(q, normalise=bool(np.isfinite(n) and abs(n - 1.0) < 1e-3))
 

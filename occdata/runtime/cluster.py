@@ -8,8 +8,11 @@
 - `run_tasks(client, tasks, ...)`: runs each task (`occdata.runtime.tasks.Task`: its own `run` and
   progress `units`; at most a window in flight), shows a tqdm bar, hands each task's small result to
   `on_result` in this process. Ctrl-C or SIGTERM cancels what is queued and raises `Interrupted`
-  within seconds. A task's own exception is re-raised here; anything else that goes wrong on the
-  cluster side (a lost or unreachable scheduler, cancelled futures) is one `OccDataError` line.
+  within seconds. A task's own exception is re-raised here. A transport or scheduler failure (a
+  closed connection, a timeout, futures cancelled by a lost scheduler: `_is_infrastructure`) is the
+  one line "lost the Dask scheduler ... rerun with --resume"; any other error on the way (a task
+  that does not pickle, a result that does not, a bug in a call) is one `OccDataError` line naming
+  its type, message and the frame that raised it, never advice to resume.
 
 A task must be idempotent: Dask reruns it when its worker dies (`distributed.scheduler.allowed-
 failures`, default 3), so it writes only what it alone owns (whole chunks, or files it publishes by
@@ -21,10 +24,12 @@ terminal's Ctrl-C reaches the whole process group; only the client acts on it).
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import logging
 import os
 import signal
 import threading
+import traceback
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -147,15 +152,21 @@ def _close(client: Client, cluster: Any = None) -> None:
 
 
 def _reason(exc: BaseException) -> str:
-    text = str(exc).splitlines()[0] if str(exc).strip() else type(exc).__name__
+    # The first argument when it is the message: the default str() of a many-argument exception is a
+    # tuple's repr (distributed's TypeError("Could not serialize ...", <the whole graph>)).
+    plain = type(exc).__str__ is BaseException.__str__ and len(exc.args) > 1 and isinstance(exc.args[0], str)
+    text = exc.args[0] if plain else str(exc)
+    text = text.splitlines()[0] if text.strip() else type(exc).__name__
     return text[:200]
 
 
 class _StopSignals:
-    """SIGINT and SIGTERM set a flag (checked between waits); a second SIGINT interrupts at once."""
+    """SIGINT and SIGTERM set a flag (checked between waits); a second SIGINT interrupts at once.
+    `extra`: another stop condition checked with the flag (it raises what ends the run)."""
 
-    def __init__(self) -> None:
+    def __init__(self, extra: Callable[[], None] | None = None) -> None:
         self.signum: int | None = None
+        self.extra = extra
         self._prev: dict[int, Any] = {}
 
     def _handler(self, signum: int, frame: Any) -> None:
@@ -178,27 +189,33 @@ class _StopSignals:
         """The stop check handed to tasks run in this process: raises `Interrupted` once a signal came."""
         if self.signum is not None:
             raise Interrupted(self.signum)
+        if self.extra is not None:
+            self.extra()
 
 
 def run_tasks(client: Client | None, tasks: Sequence[T], *, desc: str, unit: str = "task",
               progress: bool = True, on_result: Callable[[T, Any], Sequence[T] | None] | None = None,
-              keep: Callable[[T], bool] | None = None, window: int | None = None) -> None:
+              keep: Callable[[T], bool] | None = None, window: int | None = None,
+              check: Callable[[], None] | None = None) -> None:
     """Run every task (`client` None: here, one after the other, each given the stop check).
 
     `on_result(task, result)` runs in this process as each task finishes (in any order) and may
     return follow-up tasks, which run before the remaining ones. `keep(task)`, asked just before a
-    task is submitted, drops it when False. The bar counts `task.units` in `unit`s. Raises
+    task is submitted, drops it when False. `check()`, polled with the stop signals (every 0.25 s,
+    and between and inside tasks run here), ends the run with what it raises (a store's lease that
+    was lost: `occdata.runtime.lock.StoreLock.check`). The bar counts `task.units` in `unit`s. Raises
     `Interrupted` on Ctrl-C/SIGTERM (queued tasks are cancelled), a task's own exception (the rest
-    is cancelled first), or `OccDataError` for anything else the cluster raises (a lost scheduler).
+    is cancelled first), or `OccDataError` for anything else on the cluster side: a lost scheduler,
+    or an error that is not the connection's, named as what it is (`_not_lost`).
     """
     bar = tqdm(total=sum(t.units for t in tasks), desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)
     queue = _Queue(list(tasks), keep)
     try:
-        with _StopSignals() as stop:
+        with _StopSignals(check) as stop:
             if client is None:
                 _run_here(queue, stop, bar, on_result)
             else:
-                _run_on(client, queue, stop, bar, on_result, window)
+                _run_on(client, queue, stop, bar, on_result, window, desc)
     finally:
         bar.close()
 
@@ -239,7 +256,7 @@ def _run_here(queue: _Queue, stop: _StopSignals, bar: tqdm, on_result: Any) -> N
 
 
 def _run_on(client: Client, queue: _Queue, stop: _StopSignals, bar: tqdm, on_result: Any,
-            window: int | None) -> None:
+            window: int | None, desc: str) -> None:
     addr = _address(client)  # kept: a closed connection no longer knows it
     if window is None:
         window = max(2, 2 * sum(_nthreads(client, addr).values()))
@@ -247,13 +264,13 @@ def _run_on(client: Client, queue: _Queue, stop: _StopSignals, bar: tqdm, on_res
     try:
         while True:
             while len(running) < window and (item := queue.pop()) is not None:
-                running[_submit(client, item, addr)] = item[0]
+                running[_submit(client, item, addr, desc)] = item[0]
             if not running:
                 break
             stop.check()
             for f in _wait_some(client, list(running), addr):
                 task = running.pop(f)
-                result = _result(f, addr)
+                result = _result(f, addr, f"a {desc} task ({type(task).__name__})")
                 bar.update(task.units)
                 if on_result is not None:
                     queue.add(on_result(task, result))
@@ -263,11 +280,13 @@ def _run_on(client: Client, queue: _Queue, stop: _StopSignals, bar: tqdm, on_res
             _cancel(client, list(running))
 
 
-def _submit(client: Client, item: tuple[Any, int], addr: str) -> Future:
+def _submit(client: Client, item: tuple[Any, int], addr: str, desc: str) -> Future:
     try:
         return client.submit(run_on_worker, item[0], pure=False, priority=item[1])
-    except _INFRASTRUCTURE as exc:  # a closed client: nothing of the task's own ran yet
-        raise _lost(addr, _reason(exc)) from None
+    except (Exception, asyncio.CancelledError) as exc:  # the task is pickled here: its errors come too
+        if _is_infrastructure(exc):  # a closed client: nothing of the task's own ran yet
+            raise _lost(addr, _reason(exc)) from None
+        raise _not_lost(f"submitting a {desc} task ({type(item[0]).__name__})", exc) from exc
 
 
 def _wait_some(client: Client, futures: list[Future], addr: str) -> set[Future]:
@@ -280,8 +299,10 @@ def _wait_some(client: Client, futures: list[Future], addr: str) -> set[Future]:
             return set(wait(futures, timeout=0.25, return_when="FIRST_COMPLETED").done)
     except TimeoutError:
         return set()
-    except _INFRASTRUCTURE as exc:  # futures cancelled because the scheduler connection broke, ...
-        raise _lost(addr, _reason(exc)) from None
+    except (Exception, asyncio.CancelledError) as exc:  # futures cancelled because the connection broke, ...
+        if _is_infrastructure(exc):
+            raise _lost(addr, _reason(exc)) from None
+        raise _not_lost("waiting for the cluster's results", exc) from exc
 
 
 def _address(client: Client) -> str:
@@ -297,6 +318,19 @@ def _lost(addr: str, why: str) -> OccDataError:
                         "rerun with --resume")
 
 
+def _not_lost(where: str, exc: BaseException) -> OccDataError:
+    """An error on the cluster path that is not a lost connection (a task or result that does not
+    pickle, a bug): what it is and where it was raised. A resume alone would fail the same way."""
+    frames = traceback.extract_tb(exc.__traceback__)
+    at = f" at {os.path.basename(frames[-1].filename)}:{frames[-1].lineno} in {frames[-1].name}" if frames else ""
+    root = exc
+    while root.__cause__ is not None:  # distributed wraps a pickling error: "Could not serialize ..." from it
+        root = root.__cause__
+    cause = f" (from {type(root).__name__}: {_reason(root)})" if root is not exc else ""
+    return OccDataError(f"{where} failed: {type(exc).__name__}: {_reason(exc)}{cause}{at}; everything committed "
+                        "so far is kept")
+
+
 def _check_running(client: Client, addr: str) -> None:
     """Fail at once when the client already knows the scheduler is gone (it is reconnecting, or
     closed): a call would wait for the reconnection to time out first (30 s by default)."""
@@ -308,28 +342,42 @@ def _nthreads(client: Client, addr: str) -> dict[str, int]:
     _check_running(client, addr)
     try:
         return client.nthreads()
-    except _INFRASTRUCTURE as exc:  # a scheduler gone between connect and submit
-        raise _lost(addr, _reason(exc)) from None
+    except (Exception, asyncio.CancelledError) as exc:  # a scheduler gone between connect and submit
+        if _is_infrastructure(exc):
+            raise _lost(addr, _reason(exc)) from None
+        raise _not_lost("asking the scheduler for its workers", exc) from exc
 
 
-# Everything a distributed call raises that is not a task's own error (those come back as a
-# `TaskFailed` value): futures cancelled while the client reconnects (`distributed.client.
-# FutureCancelledError`, a `concurrent.futures.CancelledError`), `asyncio.CancelledError` (a
-# BaseException), closed connections (`CommClosedError`, an OSError), timeouts.
-_INFRASTRUCTURE = (Exception, asyncio.CancelledError)
+def _is_infrastructure(exc: BaseException) -> bool:
+    """A transport or scheduler failure, as distributed raises them: closed connections
+    (`distributed.comm.core.CommClosedError`, an OSError; refused or reset connections), timeouts,
+    futures cancelled while the client reconnects (`distributed.client.FutureCancelledError`, a
+    `concurrent.futures.CancelledError`; `asyncio.CancelledError`), a client already closed
+    (`ClosedClientError`), and the bare `OSError("Timed out trying to connect ...")` of
+    `distributed.comm.core.connect`. Anything else (TypeError from pickling, RuntimeError from the
+    scheduler's graph decoding, a bug) is not. Told apart by type alone: the client's status at
+    this instant is a race."""
+    from distributed.client import ClosedClientError
+    from distributed.comm.core import CommClosedError
+
+    infra = (CommClosedError, ConnectionError, TimeoutError, concurrent.futures.CancelledError,
+             asyncio.CancelledError, ClosedClientError)
+    return isinstance(exc, infra) or type(exc) is OSError
 
 
-def _result(f: Future, addr: str) -> Any:
-    """`f`'s result; a task's own error is re-raised, anything else is the cluster's: one line.
-    Told apart by type alone (the client's status at this instant is a race)."""
+def _result(f: Future, addr: str, what: str = "a task") -> Any:
+    """`f`'s result; a task's own error is re-raised; a lost connection is the lost-scheduler line;
+    any other error (`what`: the task, for the message) is named as what it is."""
     from distributed import KilledWorker
 
     try:
         result = f.result()
     except KilledWorker as exc:
         raise OccDataError(f"a task killed every worker that ran it ({_reason(exc)}); see the worker logs") from None
-    except _INFRASTRUCTURE as exc:
-        raise _lost(addr, _reason(exc)) from None
+    except (Exception, asyncio.CancelledError) as exc:  # not the task's own error: that one is a TaskFailed value
+        if _is_infrastructure(exc):
+            raise _lost(addr, _reason(exc)) from None
+        raise _not_lost(what, exc) from exc
     if isinstance(result, TaskFailed):
         result.reraise()
     return result

@@ -8,9 +8,19 @@ serves the message of the writer that is refused.
 
 An object store (s3://...) has no advisory lock. There the lock is twofold: the same `fcntl` lock on
 a local file named after the URL (two writers on one host), and a lease object `<store>.lock`
-holding the holder's host, pid and a heartbeat renewed every `LEASE_RENEW_S`. A writer on another
-host is refused while the lease is younger than `LEASE_STALE_S`; on the holder's own host a lease
-whose local lock is free belongs to a dead process and is taken over at once.
+holding the holder's host, pid, a nonce and a heartbeat renewed every `LEASE_RENEW_S`. A writer on
+another host is refused while the lease is younger than `LEASE_STALE_S`; on the holder's own host a
+lease whose local lock is free belongs to a dead process and is taken over.
+
+On S3 every write of the lease is conditional, so one host holds it: it is created with
+`If-None-Match: *` (of two writers racing, one gets 412), taken over and renewed with `If-Match:
+<the ETag last seen>`, and deleted with `If-Match: <our ETag>` (never another holder's lease). A
+renewal that finds the lease changed, or none that succeeded for `LEASE_STALE_S - LEASE_RENEW_S`
+(others may take it over soon), loses the lease: `StoreLock.check()` then raises `LeaseLostError`,
+which the writer polls (`occdata build` with its stop signals) and `store_lock` raises at the end.
+Other fsspec stores have no conditional request known here: the lease is created exclusively where
+the filesystem implements `pipe_file(mode="create")` and checked-then-written otherwise, renewals and
+the delete compare the content first (a small window remains), and a warning says so.
 """
 
 from __future__ import annotations
@@ -24,13 +34,17 @@ import socket
 import tempfile
 import threading
 import time
+import uuid
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
-from occdata.errors import OccDataError
+from occdata.errors import OccDataError, OccDataWarning
 
-__all__ = ["LEASE_RENEW_S", "LEASE_STALE_S", "StoreLockedError", "lock_path", "store_lock"]
+__all__ = ["LEASE_RENEW_S", "LEASE_STALE_S", "LeaseLostError", "StoreLock", "StoreLockedError", "lock_path",
+           "store_lock"]
 
 LEASE_RENEW_S = 20.0
 LEASE_STALE_S = 90.0
@@ -38,6 +52,22 @@ LEASE_STALE_S = 90.0
 
 class StoreLockedError(OccDataError):
     """Another process is writing the store."""
+
+
+class LeaseLostError(OccDataError):
+    """The lease of a remote store lapsed, or another writer holds it now: this writer must stop."""
+
+
+class StoreLock:
+    """What `store_lock` yields. `check()` raises `LeaseLostError` once a remote store's lease is no
+    longer this writer's (a no-op for a local store, whose lock the kernel holds)."""
+
+    def __init__(self, lease: _Lease | None = None) -> None:
+        self._lease = lease
+
+    def check(self) -> None:
+        if self._lease is not None:
+            self._lease.check()
 
 
 def lock_path(store: str | Path) -> Path:
@@ -50,10 +80,11 @@ def lock_path(store: str | Path) -> Path:
 
 
 @contextmanager
-def store_lock(store: str | Path, command: str) -> Iterator[None]:
+def store_lock(store: str | Path, command: str) -> Iterator[StoreLock]:
     """Hold the store's write lock for the `with` body; refuse at once if another writer holds it.
 
-    A URL store also takes the lease object `<store>.lock` (see the module docstring).
+    A URL store also takes the lease object `<store>.lock` (see the module docstring); a lease lost
+    during the body raises `LeaseLostError` from `StoreLock.check()` and, when the body ends, here.
     """
     path = lock_path(store)
     try:
@@ -72,10 +103,15 @@ def store_lock(store: str | Path, command: str) -> Iterator[None]:
         os.ftruncate(fd, 0)
         os.pwrite(fd, json.dumps(info).encode(), 0)
         if "://" in str(store):
-            with _lease(str(store).rstrip("/") + ".lock", info):
-                yield
+            lease = _Lease(str(store).rstrip("/") + ".lock", info)
+            lease.acquire()
+            try:
+                yield StoreLock(lease)
+            finally:
+                lease.release()
+            lease.check()  # reached when the body ended by itself: a lease lost meanwhile fails the run
         else:
-            yield
+            yield StoreLock()
     finally:
         os.close(fd)  # releases the flock
 
@@ -88,42 +124,191 @@ def _holder(path: Path) -> str:
         return "holder unknown"
 
 
-@contextmanager
-def _lease(url: str, info: dict[str, object]) -> Iterator[None]:
-    """Hold the lease object `url` (the local lock is already held) for the `with` body."""
-    from occdata.runtime.storage import read_bytes, remove_tree, write_atomic
+class _Taken(Exception):
+    """A conditional write or delete found the lease object changed or gone since this writer saw it."""
 
-    raw = read_bytes(url)
-    if raw is not None:
+
+class _S3Object:
+    """The lease object on S3, every write conditional (`If-None-Match: *` to create, `If-Match: <ETag>`
+    to replace and to delete), passed by s3fs to botocore as they are; moto implements all three."""
+
+    exclusive = True
+    _CONFLICT = frozenset({"PreconditionFailed", "ConditionalRequestConflict", "NoSuchKey", "404", "409", "412"})
+
+    def __init__(self, fs: Any, path: str) -> None:
+        self.fs, self.path = fs, path
+        self.bucket, self.key, _ = fs.split_path(path)
+
+    def _call(self, op: str, **kw: Any) -> dict[str, Any]:
+        try:
+            return self.fs.call_s3(op, Bucket=self.bucket, Key=self.key, **kw)
+        except OSError as exc:  # s3fs translates botocore's ClientError and keeps it as the cause
+            code = (getattr(exc.__cause__, "response", None) or {}).get("Error", {}).get("Code")
+            if isinstance(exc, FileNotFoundError | FileExistsError) or code in self._CONFLICT:
+                raise _Taken(code or type(exc).__name__) from None
+            raise
+
+    def create(self, data: bytes) -> str:
+        return str(self._call("put_object", Body=data, IfNoneMatch="*")["ETag"])
+
+    def replace(self, data: bytes, tag: str) -> str:
+        return str(self._call("put_object", Body=data, IfMatch=tag)["ETag"])
+
+    def read(self) -> tuple[bytes, str] | None:
+        try:  # the ETag first: the content read next is the same or newer, so a replace on it is safe
+            tag = str(self._call("head_object")["ETag"])
+            return bytes(self.fs.cat_file(self.path)), tag
+        except (_Taken, FileNotFoundError):
+            return None
+
+    def delete(self, tag: str) -> None:
+        self._call("delete_object", IfMatch=tag)
+
+
+class _PlainObject:
+    """The lease object on a store without a conditional request known here: `pipe_file(mode="create")`
+    (exclusive where the filesystem implements it, else checked then written); a replace or delete
+    compares the content first, so two writers acting at the same instant can both succeed."""
+
+    exclusive = False
+
+    def __init__(self, fs: Any, path: str) -> None:
+        self.fs, self.path = fs, path
+
+    def create(self, data: bytes) -> str:
+        try:
+            self.fs.pipe_file(self.path, data, mode="create")
+        except FileExistsError:
+            raise _Taken("exists") from None
+        return hashlib.sha256(data).hexdigest()
+
+    def read(self) -> tuple[bytes, str] | None:
+        try:
+            data = bytes(self.fs.cat_file(self.path))
+        except FileNotFoundError:
+            return None
+        return data, hashlib.sha256(data).hexdigest()
+
+    def _expect(self, tag: str) -> None:
+        held = self.read()
+        if held is None or held[1] != tag:
+            raise _Taken("changed")
+
+    def replace(self, data: bytes, tag: str) -> str:
+        self._expect(tag)
+        self.fs.pipe_file(self.path, data)
+        return hashlib.sha256(data).hexdigest()
+
+    def delete(self, tag: str) -> None:
+        self._expect(tag)
+        self.fs.rm_file(self.path)
+
+
+def _lease_object(url: str) -> _S3Object | _PlainObject:
+    import fsspec
+
+    try:
+        fs, path = fsspec.core.url_to_fs(url)
+    except (ImportError, ValueError) as exc:
+        raise OccDataError(f"cannot open {url}: {exc} (s3:// needs `pip install occdata[s3]`)") from None
+    protocols = (fs.protocol,) if isinstance(fs.protocol, str) else tuple(fs.protocol)
+    if {"s3", "s3a"} & set(protocols):
+        return _S3Object(fs, path)
+    warnings.warn(OccDataWarning(
+        f"{url}: {protocols[0]}:// has no conditional write known to occdata, so its write lease is checked, "
+        "then written: two writers starting at the same moment could both take it"), stacklevel=4)
+    return _PlainObject(fs, path)
+
+
+def _lapse_s() -> float:
+    """Without a renewal for this long the lease counts as lost: others take it over at LEASE_STALE_S."""
+    return LEASE_STALE_S - LEASE_RENEW_S
+
+
+class _Lease:
+    """This writer's hold on the lease object `url` (the local lock is already held)."""
+
+    def __init__(self, url: str, info: dict[str, object]) -> None:
+        self.url, self.store = url, url[: -len(".lock")]
+        self.info = {**info, "nonce": uuid.uuid4().hex}  # two leases of one host and pid still differ
+        self.obj = _lease_object(url)
+        self.tag = ""
+        self.last_ok = time.monotonic()
+        self.lost: str | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._beat, name="occdata-lease", daemon=True)
+
+    def _body(self) -> bytes:
+        return json.dumps({**self.info, "beat": time.time()}).encode()
+
+    def acquire(self) -> None:
+        """Create the lease, or take over one that is stale or of a dead writer on this host; refuse a
+        live one. Each step is conditional: of writers racing, exactly one gets it."""
+        for _ in range(3):  # a lease deleted or taken between our steps: look again
+            try:
+                self.tag = self.obj.create(self._body())
+                break
+            except _Taken:
+                pass
+            held = self.obj.read()
+            if held is None:
+                continue
+            self._refuse_if_live(held[0])
+            try:
+                self.tag = self.obj.replace(self._body(), held[1])
+                break
+            except _Taken:
+                continue
+        else:
+            raise StoreLockedError(f"{self.store} is being taken by another writer right now ({self.url}); "
+                                   "wait for it to finish")
+        self.last_ok = time.monotonic()
+        self._thread.start()
+
+    def _refuse_if_live(self, raw: bytes) -> None:
         try:
             held = json.loads(raw)
             age = time.time() - float(held["beat"])
-            other_host = held["host"] != info["host"]
-        except (ValueError, KeyError, TypeError):
-            held, age, other_host = {}, LEASE_STALE_S, True
-        if other_host and age < LEASE_STALE_S:
+            other_host = held["host"] != self.info["host"]
+        except (ValueError, KeyError, TypeError):  # unreadable: taken over
+            return
+        if other_host and age < LEASE_STALE_S:  # this host's own lease: its writer is dead (we hold the flock)
             raise StoreLockedError(
-                f"{url[:-5]} is being written from host {held.get('host')} (pid {held.get('pid')}, `occdata "
-                f"{held.get('command')}`, heartbeat {age:.0f} s ago); wait for it to finish, or delete {url} "
+                f"{self.store} is being written from host {held.get('host')} (pid {held.get('pid')}, `occdata "
+                f"{held.get('command')}`, heartbeat {age:.0f} s ago); wait for it to finish, or delete {self.url} "
                 f"if that writer is gone (a lease without heartbeat expires after {LEASE_STALE_S:.0f} s)")
-    stop = threading.Event()
 
-    def beat() -> None:
-        while not stop.wait(LEASE_RENEW_S):
+    def _beat(self) -> None:
+        while not self._stop.wait(LEASE_RENEW_S):
             try:
-                write_atomic(url, json.dumps({**info, "beat": time.time()}).encode())
-            except Exception:  # noqa: BLE001, S110 - the store is unreachable: the build reports that itself
-                pass
+                self.tag = self.obj.replace(self._body(), self.tag)
+                self.last_ok = time.monotonic()
+            except _Taken:
+                self.lost = "another writer holds it now, or it was deleted"
+                return
+            except Exception as exc:  # noqa: BLE001 - an unreachable store: retried until the lease lapses
+                if time.monotonic() - self.last_ok > _lapse_s():
+                    self.lost = f"no heartbeat for {_lapse_s():.0f} s ({type(exc).__name__}: {exc})"
+                    return
 
-    write_atomic(url, json.dumps({**info, "beat": time.time()}).encode())
-    thread = threading.Thread(target=beat, name="occdata-lease", daemon=True)
-    thread.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        thread.join(timeout=5)
+    def check(self) -> None:
+        """Raise `LeaseLostError` once the lease is not this writer's any more."""
+        if self.lost is None and self._thread.is_alive() and time.monotonic() - self.last_ok > _lapse_s():
+            self.lost = f"no heartbeat for {_lapse_s():.0f} s"  # a renewal hanging in the network
+        if self.lost is not None:
+            raise LeaseLostError(
+                f"lost the write lease {self.url} of {self.store} ({self.lost}); stopped writing. What was committed "
+                "is kept; make sure no other writer is running, then rerun with --resume")
+
+    def release(self) -> None:
+        """Stop the heartbeat and delete the lease if it is still this writer's, never another's."""
+        self._stop.set()
+        self._thread.join(timeout=5)
+        if self.lost is not None:
+            return
         try:
-            remove_tree(url)
-        except OSError:
+            self.obj.delete(self.tag)
+        except _Taken:
+            self.lost = "another writer holds it now, or it was deleted"
+        except Exception:  # noqa: BLE001, S110 - unreachable: the lease expires by itself after LEASE_STALE_S
             pass

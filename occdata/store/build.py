@@ -13,6 +13,7 @@ resume must match), `create` (the store's layout), `plan` (the client side of a 
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,7 +24,7 @@ import zarr
 from occdata.errors import OccDataError
 from occdata.nuscenes.rig import NUSCENES_RIG, Rig
 from occdata.runtime.cluster import cluster_client, run_tasks
-from occdata.runtime.lock import store_lock
+from occdata.runtime.lock import LeaseLostError, store_lock
 from occdata.runtime.storage import is_remote
 from occdata.store.blocks import BlockSummary, ConvertJob, sample_checksums
 from occdata.store.config import ROOT_GTS, BuildConfig, GtsDefault, LabelsSource
@@ -67,10 +68,10 @@ def build_store(config: BuildConfig, client: Any = None) -> BuildReport:
     on Ctrl-C/SIGTERM. `client`: a `distributed.Client` to use (default: one for `config.cluster`,
     closed at the end)."""
     inputs = read_inputs(config)  # before anything is written
-    with store_lock(config.out, "build"):
+    with store_lock(config.out, "build") as lock:
         try:
             with contextlib.nullcontext(client) if client is not None else cluster_client(config.cluster) as run_on:
-                return _build_locked(config, run_on, inputs)
+                return _build_locked(config, run_on, inputs, lock.check)
         except OSError as exc:  # a full disk, a read-only folder: committed samples are kept
             where = f" ({exc.filename})" if exc.filename else ""
             raise OccDataError(
@@ -79,7 +80,9 @@ def build_store(config: BuildConfig, client: Any = None) -> BuildReport:
             ) from None
 
 
-def _build_locked(config: BuildConfig, client: Any, inputs: BuildInputs) -> BuildReport:
+def _build_locked(config: BuildConfig, client: Any, inputs: BuildInputs, check: Callable[[], None]) -> BuildReport:
+    """The build under the store's lock; `check()` raises once the lock is lost (an S3 lease that lapsed):
+    polled while tasks run and before the final commit."""
     resumed = store_exists(store_location(config.out))
     spans = block_spans(len(inputs.ds.samples), config.block_samples)
 
@@ -95,7 +98,27 @@ def _build_locked(config: BuildConfig, client: Any, inputs: BuildInputs) -> Buil
     regions = root[REGIONS][:]
     grow_flat(root, regions)  # a run killed between a relocation and the grow
     consolidate(out)  # what every task reads first: current before any task runs
-    coord = Coordinator(root, config.on_error)
+    coord = Coordinator(config.on_error)
+    try:
+        converted = _run_waves(config, client, inputs, root, out, state, todo, regions, coord, check)
+        check()
+    except LeaseLostError:
+        raise  # another writer may hold the store now: nothing more is written
+    except BaseException:  # Ctrl-C, a lost scheduler, --on-error fail, a bug: keep the reasons found so far
+        if coord.errors:
+            with contextlib.suppress(Exception):  # e.g. the disk that just filled up: the first error counts
+                root.attrs["errors"] = coord.recorded()
+                consolidate(out)
+        raise
+    return _finish(config, root, out, inputs, coord, converted)
+
+
+def _run_waves(config: BuildConfig, client: Any, inputs: BuildInputs, root: zarr.Group, out: str,
+               state: np.ndarray, todo: set[int], regions: np.ndarray, coord: Coordinator,
+               check: Callable[[], None]) -> int:
+    """The tasks, in at most two waves (the second: blocks that outgrew their region); returns the
+    samples converted. No metadata is written while tasks run (see `Coordinator`)."""
+    spans = block_spans(len(inputs.ds.samples), config.block_samples)
     converted = [0]
 
     def on_result(job: ConvertJob, result: BlockSummary) -> list[ConvertJob]:
@@ -108,7 +131,7 @@ def _build_locked(config: BuildConfig, client: Any, inputs: BuildInputs) -> Buil
     for attempt in range(2):  # the second wave: blocks that outgrew their region, in their new one
         jobs = [_convert_job(config, inputs, out, spans[b], regions, tok_width) for b in wave]
         run_tasks(client, jobs, desc="build", unit="sample", progress=config.progress, on_result=on_result,
-                  keep=coord.keep)
+                  keep=coord.keep, check=check)
         if not coord.outgrown:
             break
         if attempt:
@@ -125,7 +148,7 @@ def _build_locked(config: BuildConfig, client: Any, inputs: BuildInputs) -> Buil
             f"sample {i} ({token}) failed: {reason}. Everything before it is committed; fix the input and rerun "
             "with --resume (or use --on-error skip)."
         )
-    return _finish(config, root, out, inputs, converted[0])
+    return converted[0]
 
 
 def _convert_job(config: BuildConfig, inputs: BuildInputs, out: str, span: Span, regions: np.ndarray,
@@ -135,11 +158,13 @@ def _convert_job(config: BuildConfig, inputs: BuildInputs, out: str, span: Span,
                       tuple((int(a), int(e)) for a, e in regions[b]), config.on_error)
 
 
-def _finish(config: BuildConfig, root: zarr.Group, out: str, inputs: BuildInputs, processed: int) -> BuildReport:
-    """The final commit (idempotent, in no block order): completeness, the run's options, metadata."""
+def _finish(config: BuildConfig, root: zarr.Group, out: str, inputs: BuildInputs, coord: Coordinator,
+            processed: int) -> BuildReport:
+    """The final commit (idempotent, in no block order): completeness, the run's options and errors,
+    metadata."""
     final_state = root["status/state"][:]
     complete = bool((final_state != STATE_PENDING).all())
-    root.attrs.update({"complete": complete,
+    root.attrs.update({"complete": complete, "errors": coord.recorded(),
                        "build_config": {"workers": config.cluster.workers, "on_error": config.on_error}})
     consolidate(out)
     return BuildReport(

@@ -111,13 +111,15 @@ def relocate(regions: np.ndarray, needs: dict[int, tuple[int, ...]]) -> np.ndarr
 
 
 class Coordinator:
-    """Takes the block summaries in any order: under --on-error skip it records the errors (after the
-    task wrote the flags: a resume redoes such a block anyway); under fail it keeps the first failed
+    """Takes the block summaries in any order: under --on-error skip it keeps the errors here, in the
+    client, for the one write of `attrs["errors"]` after the tasks (`recorded`): a root-attributes
+    write while tasks run drops the consolidated metadata that every task opens, and a task reading
+    `zarr.json` while it is rewritten can see half of it. Under fail it keeps the first failed
     sample, and blocks after it are no longer started. Blocks that outgrew their region are kept for
     `relocate`."""
 
-    def __init__(self, root: zarr.Group, on_error: str) -> None:
-        self.root, self.on_error = root, on_error
+    def __init__(self, on_error: str) -> None:
+        self.on_error = on_error
         self.failure: tuple[int, str, str] | None = None
         self.errors: list[dict[str, Any]] = []
         self.outgrown: dict[int, tuple[int, ...]] = {}
@@ -137,8 +139,11 @@ class Coordinator:
                 self.failure = first
         elif summary.errors:
             self.errors += [{"index": int(i), "token": t, "reason": r} for i, t, r in summary.errors]
-            self.root.attrs["errors"] = sorted(self.errors, key=lambda e: e["index"])
         return []
+
+    def recorded(self) -> list[dict[str, Any]]:
+        """The errors of this run in sample order, as `attrs["errors"]` holds them."""
+        return sorted(self.errors, key=lambda e: e["index"])
 
 
 def reset_blocks(root: zarr.Group, state: np.ndarray, spans: list[Span], todo: set[int], every: bool) -> None:
