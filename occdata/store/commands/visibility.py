@@ -4,7 +4,9 @@ Occupancy comes from the stored semantics, so labelled samples are needed. The L
 keyframe points stored as depth targets (points inside some camera image), un-projected exactly
 into the key-ego frame; or, with `lidar_sweeps` (Occ3D aggregates sweeps), every point of the
 source tree's keyframe sweep and of up to N previous sweeps, each ray from its own sensor position,
-moved into key ego through global. `occdata.visibility.lidar_mask` adds every object voxel, as
+moved into key ego through global. A store of several LiDARs always takes its rays from the source
+tree (the stored depth points do not say which LiDAR saw them): every LiDAR's keyframe sweep, each
+from its own origin. `occdata.visibility.lidar_mask` adds every object voxel, as
 Occ3D's mask does. The camera mask lies within the sample's LiDAR mask: the label's own `mask_lidar` when it
 ships one, else the computed one (a label-only store).
 """
@@ -23,9 +25,10 @@ from occdata.errors import OccDataError
 from occdata.formats.gridspec import LabelFrame
 from occdata.geometry import invert_rigid, transform_points
 from occdata.nuscenes import LidarRecord, NuScenesDataset, load_lidar_points, load_nuscenes
+from occdata.nuscenes.rig import RigChoice
 from occdata.runtime.lock import store_lock
 from occdata.store.build import check_sweep_files
-from occdata.store.layout import STATE_DONE
+from occdata.store.layout import STATE_DONE, store_rig
 from occdata.store.reader import open_store, store_location
 from occdata.store.update import update_samples
 from occdata.visibility import camera_mask, lidar_mask
@@ -105,7 +108,8 @@ def sample_visibility(
 
 @dataclass(frozen=True, eq=False)
 class SweepRays:
-    """LiDAR rays from the source tree: per store token, the keyframe sweep then up to N previous ones."""
+    """LiDAR rays from the source tree: per store token, every LiDAR's keyframe sweep (the store's rig)
+    then up to N previous sweeps of each, each ray from its own LiDAR's origin."""
 
     dataset: NuScenesDataset
     n_sweeps: int
@@ -117,7 +121,9 @@ class SweepRays:
         version = None if root is not None else ident.get("source_version")
         if not src.is_dir():
             raise OccDataError(f"the store's source tree {str(src)!r} is not a folder here; pass --root")
-        ds = load_nuscenes(src, version, sweeps=n_sweeps > 0)
+        rig = store_rig(reader_attrs)
+        choice = RigChoice(tuple(rig["cameras"]), tuple(rig["lidars"]), rig["reference_lidar"])
+        ds = load_nuscenes(src, version, sweeps=n_sweeps > 0, rig=choice)
         rays = SweepRays(ds, n_sweeps)
         check_sweep_files([rays.records(s.token) for s in ds.samples], n_sweeps)
         return rays
@@ -128,7 +134,7 @@ class SweepRays:
         except KeyError:
             where = self.dataset.root
             raise OccDataError(f"sample {token!r} of the store is not in the tables under {where}") from None
-        return (self.dataset.samples[i].lidar, *self.dataset.lidar_history(i, self.n_sweeps))
+        return (*self.dataset.samples[i].lidars, *self.dataset.lidar_histories(i, self.n_sweeps))
 
     def keyego(self, token: str, T_global_from_keyego: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ray origins and end points `(M, 3) float64` in key ego."""
@@ -160,7 +166,12 @@ def _compute_visibility(store: str | Path, recompute: bool, block: int, progress
     if reader.grid.frame is not LabelFrame.KEY_EGO:
         raise OccDataError(f"{store}: its labels are on grid {reader.grid.name} in the LIDAR_TOP frame; occdata "
                            "visibility computes key-ego masks only (not available for this grid)")
-    rays = None if lidar_sweeps is None else SweepRays.load(dict(reader.group.attrs), root, lidar_sweeps)
+    attrs = dict(reader.group.attrs)
+    if lidar_sweeps is None and len(store_rig(attrs)["lidars"]) > 1:
+        # The stored depth points do not say which LiDAR saw them: several LiDARs' rays are cast from the
+        # source tree, each from its own origin.
+        lidar_sweeps = 0
+    rays = None if lidar_sweeps is None else SweepRays.load(attrs, root, lidar_sweeps)
     group = zarr.open_group(reader.path, mode="r+")
     present = group["labels/present"][:]
     done = reader.state == STATE_DONE
