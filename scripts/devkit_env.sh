@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # A throwaway venv with the official nuscenes-devkit, lyft_dataset_sdk and truckscenes-devkit (NOT project
-# dependencies; truckscenes-devkit reads its .pcd files with pypcd4, which needs pydantic), the independent truths of the tests that check our reading and projection against them. Prints the
-# venv's python path.
+# dependencies; truckscenes-devkit reads its .pcd files with pypcd4, which needs pydantic), the independent
+# truths of the tests that check our reading and projection against them. Prints the venv's python path.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
