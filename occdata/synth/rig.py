@@ -202,8 +202,6 @@ class SynthRig:
 def _look(yaw_deg: float, pitch_deg: float = 0.0) -> tuple[float, float, float, float]:
     """`rotation_wxyz` (camera -> ego) of a camera (x right, y down, z forward) looking at ego yaw
     `yaw_deg`, tilted `pitch_deg` down."""
-
-
     y, p = np.deg2rad(yaw_deg), np.deg2rad(pitch_deg)
     forward = np.array([np.cos(p) * np.cos(y), np.cos(p) * np.sin(y), -np.sin(p)])
     right = np.array([np.sin(y), -np.cos(y), 0.0])
