@@ -50,8 +50,15 @@ def main() -> None:
 @click.option("--samples", default=10, show_default=True, type=click.IntRange(min=1),
               help="Keyframes (2 Hz) per scene.")
 @click.option("--seed", default=0, show_default=True, type=int, help="World seed (same seed, same bytes).")
-@click.option("--width", default=1600, show_default=True, type=click.IntRange(min=16), help="Image width.")
-@click.option("--height", default=900, show_default=True, type=click.IntRange(min=16), help="Image height.")
+@click.option("--rig", "rig_name", type=click.Choice(["nuscenes", "lyft", "truckscenes"]), default="nuscenes",
+              show_default=True,
+              help="Whose sensor rig, rates, file layout and table quirks to write: nuscenes (6 cameras, LIDAR_TOP "
+                   "20 Hz), lyft (7 cameras, 3 LiDARs, 5 Hz keyframes, train_data/), truckscenes (4 cameras, 6 "
+                   "LiDARs at 10 Hz, .pcd files). See docs/synth.md.")
+@click.option("--width", default=None, type=click.IntRange(min=16),
+              help="Image width (every camera). Default: the rig's (1600, 1920, 1980).")
+@click.option("--height", default=None, type=click.IntRange(min=16),
+              help="Image height (every camera). Default: the rig's (900, 1080, 943).")
 @click.option("--table-only-scenes", default=0, show_default=True, type=click.IntRange(min=0), metavar="N",
               help="Also write N scenes as table rows alone (no sensor files or labels; split table_only): a "
                    "nuScenes-size tree for memory and start-up measurements.")
@@ -66,14 +73,15 @@ def main() -> None:
               help="The custom grid's range in metres (key ego; default Occ3D's -40 -40 -1 40 40 5.4).")
 @progress_option()
 @friendly_errors
-def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: int, table_only_scenes: int,
-          table_only_samples: int, grids: tuple[str, ...], voxel_size: float | None,
+def synth(out: str, scenes: int, samples: int, seed: int, rig_name: str, width: int | None, height: int | None,
+          table_only_scenes: int, table_only_samples: int, grids: tuple[str, ...], voxel_size: float | None,
           grid_range: tuple[float, ...] | None, progress: bool) -> None:
     """Write a synthetic nuScenes-format world with Occ3D labels and exact depth maps.
 
-    Tables (v1.0-mini), 6 ray-cast camera images, a 32-beam LiDAR sweep per keyframe and 9
-    LiDAR sweeps (20 Hz) between keyframes under sweeps/LIDAR_TOP, gts/<scene>/<sample>/labels.npz
-    and depth/<sample_data_token>.npy; with --grid / --voxel-size, the truth on other benchmarks'
+    nuscenes rig: tables (v1.0-mini), 6 ray-cast camera images, a 32-beam LiDAR sweep per keyframe
+    and 9 LiDAR sweeps (20 Hz) between keyframes under sweeps/LIDAR_TOP; --rig lyft / truckscenes:
+    their rigs, rates, layouts and formats. Always gts/<scene>/<sample>/labels.npz and
+    depth/<sample_data_token>.npy; with --grid / --voxel-size, the truth on other benchmarks'
     grids too. See docs/synth.md.
     """
     from occdata.synth import SynthConfig, synthesize
@@ -82,7 +90,7 @@ def synth(out: str, scenes: int, samples: int, seed: int, width: int, height: in
     root = synthesize(SynthConfig(out=local_path(out, "--out"), scenes=scenes, samples=samples, seed=seed,
                                   width=width, height=height, progress=progress,
                                   table_only_scenes=table_only_scenes, table_only_samples=table_only_samples,
-                                  grids=specs))
+                                  grids=specs, rig=rig_name))
     extra = f" (+ {table_only_scenes} table-only scenes)" if table_only_scenes else ""
     click.echo(f"wrote {scenes} scenes x {samples} samples{extra} to {root}")
 

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from occdata.errors import OccDataError
+from occdata.nuscenes.pointfiles import is_pcd, read_pcd
 from occdata.nuscenes.records import CameraRecord, LidarRecord, NuScenesDataset, SampleRecord, SceneRecord
 from occdata.nuscenes.rig import Rig, RigChoice, resolve_rig, sensor_modalities
 from occdata.nuscenes.rows import RowProblem, field, floats, integer, pose, ref, short, timestamp_us
@@ -504,8 +505,12 @@ def _placeholder_sample(
 
 
 def load_lidar_points(path: Path | str) -> np.ndarray:
-    """A `.pcd.bin` sweep: `(N, 5) float32` x, y, z, intensity, ring (lidar frame)."""
+    """A LiDAR sweep: `(N, 5) float32` x, y, z, intensity, ring (lidar frame). `.pcd.bin` / `.bin`:
+    raw float32 x 5 (nuScenes, Lyft); `.pcd`: a PCD file of any encoding (`pointfiles.read_pcd`,
+    which also gives the per-point timestamps a file may have)."""
     path = Path(path)
+    if is_pcd(path):
+        return read_pcd(path).points
     try:
         raw = path.read_bytes()
     except FileNotFoundError:

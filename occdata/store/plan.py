@@ -20,7 +20,9 @@ from typing import Any
 import numpy as np
 import zarr
 
+from occdata.errors import OccDataError
 from occdata.nuscenes import LidarRecord, SampleRecord
+from occdata.nuscenes.pointfiles import is_pcd, pcd_point_count
 from occdata.store.blocks import BlockSummary, ConvertJob
 from occdata.store.layout import FLAT_ARRAYS, STATE_DONE, STATE_PENDING
 from occdata.store.sample import SampleOptions
@@ -57,11 +59,14 @@ def jpeg_bound(width: int, height: int, scale: float = 1.0) -> int:
 
 
 def _points(path: Path) -> int:
-    """LiDAR points in a `.pcd.bin` file by its size; 0 if it cannot be read now (such a sample fails;
-    if it is fixed later and succeeds, its block moves to the end: `relocate`)."""
+    """LiDAR points in a file: a `.pcd.bin` / `.bin` by its size, a `.pcd` by its header's POINTS; 0 if
+    it cannot be read now (such a sample fails; if it is fixed later and succeeds, its block moves to
+    the end: `relocate`)."""
     try:
+        if is_pcd(path):
+            return pcd_point_count(path)
         return os.stat(path).st_size // LIDAR_POINT_BYTES
-    except OSError:
+    except (OSError, OccDataError):
         return 0
 
 

@@ -5,11 +5,13 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from occdata.constants import CAMERA_ORDER, LIDAR_CHANNEL
 from occdata.fileio import write_atomic
 from occdata.nuscenes.lidarseg import LIDARSEG_NAMES
+
+if TYPE_CHECKING:
+    from occdata.synth.rig import SynthRig
 
 __all__ = [
     "ATTRIBUTES",
@@ -94,12 +96,16 @@ def attribute_rows(seed: int) -> list[dict[str, Any]]:
             for name, desc in ATTRIBUTES]
 
 
-def static_tables(seed: int) -> dict[str, list[dict[str, Any]]]:
-    """Tables that do not depend on the drive: sensor, category (the 32 lidarseg categories),
-    attribute, visibility; instance and sample_annotation empty (filled per scene)."""
+def static_tables(seed: int, rig: SynthRig | None = None) -> dict[str, list[dict[str, Any]]]:
+    """Tables that do not depend on the drive: sensor (the rig's; default nuScenes'), category (the 32
+    lidarseg categories), attribute, visibility; instance and sample_annotation empty (filled per scene)."""
+    if rig is None:
+        from occdata.synth.rig import NUSCENES as rig
     sensors = [
-        {"token": make_token(seed, "sensor", ch), "channel": ch, "modality": "camera"} for ch in CAMERA_ORDER
-    ] + [{"token": make_token(seed, "sensor", LIDAR_CHANNEL), "channel": LIDAR_CHANNEL, "modality": "lidar"}]
+        {"token": make_token(seed, "sensor", c.channel), "channel": c.channel, "modality": "camera"}
+        for c in rig.cameras
+    ] + [{"token": make_token(seed, "sensor", x.channel), "channel": x.channel, "modality": "lidar"}
+         for x in rig.lidars]
     levels = [("v0-40", "0 and 40%"), ("v40-60", "40 and 60%"), ("v60-80", "60 and 80%"), ("v80-100", "80 and 100%")]
     return {
         "sensor": sensors,
@@ -114,11 +120,12 @@ def static_tables(seed: int) -> dict[str, list[dict[str, Any]]]:
     }
 
 
-def write_tables(table_dir: Path, tables: dict[str, list[dict[str, Any]]]) -> None:
-    """Write all 13 tables, and any extra ones (lidarseg), as `<table_dir>/<name>.json` (atomic,
-    deterministic formatting)."""
-    missing = set(TABLE_NAMES) - set(tables)
+def write_tables(table_dir: Path, tables: dict[str, list[dict[str, Any]]],
+                 names: tuple[str, ...] = TABLE_NAMES) -> None:
+    """Write the `names` tables (default nuScenes' 13), and any extra ones (lidarseg), as
+    `<table_dir>/<name>.json` (atomic, deterministic formatting; NaN as JSON's `NaN`, as Lyft writes it)."""
+    missing = set(names) - set(tables)
     if missing:
         raise ValueError(f"missing tables: {sorted(missing)}")
-    for name in (*TABLE_NAMES, *sorted(set(tables) - set(TABLE_NAMES))):
+    for name in (*names, *sorted(set(tables) - set(names))):
         write_atomic(table_dir / f"{name}.json", json.dumps(tables[name], indent=0).encode())
