@@ -147,3 +147,13 @@ def test_a_tier4_style_layout_reads_and_builds(synth_root: Path, tmp_path: Path)
 def test_bad_rig_options_are_one_line(real_lyft_root: Path, option: str, value: str, message: str) -> None:
     res = CliRunner().invoke(main, ["scan", "--root", str(real_lyft_root), option, value])
     assert res.exit_code != 0 and message in res.output and "Traceback" not in res.output
+
+
+def test_a_tree_without_log_json_reads_as_truckscenes_ships_it(real_lyft_root: Path, tmp_path: Path) -> None:
+    """MAN TruckScenes has no log table (scene.log_token is ""): the location is then unknown, not an error."""
+    root = _lyft_copy(real_lyft_root, tmp_path)
+    (root / "train_data" / "log.json").unlink()
+    _edit(root, "scene", lambda rows: rows[0].update(log_token=""))
+    ds = load_nuscenes(root)
+    assert ds.scenes[0].location == "" and ds.scenes[0].log_token == ""
+    assert _scan(root)[0] == 0

@@ -41,7 +41,8 @@ __all__ = [
 
 # Non-official scenes (synthetic or custom data) may carry "split=<name>" in their description.
 SPLIT_TAG = re.compile(r"\bsplit=([A-Za-z0-9_]+)")
-_NEEDED_TABLES = ("scene", "sample", "sample_data", "calibrated_sensor", "ego_pose", "sensor", "log")
+# log.json is optional: MAN TruckScenes ships none (its scenes' log_token is ""); the log gives only the location.
+_NEEDED_TABLES = ("scene", "sample", "sample_data", "calibrated_sensor", "ego_pose", "sensor")
 
 
 def find_version(root: Path, version: str | None) -> str:
@@ -109,7 +110,7 @@ class TableIndex:
     sweeps: bool
     sensors: dict[str, dict[str, Any]]
     calibs: dict[str, dict[str, Any]]
-    logs: dict[str, dict[str, Any]]
+    logs: dict[str, dict[str, Any]] | None  # None: the tree has no log.json
     scenes: dict[str, dict[str, Any]]
     samples: dict[str, dict[str, Any]]
     sample_data: dict[str, dict[str, Any]]
@@ -135,7 +136,7 @@ def read_tables(root: Path, version: str, sweeps: bool, rig: RigChoice | None = 
     notes: list[str] = []
     sensors = load_table(vdir / "sensor.json", warn=notes.append)
     calibs = load_table(vdir / "calibrated_sensor.json", warn=notes.append)
-    logs = load_table(vdir / "log.json", warn=notes.append)
+    logs = load_table(vdir / "log.json", warn=notes.append) if (vdir / "log.json").is_file() else None
     scenes = load_table(vdir / "scene.json", warn=notes.append)
     if not scenes:
         raise OccDataError(f"{vdir / 'scene.json'} holds no scenes: nothing to read")
@@ -306,7 +307,8 @@ def _scene_record(idx: TableIndex, sc_tok: str, sc: dict[str, Any], in_table: in
         raise OccDataError(
             f"scene.json: scene {sc_tok!r} has a name that is not usable as a folder name ({short(name)})"
         )
-    log = ref(idx.logs, field(sc, "log_token", "scene"), "log", f"scene {name!r}")
+    log_token = field(sc, "log_token", "scene")
+    log = ref(idx.logs, log_token, "log", f"scene {name!r}") if idx.logs is not None else {}
     chain = _scene_samples(idx, sc_tok, sc, name)
     nbr = sc.get("nbr_samples")
     if len(chain) < in_table:
@@ -324,7 +326,7 @@ def _scene_record(idx: TableIndex, sc_tok: str, sc: dict[str, Any], in_table: in
         tag = SPLIT_TAG.search(description)
         split = tag.group(1) if tag else (auto_split(name) if unlisted == AUTO_SPLIT else unlisted)
     return SceneRecord(
-        token=sc_tok, name=name, description=description, log_token=sc["log_token"],
+        token=sc_tok, name=name, description=description, log_token=log_token,
         location=str(log.get("location", "")), split=split, sample_tokens=tuple(chain),
     )
 
