@@ -23,7 +23,7 @@ from occdata.errors import OccDataError
 from occdata.nuscenes.pointfiles import is_pcd, read_pcd
 from occdata.nuscenes.records import CameraRecord, LidarRecord, NuScenesDataset, SampleRecord, SceneRecord
 from occdata.nuscenes.rig import Rig, RigChoice, resolve_rig, sensor_modalities
-from occdata.nuscenes.rows import RowProblem, field, floats, integer, pose, ref, short, timestamp_us
+from occdata.nuscenes.rows import RowProblem, field, floats, integer, link, pose, ref, short, timestamp_us
 from occdata.nuscenes.splits import AUTO_SPLIT, SplitChoice, auto_split, official_split
 from occdata.nuscenes.tables import TokenSet, load_table, usable_as_file_name
 
@@ -141,6 +141,8 @@ def read_tables(root: Path, version: str, sweeps: bool, rig: RigChoice | None = 
     if not scenes:
         raise OccDataError(f"{vdir / 'scene.json'} holds no scenes: nothing to read")
     samples = load_table(vdir / "sample.json", warn=notes.append)
+    for tok, row in samples.items():  # every sample belongs to a scene of the tables
+        ref(scenes, field(row, "scene_token", "sample"), "scene", f"sample {tok!r}")
     channel_of_calib = _channels_of_calibs(calibs, sensors)
     modalities = sensor_modalities(sensors)
     choice = rig or RigChoice()
@@ -154,7 +156,12 @@ def read_tables(root: Path, version: str, sweeps: bool, rig: RigChoice | None = 
     used = set(resolved.channels)
     sample_data = {t: sd for t, sd in sample_data.items() if channel_of_calib[sd["calibrated_sensor_token"]] in used}
     keyframes = {s: {c: sd for c, sd in per.items() if c in used} for s, per in keyframes.items()}
-    pose_tokens = {field(sd, "ego_pose_token", "sample_data") for sd in sample_data.values()}
+    pose_tokens = set()
+    for tok, sd in sample_data.items():
+        pose_tok = field(sd, "ego_pose_token", "sample_data")
+        if not isinstance(pose_tok, str):
+            raise OccDataError(f"sample_data.json: row {tok!r} ego_pose_token is not a token ({short(pose_tok)})")
+        pose_tokens.add(pose_tok)
     ego_poses = load_table(vdir / "ego_pose.json", keep=lambda r: r.get("token") in pose_tokens, warn=notes.append)
     lidars = set(resolved.lidars)
     lidar_rows = {t: sd for t, sd in sample_data.items() if channel_of_calib[sd["calibrated_sensor_token"]] in lidars}
@@ -179,16 +186,20 @@ def _sample_data_filter(
     wanted: set[str], sweeps: bool,
 ) -> Callable[[dict[str, Any]], bool]:
     """The sample_data rows to keep: keyframes of the `wanted` channels (cameras and LiDARs); with
-    `sweeps` also the LiDARs' non-keyframe rows. A row naming an unknown calibrated_sensor is an
-    `OccDataError`."""
+    `sweeps` also the LiDARs' non-keyframe rows. A row naming an unknown calibrated_sensor, or whose
+    is_key_frame is not a boolean, is an `OccDataError`, whether it is kept or not."""
 
     def keep(row: dict[str, Any]) -> bool:
+        # checked for every row, kept or not: every command refuses the same tables
+        cs_tok = field(row, "calibrated_sensor_token", "sample_data")
+        if not isinstance(cs_tok, str) or cs_tok not in channel_of_calib:
+            ref(calibs, cs_tok, "calibrated_sensor", f"sample_data {row.get('token')!r}")
         key = row.get("is_key_frame", False)
+        if not isinstance(key, bool):
+            raise OccDataError(f"sample_data.json: row {row.get('token')!r} is_key_frame is not true/false "
+                               f"({short(key)})")
         if not key and not sweeps:
             return False
-        cs_tok = field(row, "calibrated_sensor_token", "sample_data")
-        if cs_tok not in channel_of_calib:
-            ref(calibs, cs_tok, "calibrated_sensor", f"sample_data {row.get('token')!r}")
         channel = channel_of_calib[cs_tok]
         return channel in wanted and (key or modalities.get(channel) == "lidar")
 
@@ -196,26 +207,23 @@ def _sample_data_filter(
 
 
 def _check_links(sample_data: dict[str, dict[str, Any]], every: TokenSet) -> None:
-    """Every kept sample_data row's `prev` / `next` is "" or a row of sample_data.json (kept or not);
-    where both ends are kept, the two links agree."""
+    """Every kept sample_data row has `prev` and `next`, each "" or a row of sample_data.json (kept or
+    not); where both ends are kept, the two links agree."""
     for key in ("prev", "next"):
-        links = [(tok, sd.get(key, "")) for tok, sd in sample_data.items()]
-        for tok, link in links:
-            if not isinstance(link, str):
-                raise OccDataError(f"sample_data.json: row {tok!r} {key} is not a token ({short(link)})")
-        targets = [link for _, link in links if link and link not in sample_data]
+        links = [(tok, link(sd, key, "sample_data")) for tok, sd in sample_data.items()]
+        targets = [to for _, to in links if to and to not in sample_data]
         found = set(every.hits(targets))
-        for tok, link in links:
-            if link and link not in sample_data and link not in found:
-                raise OccDataError(f"dangling token: sample_data {tok!r}.{key} refers to sample_data {link!r}, "
+        for tok, to in links:
+            if to and to not in sample_data and to not in found:
+                raise OccDataError(f"dangling token: sample_data {tok!r}.{key} refers to sample_data {to!r}, "
                                    "not in sample_data.json")
     back = {"prev": "next", "next": "prev"}
     for tok, sd in sample_data.items():
         for key in ("prev", "next"):
-            other = sample_data.get(sd.get(key, ""))
-            if other is not None and other.get(back[key], "") != tok:
+            other = sample_data.get(sd[key])
+            if other is not None and other[back[key]] != tok:
                 raise OccDataError(f"sample_data.json: row {tok!r}.{key} is {sd[key]!r}, but that row's "
-                                   f"{back[key]} is {other.get(back[key], '')!r}")
+                                   f"{back[key]} is {other[back[key]]!r}")
 
 
 def _keyframes_by_sample(
@@ -343,11 +351,11 @@ def _scene_samples(idx: TableIndex, sc_tok: str, sc: dict[str, Any], name: str) 
         if len(chain) > len(idx.samples):
             raise OccDataError(f"scene {name!r}: the sample next-links form a cycle")
         want_prev = chain[-1] if chain else ""
-        if field(row, "prev", "sample") != want_prev:
+        if link(row, "prev", "sample") != want_prev:
             raise OccDataError(f"scene {name!r}: sample {tok!r}.prev is {short(row['prev'])}, but the scene's order "
                                f"(next-links from first_sample_token) puts {want_prev or 'nothing'!r} before it")
         chain.append(tok)
-        tok = field(row, "next", "sample")
+        tok = link(row, "next", "sample")
     last = field(sc, "last_sample_token", "scene")
     if chain and chain[-1] != last:
         raise OccDataError(f"scene {name!r}: the next-links end at {chain[-1]!r}, not last_sample_token {last!r}")

@@ -14,7 +14,8 @@ import numpy as np
 from occdata.errors import OccDataError
 from occdata.geometry import quaternion_problem, rotation_from_quaternion_wxyz
 
-__all__ = ["RowProblem", "field", "floats", "integer", "pose", "ref", "rotation_matrix", "short", "timestamp_us"]
+__all__ = ["RowProblem", "field", "floats", "integer", "link", "pose", "ref", "rotation_matrix", "short",
+           "timestamp_us"]
 
 
 class RowProblem(Exception):
@@ -27,6 +28,15 @@ def field(row: dict[str, Any], key: str, table: str) -> Any:
         return row[key]
     except KeyError:
         raise OccDataError(f"{table}.json: row {row.get('token', '?')!r} has no field {key!r}") from None
+
+
+def link(row: dict[str, Any], key: str, table: str) -> str:
+    """A `prev` / `next` link: a token, or "" at the end of a chain. Missing or not a string is an
+    `OccDataError` naming the table, the row and the field."""
+    value = field(row, key, table)
+    if not isinstance(value, str):
+        raise OccDataError(f"{table}.json: row {row.get('token', '?')!r} {key} is not a token ({short(value)})")
+    return value
 
 
 def ref(rows: dict[str, dict[str, Any]], token: Any, table: str, src: str) -> dict[str, Any]:
@@ -66,10 +76,14 @@ def integer(value: Any, where: str) -> int:
     return int(value)
 
 
+MAX_TIMESTAMP_US = 2**53  # microseconds since 1970: the year 2255; float64 still holds every microsecond
+
+
 def timestamp_us(value: Any, where: str) -> int:
     """A timestamp in microseconds: a JSON integer, or a finite float rounded to the nearest
     microsecond (ties to even; Lyft Level 5 writes microseconds as floats such as 1557858039302414.8,
-    which at that size float64 holds to 0.25 us). Negative or non-numeric values are `RowProblem`s."""
+    which at that size float64 holds to 0.25 us). Negative, implausibly late (`MAX_TIMESTAMP_US`) or
+    non-numeric values are `RowProblem`s."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise RowProblem(f"{where} is not a number of microseconds ({short(value)})")
     if isinstance(value, float):
@@ -78,6 +92,8 @@ def timestamp_us(value: Any, where: str) -> int:
         value = round(value)
     if value < 0:
         raise RowProblem(f"{where} is negative ({value})")
+    if value > MAX_TIMESTAMP_US:
+        raise RowProblem(f"{where} is not a plausible time ({short(value)} us is after the year 2255)")
     return int(value)
 
 
