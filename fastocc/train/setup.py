@@ -18,7 +18,14 @@ import torch
 from torch import nn
 
 from fastocc import dist as D
-from fastocc.checkpoint import CheckpointError, checkpoint_cameras, first_mismatch, load_checkpoint, load_weights
+from fastocc.checkpoint import (
+    CheckpointError,
+    checkpoint_cameras,
+    first_mismatch,
+    load_checkpoint,
+    load_weights,
+    model_config_from_dict,
+)
 from fastocc.data import BevAugConfig, ImageAugConfig, LoaderConfig, SampleConfig, make_loader
 from fastocc.losses import LossConfig, LossTargets, class_weights_from_counts, occupancy_loss
 from fastocc.model import FastOcc
@@ -150,8 +157,8 @@ def take_store_rig(run: Run, payload: dict[str, Any] | None) -> None:
     run.cameras = tuple(store_rig(reader.attrs)["cameras"])
     run.model_cfg = run.model_cfg.replace(num_cams=len(run.cameras))
     if payload is not None:
-        saved = checkpoint_cameras(payload, len(run.cameras))
-        check_store_rig(reader, saved, len(run.cameras), f"--resume {run.out / 'last.pt'}", "train")
+        saved = model_config_from_dict(json.loads(payload["model_config"])).num_cams
+        check_store_rig(reader, checkpoint_cameras(payload, saved), saved, f"--resume {run.out / 'last.pt'}", "train")
 
 
 def build_model(run: Run) -> nn.Module:
