@@ -133,8 +133,9 @@ def bench(
               help="fastocc checkpoint (carries its model config).")
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="ONNX file to write; the JSON sidecar goes next to it (model.onnx -> model.json).")
-@click.option("--rig", default=None, help="Store or nuScenes tree whose first sample gives K and extrinsics "
-              "(default: the synthetic nuScenes-like rig).")
+@click.option("--rig", default=None, help="Store or nuScenes tree whose first sample gives K, extrinsics and "
+              "image sizes; its cameras must be the checkpoint's, in its order (default: a synthetic "
+              "nuScenes-like rig of the checkpoint's cameras).")
 @click.option("--opset", type=click.IntRange(min=1), default=18, show_default=True, help="ONNX opset (>= 18).")
 @click.option("--frames", type=click.IntRange(min=1), default=2, show_default=True,
               help="Random frames in the parity check (temporal models: a moving stream).")

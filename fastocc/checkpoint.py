@@ -9,6 +9,8 @@ A checkpoint is a plain dict of tensors and primitives:
     model             state dict of the raw weights
     ema               state dict of the EMA weights, or None
     meta              dict of primitives (epoch, step, val metrics, ...) for people and tools
+    rig               {"cameras": [...]}: the camera order trained on, only for a rig other than nuScenes'
+                      (absent: nuScenes' 6 cameras, so those checkpoints are as before; `checkpoint_cameras`)
     ...               any further keys the trainer needs to resume (optimizer, scheduler, RNG states)
 """
 
@@ -33,7 +35,7 @@ from fastocc.model.config import (
     TemporalFusionKind,
     ViewTransformKind,
 )
-from occdata.constants import OccGrid
+from occdata.constants import CAMERA_ORDER, OccGrid
 from occdata.errors import OccDataError
 from occdata.fileio import atomic_open
 
@@ -41,6 +43,7 @@ __all__ = [
     "CHECKPOINT_FORMAT",
     "Checkpoint",
     "CheckpointError",
+    "checkpoint_cameras",
     "first_mismatch",
     "load_checkpoint",
     "load_model",
@@ -48,6 +51,7 @@ __all__ = [
     "model_config_from_dict",
     "model_config_to_dict",
     "newest_epoch_checkpoint",
+    "rig_record",
     "save_checkpoint",
 ]
 
@@ -92,6 +96,22 @@ def model_config_from_dict(d: dict[str, Any]) -> ModelConfig:
     return ModelConfig(**{k: conv[k](v) if k in conv else v for k, v in d.items()})
 
 
+def rig_record(cameras: tuple[str, ...]) -> dict[str, Any]:
+    """The checkpoint keys that record the camera order `cameras` trained on: `{"rig": ...}`, or none for
+    nuScenes' own order (a nuScenes checkpoint stays what it was before rigs were recorded)."""
+    return {} if tuple(cameras) == CAMERA_ORDER else {"rig": {"cameras": list(cameras)}}
+
+
+def checkpoint_cameras(payload: dict[str, Any], num_cams: int) -> tuple[str, ...] | None:
+    """The camera order a checkpoint payload was trained on: its `rig` record; nuScenes' order for a
+    6-camera checkpoint without one (every checkpoint before rigs were recorded); None (unknown) for
+    other camera counts without one (e.g. a network saved outside the trainer)."""
+    rig = payload.get("rig")
+    if isinstance(rig, dict) and isinstance(rig.get("cameras"), list | tuple):
+        return tuple(str(c) for c in rig["cameras"])
+    return CAMERA_ORDER if num_cams == len(CAMERA_ORDER) else None
+
+
 @dataclass(frozen=True)
 class Checkpoint:
     """A loaded checkpoint. `payload` holds every key as saved (for resume)."""
@@ -101,6 +121,11 @@ class Checkpoint:
     ema: dict[str, torch.Tensor] | None
     meta: dict[str, Any]
     payload: dict[str, Any]
+
+    @property
+    def cameras(self) -> tuple[str, ...] | None:
+        """The camera order trained on (`checkpoint_cameras`); None when unknown."""
+        return checkpoint_cameras(self.payload, self.model_config.num_cams)
 
     def weights(self, prefer_ema: bool = True) -> dict[str, torch.Tensor]:
         """The EMA weights when present and preferred (what evaluation uses), else the raw ones."""
@@ -210,6 +235,9 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         cfg = model_config_from_dict(json.loads(payload["model_config"]))
     except (KeyError, TypeError, ValueError) as exc:
         raise _unreadable(path, f"bad model config in checkpoint ({exc})") from None
+    cams = checkpoint_cameras(payload, cfg.num_cams)
+    if cams is not None and len(cams) != cfg.num_cams:
+        raise _unreadable(path, f"its rig names {len(cams)} cameras but its model config has {cfg.num_cams}")
     return Checkpoint(model_config=cfg, model=payload["model"], ema=payload.get("ema"),
                       meta=dict(payload.get("meta") or {}), payload=payload)
 

@@ -45,7 +45,7 @@ ALLOWED: dict[str, dict[str, set[str]]] = {
         "data": {"model"},
         "infer": {"checkpoint", "data", "dist", "model", "storegrid"},
         "train": {"checkpoint", "data", "dist", "infer", "losses", "model", "storegrid"},
-        "deploy": {"checkpoint", "data", "model"},
+        "deploy": {"checkpoint", "data", "model", "storegrid"},
         "bench": {"deploy", "losses", "model"},
     },
 }

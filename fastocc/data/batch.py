@@ -19,7 +19,8 @@ IGNORE_LABEL = 255  # semantics where a sample has no labels (test split)
 
 @dataclass(frozen=True)
 class Batch:
-    """One batch; B samples, N = 6 cameras, input (H, W), depth grid (h, w) = (H // 16, W // 16).
+    """One batch; B samples, N cameras (the store's C, in its `camera_order`), input (H, W), depth grid
+    (h, w) = (H // 16, W // 16).
 
     Inputs (same meaning as `fastocc.model.inputs.SceneInputs`):
       images              (B, N, 3, H, W) float32  normalised RGB (DESIGN §6 mean/std)

@@ -22,7 +22,7 @@ from occdata.errors import OccDataError
 from occdata.sensors.depth_targets import DEPTH_MAX, DEPTH_MIN, depth_target
 from occdata.sensors.image_ops import normalise_chw, normalise_lut
 from occdata.store.bev import unpack_bev
-from occdata.store.layout import N_CAM, STATE_DONE, STATE_PENDING
+from occdata.store.layout import STATE_DONE, STATE_PENDING
 from occdata.store.reader import StoreReader
 
 __all__ = [
@@ -51,11 +51,12 @@ class SampleConfig:
 
 @dataclass
 class RawSample:
-    """Undecoded payload of one sample: JPEG streams, LiDAR (u, v, d) per camera, labels or None."""
+    """Undecoded payload of one sample: JPEG streams, LiDAR (u, v, d) per camera (the store's C
+    cameras, in its `camera_order`), labels or None."""
 
     index: int
-    jpegs: list[np.ndarray]  # 6 x (bytes,) uint8
-    uvd: list[np.ndarray]  # 6 x (M_c, 3) float32, original-image pixels
+    jpegs: list[np.ndarray]  # C x (bytes,) uint8
+    uvd: list[np.ndarray]  # C x (M_c, 3) float32, pixels of camera c's original image
     labels: dict[str, np.ndarray] | None  # _LABELS -> per-sample arrays
 
 
@@ -65,6 +66,7 @@ class StoreSamples:
     def __init__(self, reader: StoreReader) -> None:
         self.reader = reader
         r = reader
+        self.n_cams = r.n_cams  # C: the store's cameras (attrs camera_order), each with its own image size
         self.state = r.small("status/state")
         self.present = r.small("labels/present")
         self.K = r.small("calib/K").astype(np.float32)
@@ -72,7 +74,7 @@ class StoreSamples:
         self.T_global_from_keyego = r.small("pose/T_global_from_keyego")  # float64: relative poses need it
         self.prev_index = r.small("temporal/prev_index").astype(np.int64)
         self.prev_valid = r.small("temporal/prev_valid")
-        self.image_size = r.small("cam/image_size")
+        self.image_size = r.small("cam/image_size")  # (S, C, 2) int32 (width, height) of each original image
         self.scene_index = r.small("sample/scene_index")
         self.split = r.small("sample/split")
         self.img_off = r.small("images/offsets")
@@ -197,10 +199,13 @@ class SampleMaker:
         H, W = cfg.image.height, cfg.image.width
         if H % cfg.depth_stride or W % cfg.depth_stride:
             raise ValueError(f"input size {H}x{W} must be a multiple of the depth stride {cfg.depth_stride}")
-        images = np.empty((N_CAM, 3, H, W), dtype=np.float32)
-        img_aug = np.empty((N_CAM, 3, 3), dtype=np.float64)
-        depth = np.empty((N_CAM, H // cfg.depth_stride, W // cfg.depth_stride), dtype=np.float32)
-        for c in range(N_CAM):
+        C = s.n_cams
+        images = np.empty((C, 3, H, W), dtype=np.float32)
+        img_aug = np.empty((C, 3, 3), dtype=np.float64)
+        depth = np.empty((C, H // cfg.depth_stride, W // cfg.depth_stride), dtype=np.float32)
+        for c in range(C):
+            # Each camera is resized/cropped to the input from its own original size: A and the depth
+            # targets (LiDAR pixels of that original image moved by A) agree per camera.
             ow, oh = (int(x) for x in s.image_size[i, c])
             aug = sample_image_aug(cfg.image, ow, oh, rng)
             A = aug.matrix

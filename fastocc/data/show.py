@@ -1,6 +1,7 @@
 """`fastocc show-batch`: one sample as the network sees it, drawn so that misalignment is visible.
 
-Top: the 6 augmented input images with their depth targets (one dot per 16x16 patch, colour = depth).
+Top: the N augmented input images (rows of 3, the store's camera order) with their depth targets
+(one dot per 16x16 patch, colour = depth).
 Below: BEV of the voxel labels (top-most non-free class), the BEV multi-hot GT, both in the augmented
 frame, with the depth-target points lifted back to 3D through A, K, T_keyego_from_cam and M drawn on
 top (white): they must lie on the labelled structures, whatever the augmentation.
@@ -68,6 +69,14 @@ def _draw_points(canvas: np.ndarray, pts: np.ndarray) -> None:
         cv2.circle(canvas, (int((ny - 1 - j) * _BEV_SCALE), int((nx - 1 - i) * _BEV_SCALE)), 1, (255, 255, 255), -1)
 
 
+def _tile_rows(tiles: list[np.ndarray], per_row: int = 3) -> np.ndarray:
+    """Equal-size tiles in rows of `per_row` (nuScenes' 6: front row, back row); a short last row is
+    padded with black tiles."""
+    blank = np.zeros_like(tiles[0])
+    padded = tiles + [blank] * (-len(tiles) % per_row)
+    return np.vstack([np.hstack(padded[r:r + per_row]) for r in range(0, len(padded), per_row)])
+
+
 def render_batch(batch: Batch, k: int = 0) -> np.ndarray:
     """The picture for sample k, RGB uint8."""
     colors = np.array(CLASS_COLORS, dtype=np.uint8)
@@ -85,8 +94,7 @@ def render_batch(batch: Batch, k: int = 0) -> np.ndarray:
             cv2.circle(img, (int(x) * stride + stride // 2, int(y) * stride + stride // 2), 2, col, -1)
         cv2.rectangle(img, (0, 0), (img.shape[1] - 1, img.shape[0] - 1), (255, 255, 255), 1)
         tiles.append(img)
-    rows = [np.hstack(tiles[:3]), np.hstack(tiles[3:6])]
-    left = np.vstack(rows)
+    left = _tile_rows(tiles)
     sem = batch.semantics[k].numpy()
     # Top-most non-free, non-ignore label per column.
     occ = (sem != FREE_LABEL) & (sem != 255)

@@ -22,12 +22,13 @@ import torch
 
 from fastocc.checkpoint import load_model, model_config_to_dict
 from fastocc.model import FastOcc
+from fastocc.storegrid import check_rig_cameras
 from occdata.constants import CLASS_COLORS, CLASS_NAMES
 from occdata.fileio import replace_synced, write_atomic
 from occdata.sensors.image_ops import IMAGENET_MEAN, IMAGENET_STD
 
 from .predictor import TemporalState
-from .rig import DeployError, Rig, load_rig, require_onnx
+from .rig import DeployError, Rig, load_rig, require_onnx, synthetic_rig
 from .sidecar import SIDECAR_FORMAT, sidecar_path
 from .static import StaticFastOcc
 
@@ -48,7 +49,9 @@ MIN_OPSET = 18  # the dynamo exporter's lowest; ScatterND(add) needs >= 16, Grid
 
 @dataclass(frozen=True)
 class ExportConfig:
-    """`rig`: a store or a nuScenes tree (first sample), None for the synthetic rig. Parity: `frames`
+    """`rig`: a store or a nuScenes tree (first sample), None for the synthetic rig (the checkpoint's camera
+    count and names, nuScenes-like 1600 x 900 cameras). The sidecar records the rig: `camera_order` and
+    `rig` (K, extrinsics and each camera's image size). Parity: `frames`
     random frames (temporal models: a stream with ego motion), max |logit diff| <= `max_abs_diff` and
     argmax agreement >= `min_agreement` on every frame."""
 
@@ -222,7 +225,11 @@ def export_model(model: FastOcc, rig: Rig, cfg: ExportConfig) -> ExportReport:
 
 
 def export_onnx(cfg: ExportConfig) -> ExportReport:
-    """`fastocc export`: load the checkpoint (its own config), load the rig, export, check, write."""
-    model, _ = load_model(cfg.checkpoint, "cpu")
-    rig = load_rig(cfg.rig)
+    """`fastocc export`: load the checkpoint (its own config), load the rig (it must have the checkpoint's
+    cameras, in its order: one line naming both rigs if not), export, check, write."""
+    model, ckpt = load_model(cfg.checkpoint, "cpu")
+    # no --rig: the synthetic ring, with the checkpoint's camera count and names
+    rig = load_rig(cfg.rig) if cfg.rig is not None else synthetic_rig(model.cfg.num_cams, ckpt.cameras)
+    check_rig_cameras(ckpt.cameras, model.cfg.num_cams, rig.cameras, str(cfg.checkpoint), f"the rig of {rig.source}",
+                      "export")
     return export_model(model, rig, cfg)

@@ -2,8 +2,11 @@
 ONNX file (ONNX Runtime).
 
     predictor = Predictor("model.onnx")              # or Predictor("ckpt.pt", rig="data.zarr")
-    for images, T_global_from_ego in camera_stream:  # 6 x (900, 1600, 3) uint8 RGB, camera_order
+    for images, T_global_from_ego in camera_stream:  # N x (h_c, w_c, 3) uint8 RGB in predictor.camera_order
         semantics = predictor(images, T_global_from_ego)   # (200, 200, 16) uint8 class ids
+
+N, the camera order and each camera's image size are the rig's (for an ONNX file: `model.json`'s
+`camera_order` and `rig.image_size`); cameras may differ in size, each is resized from its own.
 
 Preprocessing is the loader's own test transform (`fastocc.data.sample.warp_normalise` with
 `sample_image_aug(train=False)`), so a deployed model sees exactly what evaluation sees.
@@ -23,6 +26,7 @@ import torch
 
 from fastocc.data.sample import warp_normalise
 from fastocc.model.inputs import SceneInputs
+from fastocc.storegrid import check_rig_cameras
 from occdata.sensors.image_ops import IMAGENET_MEAN, IMAGENET_STD, normalise_lut
 
 from .rig import DeployError, Rig, load_rig, require_onnx, synthetic_rig
@@ -183,9 +187,9 @@ def check_rigid_pose(ego_pose: object, name: str = "ego_pose") -> np.ndarray:
     return pose
 
 
-def _default_rig(num_cams: int) -> Rig:
+def _default_rig(num_cams: int, cameras: tuple[str, ...] | None = None) -> Rig:
     """The synthetic rig, said out loud: predictions are only meaningful for the rig the images come from."""
-    rig = synthetic_rig(num_cams)
+    rig = synthetic_rig(num_cams, cameras)
     w, h = (int(v) for v in rig.image_size[0])
     warnings.warn(f"Predictor: no rig given, using the default synthetic nuScenes-like rig ({num_cams} cameras, "
                   f"{w}x{h} images, fixed K and extrinsics); pass rig= a store or nuScenes tree for real cameras",
@@ -231,9 +235,11 @@ class Predictor:
 
             if threads is not None:
                 torch.set_num_threads(threads)
-            model, _ = load_model(path, device)
+            model, ckpt = load_model(path, device)
             self.rig = rig if isinstance(rig, Rig) else (
-                _default_rig(model.cfg.num_cams) if rig is None else load_rig(rig))
+                _default_rig(model.cfg.num_cams, ckpt.cameras) if rig is None else load_rig(rig))
+            check_rig_cameras(ckpt.cameras, model.cfg.num_cams, self.rig.cameras, str(path),
+                              f"the rig of {self.rig.source}", "Predictor")
             self.rig.check_cams(model.cfg.num_cams)
             self.input_hw = model.cfg.input_hw
             self.num_history = model.cfg.num_history
@@ -281,8 +287,9 @@ class Predictor:
         self._frames = 0
 
     def preprocess(self, images: Sequence[np.ndarray]) -> np.ndarray:
-        """6 raw camera images `(h_c, w_c, 3) uint8` -> network input `(1, N, 3, H, W) float32` through
-        the loader's test transform (`warp_normalise`). Wrong count, size or dtype: DeployError."""
+        """N raw camera images `(h_c, w_c, 3) uint8` (camera c at its own calibrated size, in
+        `camera_order`) -> network input `(1, N, 3, H, W) float32` through the loader's test transform
+        (`warp_normalise`). Wrong count, size or dtype: DeployError."""
         N = self.rig.num_cams
         if isinstance(images, np.ndarray) and images.ndim == 4:
             images = list(images)

@@ -45,8 +45,9 @@ def eval_image_aug(input_hw: tuple[int, int], orig_w: int, orig_h: int) -> np.nd
 
 @dataclass(frozen=True, eq=False)
 class Rig:
-    """N cameras in model order. K `(N, 3, 3) float64` of the original images, T_keyego_from_cam
-    `(N, 4, 4) float64`, image_size `(N, 2) int64` as (width, height), camera names, and where it came from."""
+    """N cameras in model order. K `(N, 3, 3) float64` of each camera's original image, T_keyego_from_cam
+    `(N, 4, 4) float64`, image_size `(N, 2) int64` as (width, height) per camera (cameras may differ),
+    camera names, and where it came from."""
 
     K: np.ndarray
     T_keyego_from_cam: np.ndarray
@@ -107,16 +108,21 @@ class Rig:
                    source=str(d["source"]))
 
 
-def synthetic_rig(num_cams: int = 6) -> Rig:
-    """`fastocc.model.synthetic_inputs`'s nuScenes-like ring: 1600 x 900 images, K and extrinsics as there."""
+def synthetic_rig(num_cams: int = 6, cameras: tuple[str, ...] | None = None) -> Rig:
+    """`fastocc.model.synthetic_inputs`'s nuScenes-like ring: 1600 x 900 images, K and extrinsics as there.
+    `cameras`: their names (default nuScenes' order, then CAM_6, CAM_7, ... beyond 6)."""
+    if cameras is None:
+        cameras = (CAMERA_ORDER + tuple(f"CAM_{n}" for n in range(len(CAMERA_ORDER), num_cams)))[:num_cams]
+    if len(cameras) != num_cams:
+        raise DeployError(f"synthetic rig: {len(cameras)} camera names for {num_cams} cameras")
     inp = synthetic_inputs(1, (128, 352), num_cams)
     return Rig(K=inp.K[0].double().numpy(), T_keyego_from_cam=inp.T_keyego_from_cam[0].double().numpy(),
                image_size=np.tile(np.array([1600, 900], dtype=np.int64), (num_cams, 1)),
-               cameras=CAMERA_ORDER[:num_cams], source="synthetic")
+               cameras=tuple(cameras), source="synthetic")
 
 
 def _rig_from_store(path: Path) -> Rig:
-    from occdata.store.layout import STATE_DONE
+    from occdata.store.layout import STATE_DONE, store_rig
     from occdata.store.reader import open_store
 
     reader = open_store(path)
@@ -124,7 +130,7 @@ def _rig_from_store(path: Path) -> Rig:
     if done.size == 0:
         raise DeployError(f"store {path} has no built sample to take the rig from")
     i = int(done[0])
-    cams = tuple(reader.attrs.get("camera_order", CAMERA_ORDER))
+    cams = tuple(store_rig(reader.attrs)["cameras"])
     return Rig(K=np.asarray(reader.small("calib/K")[i], dtype=np.float64),
                T_keyego_from_cam=np.asarray(reader.small("calib/T_keyego_from_cam")[i], dtype=np.float64),
                image_size=np.asarray(reader.small("cam/image_size")[i], dtype=np.int64), cameras=cams,

@@ -28,7 +28,7 @@ from fastocc.checkpoint import load_model
 from fastocc.infer.common import check_device, split_indices
 from fastocc.infer.predict import PredictConfig, predict_split
 from fastocc.model.config import ModelConfig
-from fastocc.storegrid import check_store_grid
+from fastocc.storegrid import check_store_grid, check_store_rig
 from occdata.errors import OccDataError
 from occdata.eval.metrics import (
     MIoUAccumulator,
@@ -255,6 +255,7 @@ def run_eval(run: EvalRun) -> EvalReport:
     try:
         cfg = replace(run.predict, device=str(info.device)) if info.enabled else run.predict  # cuda:LOCAL_RANK
         model, ckpt = load_model(run.checkpoint, device=cfg.device, prefer_ema=run.prefer_ema)
+        check_store_rig(cfg.store, ckpt.cameras, ckpt.model_config.num_cams, str(run.checkpoint), "eval")
         report = evaluate(model, ckpt.model_config, cfg, rayiou=run.rayiou, progress=run.progress and info.is_main,
                           mask=run.mask)
         return all_reduce_report(report, info.device) if info.enabled else report

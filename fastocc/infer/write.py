@@ -23,7 +23,7 @@ from fastocc.checkpoint import load_model
 from fastocc.infer.common import check_device, split_indices
 from fastocc.infer.predict import PredictConfig, predict_split
 from fastocc.model.config import ModelConfig
-from fastocc.storegrid import check_store_grid
+from fastocc.storegrid import check_store_grid, check_store_rig
 from occdata.errors import OccDataError
 from occdata.fileio import write_atomic
 from occdata.formats.occ3d import label_path, write_label
@@ -138,6 +138,7 @@ def run_predict(run: PredictRun) -> PredictSummary:
     try:
         cfg = replace(run.predict, device=str(info.device)) if info.enabled else run.predict  # cuda:LOCAL_RANK
         model, ckpt = load_model(run.checkpoint, device=cfg.device, prefer_ema=run.prefer_ema)
+        check_store_rig(cfg.store, ckpt.cameras, ckpt.model_config.num_cams, str(run.checkpoint), "predict")
         summary = write_predictions(model, ckpt.model_config, run.out, cfg, png=run.png,
                                     progress=run.progress and info.is_main)
         if not info.enabled:

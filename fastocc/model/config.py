@@ -90,7 +90,7 @@ class ModelConfig:
     name: str = "tiny"
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
     input_hw: tuple[int, int] = (320, 800)
-    num_cams: int = 6
+    num_cams: int = 6  # the rig's cameras: `fastocc train` sets the store's count (the weights do not depend on it)
     neck_channels: int = 256  # C1: image feature map F at stride 16
     context_channels: int = 64  # C2: LSS context per voxel of V_B; also C of the BEV encoder (2C/4C/8C)
     bev_channels: int = 128  # C3: decoded BEV map B at 100 x 100

@@ -16,8 +16,10 @@ __all__ = ["ModelOutputs", "SceneInputs", "synthetic_inputs"]
 class SceneInputs:
     """One batch as the data loader produces it.
 
-    images: `(B, N, 3, H_in, W_in) float32` normalised RGB (N = 6 cameras, DESIGN §3 order).
-    K: `(B, N, 3, 3) float32` intrinsics of the ORIGINAL image (1600 x 900 for nuScenes).
+    images: `(B, N, 3, H_in, W_in) float32` normalised RGB (N cameras in the store's
+        `camera_order`; nuScenes: 6, DESIGN §3 order).
+    K: `(B, N, 3, 3) float32` intrinsics of each camera's ORIGINAL image (1600 x 900 for nuScenes; cameras
+       may differ in size).
     T_keyego_from_cam: `(B, N, 4, 4) float32` camera (x right, y down, z forward) -> key ego.
     img_aug: `(B, N, 3, 3) float32` A: original pixel (u, v, 1) -> augmented (network-input) pixel.
     bev_aug: `(B, 4, 4) float32` M: key ego -> augmented key ego (the labels' frame).
@@ -77,11 +79,13 @@ R_EGO_FROM_CAM_FORWARD = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, 
 def synthetic_inputs(
     batch: int, input_hw: tuple[int, int], num_cams: int = 6, seed: int = 0, device: str = "cpu"
 ) -> SceneInputs:
-    """A nuScenes-like 6-camera ring (1600 x 900, yaw 60/0/-60/120/180/-120 deg) with test-time image
-    augmentation (resize to W_in, bottom crop), identity BEV augmentation and random images."""
+    """A nuScenes-like camera ring (1600 x 900; up to 6 cameras at nuScenes' yaws 60/0/-60/120/180/-120 deg,
+    more evenly spaced from 0 deg) with test-time image augmentation (resize to W_in, bottom crop),
+    identity BEV augmentation and random images."""
     g = torch.Generator().manual_seed(seed)
     H, W = input_hw
-    yaws = (60.0, 0.0, -60.0, 120.0, 180.0, -120.0)[:num_cams]
+    nuscenes_yaws = (60.0, 0.0, -60.0, 120.0, 180.0, -120.0)
+    yaws = nuscenes_yaws[:num_cams] if num_cams <= 6 else tuple(360.0 * n / num_cams for n in range(num_cams))
     T = torch.zeros(num_cams, 4, 4)
     for n, yaw in enumerate(yaws):
         R = _yaw(yaw)

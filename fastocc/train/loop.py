@@ -25,6 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from fastocc import dist as D
+from fastocc.checkpoint import rig_record
 from fastocc.data.batch import Batch
 from fastocc.data.dataset import StoreDataset, loader_batches
 from fastocc.data.workers import start_iteration
@@ -47,6 +48,7 @@ from fastocc.train.setup import (
     pace_message,
     prepare_out,
     say_start,
+    take_store_rig,
 )
 from fastocc.train.state import Progress, TrainState, get_rng_state
 from occdata.errors import OccDataError
@@ -390,7 +392,7 @@ def save_state(run: Run, state: TrainState, meta_extra: dict[str, Any] | None = 
     meta = {"epoch": p.epoch, "opt_steps": p.opt_steps, "samples_seen": p.samples_seen, **(meta_extra or {})}
     path = run.out / "last.pt"
     try:
-        state.save(path, run.model_cfg, rng, meta, run.cfg.to_dict())
+        state.save(path, run.model_cfg, rng, meta, run.cfg.to_dict(), rig_record(run.cameras))
     except OSError as exc:
         raise OccDataError(f"could not write checkpoint {path} ({exc.strerror or exc}); the previous "
                            "checkpoint there is intact") from None
@@ -430,6 +432,7 @@ def _train(cfg: TrainConfig, info: D.DistInfo, resume: bool, progress: bool, sto
         torch.use_deterministic_algorithms(True)
     run = make_run(cfg, info, progress, stop)
     payload = prepare_out(run, resume)
+    take_store_rig(run, payload)
     if info.is_main:
         write_atomic(run.out / "config.toml", config_to_toml(cfg).encode())
         write_atomic(run.out / "config.json", (json.dumps(cfg.to_dict(), indent=2) + "\n").encode())

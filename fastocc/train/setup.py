@@ -18,23 +18,33 @@ import torch
 from torch import nn
 
 from fastocc import dist as D
-from fastocc.checkpoint import CheckpointError, first_mismatch, load_checkpoint, load_weights
+from fastocc.checkpoint import (
+    CheckpointError,
+    checkpoint_cameras,
+    first_mismatch,
+    load_checkpoint,
+    load_weights,
+    model_config_from_dict,
+)
 from fastocc.data import BevAugConfig, ImageAugConfig, LoaderConfig, SampleConfig, make_loader
 from fastocc.losses import LossConfig, LossTargets, class_weights_from_counts, occupancy_loss
 from fastocc.model import FastOcc
 from fastocc.model.config import ModelConfig
 from fastocc.model.inputs import synthetic_inputs
 from fastocc.model.noise import noise_hook
-from fastocc.storegrid import check_store_grid
+from fastocc.storegrid import check_store_grid, check_store_rig
 from fastocc.train.config import TrainConfig, flat_config, incompatible_fields
 from fastocc.train.preempt import StopRequest
 from fastocc.train.state import EMA, TrainState, class_counts, load_resume
+from occdata.constants import CAMERA_ORDER
 from occdata.errors import OccDataError
 from occdata.fileio import write_atomic
+from occdata.store.layout import store_rig
+from occdata.store.reader import open_store
 
 __all__ = ["MetricsLog", "Run", "StepPace", "build_model", "check_writable", "estimate_step_seconds", "init_from",
            "loader_config", "loss_config", "make_run", "new_state", "pace_message", "prepare_out",
-           "say_start"]
+           "say_start", "take_store_rig"]
 
 
 @dataclass
@@ -84,6 +94,7 @@ class Run:
     samples_per_epoch: int = 0
     logger: MetricsLog | None = None
     model: nn.Module | None = None  # what the step calls: the DDP wrapper under torchrun, else the raw network
+    cameras: tuple[str, ...] = CAMERA_ORDER  # the store's camera order (`take_store_rig`), recorded in checkpoints
     pace: StepPace = field(default_factory=StepPace)
 
     @property
@@ -137,6 +148,17 @@ def prepare_out(run: Run, resume: bool) -> dict[str, Any] | None:
         raise OccDataError(f"--resume with an incompatible config ({diffs}){grow}; these fields must match the run "
                            f"in {run.out} (start a new --out to change them)")
     return payload
+
+
+def take_store_rig(run: Run, payload: dict[str, Any] | None) -> None:
+    """The network's cameras are the store's: `run.model_cfg.num_cams` and `run.cameras` from its rig. A
+    resumed run must find the rig it was trained on (the store may be moved, not changed): one line if not."""
+    reader = open_store(run.cfg.store)
+    run.cameras = tuple(store_rig(reader.attrs)["cameras"])
+    run.model_cfg = run.model_cfg.replace(num_cams=len(run.cameras))
+    if payload is not None:
+        saved = model_config_from_dict(json.loads(payload["model_config"])).num_cams
+        check_store_rig(reader, checkpoint_cameras(payload, saved), saved, f"--resume {run.out / 'last.pt'}", "train")
 
 
 def build_model(run: Run) -> nn.Module:

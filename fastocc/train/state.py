@@ -179,11 +179,12 @@ class TrainState:
             temporal.load_queue_state(payload.get("temporal_queue"))
 
     def save(self, path: Path, model_cfg: ModelConfig, rng: list[dict[str, Any]], meta: dict[str, Any],
-             train_config: dict[str, Any]) -> Path:
-        """Write a training checkpoint atomically (the previous file at `path` survives any failure)."""
+             train_config: dict[str, Any], rig: dict[str, Any] | None = None) -> Path:
+        """Write a training checkpoint atomically (the previous file at `path` survives any failure); `rig`:
+        `fastocc.checkpoint.rig_record` of the store's cameras (empty for nuScenes')."""
         sd = self.state_dict(rng)
         return save_checkpoint(path, model_cfg, sd.pop("model"), sd.pop("ema"), meta=meta, train_config=train_config,
-                               **sd)
+                               **(rig or {}), **sd)
 
 
 def load_resume(path: Path) -> dict[str, Any]:

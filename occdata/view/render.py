@@ -253,7 +253,7 @@ def prediction_picture(
     """The `fastocc predict --png` picture, `(H, width, 3) uint8` RGB, top to bottom (`names`: the
     titles of the two label panels):
 
-    - the 6 camera images, 2 rows of 3 (front row, back row, the store's camera order), if given;
+    - the camera images in rows of 3 (nuScenes' 6: front row, back row; the store's camera order), if given;
     - 3D voxel renderings of prediction | ground truth (whole grid, same viewpoint and scale);
     - BEV top views of prediction | ground truth, columns outside the camera mask greyed (the official
       mIoU scores only camera-visible voxels);
@@ -268,7 +268,8 @@ def prediction_picture(
             cv2.putText(tile, name, (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 2, cv2.LINE_AA)
         h = min(t.shape[0] for t in tiles)
         tiles = [t[:h] for t in tiles]
-        cams = [_pad_to(np.vstack([np.hstack(tiles[:3]), np.hstack(tiles[3:6])]), width)]
+        # rows of 3 (nuScenes' 6: front row, back row), each padded to the width: any camera count
+        cams = [np.vstack([_pad_to(np.hstack(tiles[r:r + 3]), width) for r in range(0, len(tiles), 3)])]
 
     half = width // 2
     size3d = (round(half * 0.75), half)
