@@ -104,23 +104,33 @@ def test_split_is_a_dataset_split_wherever_it_is_declared() -> None:
     assert not [n for n, opt, _ in _visible_options(fastocc_main) if opt == "--batch"]
 
 
-class _Called(Exception):
-    """Raised by a stand-in for the function a command calls, carrying what the command handed it."""
+class _Called(SystemExit):
+    """Raised by a stand-in for the function a command calls, carrying what the command handed it. A
+    SystemExit: the commands turn every Exception into one `Error:` line (cli._common.friendly_errors),
+    and click's runner passes a SystemExit through as the run's exit."""
+
+    def __init__(self, args: tuple[object, ...], kwargs: dict[str, object]) -> None:
+        super().__init__(0)
+        self.call = (args, kwargs)
 
 
-def _stand_in(monkeypatch: pytest.MonkeyPatch, target: str) -> None:
+def _stand_in(monkeypatch: pytest.MonkeyPatch, target: str) -> list[tuple[tuple[object, ...], dict[str, object]]]:
+    calls: list[tuple[tuple[object, ...], dict[str, object]]] = []
+
     def called(*args: object, **kwargs: object) -> None:
+        calls.append((args, kwargs))
         raise _Called(args, kwargs)
 
     monkeypatch.setattr(target, called)
+    return calls
 
 
 def _call(monkeypatch: pytest.MonkeyPatch, group: click.Group, args: list[str], target: str) -> tuple[object, str]:
     """What the command hands `target` for `args`, and its stderr."""
-    _stand_in(monkeypatch, target)
+    calls = _stand_in(monkeypatch, target)
     r = CliRunner().invoke(group, args)
-    assert isinstance(r.exception, _Called), (r.output, r.exception)
-    call_args, call_kwargs = r.exception.args
+    assert len(calls) == 1, (r.output, r.exception)
+    call_args, call_kwargs = calls[0]
     return (call_args[0] if call_args else next(iter(call_kwargs.values()))), r.stderr
 
 
@@ -139,10 +149,10 @@ def test_labels_all_sweeps_and_its_old_spelling(monkeypatch: pytest.MonkeyPatch,
 
 def _called_kwargs(monkeypatch: pytest.MonkeyPatch, group: click.Group, args: list[str],
                    target: str) -> tuple[typing.Any, dict[str, typing.Any]]:
-    _stand_in(monkeypatch, target)
+    calls = _stand_in(monkeypatch, target)
     r = CliRunner().invoke(group, args)
-    assert isinstance(r.exception, _Called), (r.output, r.exception)
-    return r, r.exception.args[1]
+    assert len(calls) == 1, (r.output, r.exception)
+    return r, calls[0][1]
 
 
 def test_build_gts_grid_and_its_old_spelling(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
