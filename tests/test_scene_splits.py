@@ -85,3 +85,15 @@ def test_build_records_the_split_rule_and_train_names_an_empty_split(real_lyft_r
     res = CliRunner().invoke(main, ["build", "--root", str(real_lyft_root), "--out", str(out), "--no-progress",
                                     "--cameras", "CAM_FRONT", "--lidars", "LIDAR_TOP", "--resume"])
     assert res.exit_code != 0 and "--split-file" in res.output  # a resume must split the same way
+
+
+def test_training_names_a_missing_validation_split_at_start(real_lyft_root: Path, tmp_path: Path) -> None:
+    from fastocc.train.setup import check_val_split
+
+    out = tmp_path / "lyft.zarr"
+    res = CliRunner().invoke(main, ["build", "--root", str(real_lyft_root), "--out", str(out), "--no-progress",
+                                    "--cameras", "CAM_FRONT", "--lidars", "LIDAR_TOP"])
+    assert res.exit_code == 0, res.output
+    with pytest.raises(OccDataError, match=r"validation split 'val' has no labelled samples .*\{'train': 0\}.*"
+                                           r"val_every = 0 to train without validation"):
+        check_val_split(str(out), "val")

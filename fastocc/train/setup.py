@@ -190,9 +190,21 @@ def loss_config(run: Run) -> LossConfig:
         weights = tuple(float(w) for w in class_weights_from_counts(np.maximum(counts, 1)))
     elif info.is_main:
         class_counts(c.store, c.train_split, c.camera_mask, None)  # still checks the split has labels
+    if c.val_every > 0 and info.is_main:
+        check_val_split(c.store, c.val_split)
     w = c.loss
     return LossConfig(focal=w.focal, sem_scal=w.sem_scal, geo_scal=w.geo_scal, dice=w.dice, lovasz=w.lovasz,
                       depth=w.depth, bev=w.bev, use_camera_mask=c.camera_mask, class_weights=weights)
+
+
+def check_val_split(store: str, split: str) -> None:
+    """One line at the start, not after the first epoch, when validation has no labelled samples."""
+    reader = open_store(store)
+    counts = {s: len(reader.split_indices(s, labelled=True)) for s in reader.attrs.get("splits", [])}
+    if not counts.get(split):
+        raise OccDataError(f"validation split {split!r} has no labelled samples in {store} (its splits, labelled "
+                           f"samples: {counts}); set val_split, or val_every = 0 to train without validation, "
+                           "in a --config TOML, or rebuild with occdata build --split-file FILE")
 
 
 def trains_sequentially(cfg: TrainConfig) -> bool:
