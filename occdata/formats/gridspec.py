@@ -129,7 +129,7 @@ GRID_PRESETS: dict[str, GridSpec] = {g.name: g for g in (
     GridSpec("occ3d", OccGrid((-40.0, -40.0, -1.0), (40.0, 40.0, 5.4), 0.4), LabelFrame.KEY_EGO, LabelLayout.OCC3D,
              _OCC3D_IDS, CLASS_NAMES, FREE_LABEL),
     GridSpec("openocc-v2", OccGrid((-40.0, -40.0, -1.0), (40.0, 40.0, 5.4), 0.4), LabelFrame.KEY_EGO,
-             LabelLayout.OPENOCC_V2, _OPENOCC_IDS, _OPENOCC_NAMES, 16),
+             LabelLayout.OPENOCC_V2, _OPENOCC_IDS, _OPENOCC_NAMES, _OPENOCC_NAMES.index("free")),
     GridSpec("surroundocc", OccGrid((-50.0, -50.0, -5.0), (50.0, 50.0, 3.0), 0.5), LabelFrame.LIDAR,
              LabelLayout.SURROUNDOCC, _LIDARSEG16_IDS, ("noise", *CLASS_NAMES[1:17]), 0, masks=False),
     GridSpec("openoccupancy", OccGrid((-51.2, -51.2, -5.0), (51.2, 51.2, 3.0), 0.2), LabelFrame.LIDAR,
