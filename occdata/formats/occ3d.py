@@ -10,7 +10,9 @@ same path but their own class ids (car 0 ... vegetation 15, free 16; no "others"
 `(200, 200, 16, 2)` array; `read_openocc_v2_label` reads them into our ids. A file with `flow` is an
 OpenOcc v2 file: `read_label` refuses it rather than read its ids as Occ3D's.
 
-Every reader and writer of these files in occdata and fastocc goes through this module.
+`write_label` is the one writer of these files (`occdata labels` through `occdata.formats.gridfiles`,
+`occdata synth`, `fastocc infer`). The readers here validate and map ids; `gridfiles.read_grid_label`
+reads a file of any grid as its benchmark's loader does.
 """
 
 from __future__ import annotations
