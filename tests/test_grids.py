@@ -246,3 +246,13 @@ def test_train_on_a_store_of_another_grid_stops_at_start_in_one_line(synth_store
     # grids: tests/test_store_grids.py::test_fastocc_stops_at_start_on_a_store_of_another_grid).
     assert "store grid attribute" in res.output and "not Occ3D's grid" in res.output
     assert "Traceback" not in res.output
+
+
+def test_occ3d_grid_is_defined_once() -> None:
+    """The occ3d and openocc-v2 presets are `occdata.constants.GRID` itself, and the CLI's `--range` help
+    says its range: changing GRID changes all of them."""
+    assert GRID_PRESETS["occ3d"].grid is GRID and GRID_PRESETS["openocc-v2"].grid is GRID
+    words = " ".join(f"{v:g}" for v in (*GRID.lower, *GRID.upper))
+    for command in ("labels", "build", "synth"):
+        out = CliRunner().invoke(main, [command, "--help"], terminal_width=400).output
+        assert f"default Occ3D's {words})" in out, command
