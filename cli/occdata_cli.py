@@ -13,6 +13,7 @@ from cli._common import DEFAULT_STORE, debug_option, exit_on_interrupt, friendly
 from cli.options import (
     cluster_options,
     config_choice,
+    grid_range_option,
     json_option,
     progress_option,
     renamed_option,
@@ -69,8 +70,7 @@ def main() -> None:
                    "(repeatable; occ3d's truth is always gts/ itself). As `occdata labels --grid`.")
 @click.option("--voxel-size", type=click.FloatRange(0.05, 2.0), default=None,
               help="Also write the truth on a custom Occ3D-style grid of this voxel size (m), in gts/occ3d-<size>m/.")
-@click.option("--range", "grid_range", type=float, nargs=6, default=None, metavar="XMIN YMIN ZMIN XMAX YMAX ZMAX",
-              help="The custom grid's range in metres (key ego; default Occ3D's -40 -40 -1 40 40 5.4).")
+@grid_range_option()
 @progress_option()
 @friendly_errors
 def synth(out: str, scenes: int, samples: int, seed: int, rig_name: str, width: int | None, height: int | None,
@@ -152,8 +152,7 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool, rig: 
 @click.option("--voxel-size", type=click.FloatRange(0.05, 2.0), default=None,
               help="The --gts labels are a custom Occ3D-style grid of this voxel size (m), e.g. gts/occ3d-0.8m/.")
 @renamed_option("--grid", "--gts-grid", "grid_name", type=click.Choice(list(GRID_NAMES)))
-@click.option("--range", "grid_range", type=float, nargs=6, default=None, metavar="XMIN YMIN ZMIN XMAX YMAX ZMAX",
-              help="That custom grid's range in metres (key ego; default Occ3D's -40 -40 -1 40 40 5.4).")
+@grid_range_option("That custom grid's")
 @splits_option("Keep only scenes of this split (repeatable)")
 @cluster_options()
 @click.option("--resume", is_flag=True, help="Continue an interrupted build of the same inputs and options.")
@@ -246,9 +245,7 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
 @click.option("--voxel-size", type=click.FloatRange(0.05, 2.0), default=None,
               help="Also write a custom grid: Occ3D's frame, classes and layout at this voxel size (m), in "
                    "OUT/occ3d-<size>m/.")
-@click.option("--range", "grid_range", type=float, nargs=6, default=None,
-              metavar="XMIN YMIN ZMIN XMAX YMAX ZMAX",
-              help="The custom grid's range in metres (key ego; default Occ3D's -40 -40 -1 40 40 5.4).")
+@grid_range_option()
 @cluster_options(per_worker=", one scene each at a time")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run: finished scenes are skipped.")
 @progress_option()

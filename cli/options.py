@@ -14,10 +14,12 @@ import click
 from click.core import ParameterSource
 
 from cli._common import DEFAULT_STORE
+from occdata.constants import GRID
 from occdata.errors import OccDataError
 
-__all__ = ["ConfigChoice", "cluster_options", "config_choice", "json_option", "progress_option", "renamed_option",
-           "rig_options", "root_options", "split_option", "split_source_options", "splits_option", "store_option"]
+__all__ = ["ConfigChoice", "cluster_options", "config_choice", "grid_range_option", "json_option", "progress_option",
+           "renamed_option", "rig_options", "root_options", "split_option", "split_source_options", "splits_option",
+           "store_option"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -118,6 +120,14 @@ def renamed_option(old: str, new: str, param: str, **kwargs: Any) -> Callable[[F
 def progress_option(help: str = "No progress bar.") -> Callable[[F], F]:
     """`--no-progress`, handed to the command as `progress` (True unless given)."""
     return click.option("--no-progress", "progress", flag_value=False, default=True, help=help)
+
+
+def grid_range_option(which: str = "The custom grid's") -> Callable[[F], F]:
+    """`--range XMIN YMIN ZMIN XMAX YMAX ZMAX`, handed to the command as `grid_range` (None: Occ3D's)."""
+    occ3d = " ".join(f"{v:g}" for v in (*GRID.lower, *GRID.upper))
+    return click.option("--range", "grid_range", type=float, nargs=6, default=None,
+                        metavar="XMIN YMIN ZMIN XMAX YMAX ZMAX",
+                        help=f"{which} range in metres (key ego; default Occ3D's {occ3d}).")
 
 
 def json_option(help: str = "Print the result as JSON.") -> Callable[[F], F]:

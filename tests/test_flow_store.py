@@ -16,13 +16,16 @@ import zarr
 from click.testing import CliRunner
 
 from cli.occdata_cli import main
+from occdata.constants import GRID
 from occdata.errors import OccDataError
-from occdata.formats.gridspec import GRID_PRESETS
+from occdata.formats.gridspec import GRID_PRESETS, custom_grid
 from occdata.formats.occ3d import openocc_to_occ3d, read_label, read_openocc_v2_label
 from occdata.labels import LabelOptions, LabelsConfig, generate_labels
+from occdata.nuscenes import load_nuscenes
 from occdata.store.build import BuildConfig, build_store
 from occdata.store.commands.info import dump_sample, store_info
 from occdata.store.commands.verify import verify_store
+from occdata.store.create import root_attrs
 from occdata.store.reader import open_store
 
 # The checksum columns of every store built before flow existed (schema 2): they must not move.
@@ -248,3 +251,15 @@ def test_the_viewer_reads_the_flow_for_its_speed_view(flow_store: Path) -> None:
     assert src.sample(scene, 0).flow is None  # only when asked
     (group,) = compose_frame(s, FrameOptions(view="speed")).groups
     assert any(layer.name.startswith("speed_") for layer in group.layers)  # the world's actors move
+
+
+def test_the_flow_attribute_names_the_store_grid(synth_root: Path, flow_store: Path, tmp_path: Path) -> None:
+    """`attrs["flow"]["shape"]` is labels/flow's shape on the store's own grid: Occ3D's as every flow store
+    recorded it, and another grid's (a coarse OpenOcc v2-style one) its own."""
+    reader = open_store(flow_store)
+    words = reader.attrs["flow"]["shape"]
+    assert words == "(N, 200, 200, 16, 2)" == f"(N, {', '.join(map(str, reader.group['labels/flow'].shape[1:]))})"
+    ds = load_nuscenes(synth_root, None)
+    coarse = custom_grid(0.8, GRID.lower, GRID.upper, base="openocc-v2")
+    cfg = BuildConfig(root=synth_root, out=tmp_path / "coarse.zarr", grid=coarse, progress=False)
+    assert root_attrs(cfg, ds, ["train"], None, "openocc-v2")["flow"]["shape"] == "(N, 100, 100, 8, 2)"

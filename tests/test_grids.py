@@ -12,7 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 from cli.occdata_cli import main
-from occdata.constants import CLASS_NAMES, FREE_LABEL
+from occdata.constants import CLASS_NAMES, FREE_LABEL, GRID
 from occdata.errors import OccDataError
 from occdata.formats.gridfiles import LabelSite, grid_label_path, read_grid_label, write_grid_label
 from occdata.formats.gridspec import GRID_PRESETS, custom_grid, grids_from_options
@@ -76,6 +76,25 @@ def test_openocc_v2_has_its_class_order_flow_and_no_others(tmp_path: Path) -> No
     assert semantics[199, 2, 1] == 10  # driveable_surface is its 10
     assert semantics[0, 0, 0] == 16 and (semantics == 16).sum() == semantics.size - 2  # "others" -> free 16
     np.testing.assert_array_equal(got_flow, flow)
+
+
+@pytest.mark.parametrize("name", ["occ3d", "openocc-v2", "occ3d-0.8m"])
+def test_npz_layouts_are_written_by_the_one_occ3d_writer(name: str, tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every grid with a labels.npz layout goes through `occ3d.write_label` at `occ3d.label_path`: the file
+    bytes and place have one definition, whatever the grid."""
+    from occdata.formats import gridfiles, occ3d
+
+    spec = custom_grid(0.8, GRID.lower, GRID.upper) if name.endswith("m") else GRID_PRESETS[name]
+    written: list[tuple[Path, list[str]]] = []
+    monkeypatch.setattr(gridfiles, "write_label", lambda path, arrays: written.append((Path(path), list(arrays))))
+    path = write_grid_label(spec, tmp_path, SITE, {"semantics": _semantics(spec.shape),
+                                                   "mask_lidar": np.ones(spec.shape, np.uint8)})
+    want = ["semantics", "mask_lidar", *(["flow"] if name == "openocc-v2" else [])]
+    assert path == occ3d.label_path(tmp_path, SITE.scene_name, SITE.sample_token) and written == [(path, want)]
+    assert not path.exists()  # nothing else wrote it
+    monkeypatch.undo()
+    assert gridfiles.write_label is occ3d.write_label
 
 
 @pytest.mark.parametrize("name", ["surroundocc", "openoccupancy"])
@@ -227,3 +246,13 @@ def test_train_on_a_store_of_another_grid_stops_at_start_in_one_line(synth_store
     # grids: tests/test_store_grids.py::test_fastocc_stops_at_start_on_a_store_of_another_grid).
     assert "store grid attribute" in res.output and "not Occ3D's grid" in res.output
     assert "Traceback" not in res.output
+
+
+def test_occ3d_grid_is_defined_once() -> None:
+    """The occ3d and openocc-v2 presets are `occdata.constants.GRID` itself, and the CLI's `--range` help
+    says its range: changing GRID changes all of them."""
+    assert GRID_PRESETS["occ3d"].grid is GRID and GRID_PRESETS["openocc-v2"].grid is GRID
+    words = " ".join(f"{v:g}" for v in (*GRID.lower, *GRID.upper))
+    for command in ("labels", "build", "synth"):
+        out = CliRunner().invoke(main, [command, "--help"], terminal_width=400).output
+        assert f"default Occ3D's {words})" in out, command

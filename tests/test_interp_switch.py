@@ -17,11 +17,11 @@ from fastocc.model.heads import FastOccHead
 from fastocc.train.config import ConfigError, TrainConfig, incompatible_fields, load_config
 
 
-def _head_inputs(cfg: ModelConfig, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _head_inputs(cfg: ModelConfig, seed: int, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
     g = torch.Generator().manual_seed(seed)
     h, w = cfg.feat_hw
-    feat = torch.randn(cfg.num_cams, cfg.neck_channels, h, w, generator=g)
-    bev = torch.randn(1, cfg.context_channels * 8, 100, 100, generator=g)
+    feat = torch.randn(cfg.num_cams, cfg.neck_channels, h, w, generator=g, dtype=dtype)
+    bev = torch.randn(1, cfg.context_channels * 8, 100, 100, generator=g, dtype=dtype)
     return feat, bev
 
 
@@ -33,12 +33,13 @@ def test_default_keeps_interpolated_features() -> None:
 
 
 def test_switch_off_output_ignores_the_image_features() -> None:
+    """In float64: the head's classifier runs on (B, X, Y, 1, C_f), the reference's on (B, X, Y, C_f)."""
     torch.manual_seed(0)
     cfg = preset("nano", interp_features=False)
-    head = FastOccHead(cfg).eval()
+    head = FastOccHead(cfg).eval().double()
     inputs = synthetic_inputs(1, cfg.input_hw)
-    feat_a, bev = _head_inputs(cfg, 1)
-    feat_b, _ = _head_inputs(cfg, 2)
+    feat_a, bev = _head_inputs(cfg, 1, torch.float64)
+    feat_b, _ = _head_inputs(cfg, 2, torch.float64)
     assert head.fuse_img is None and head.sampler is None
     with torch.no_grad():
         logits_a, bev_map = head(feat_a, bev, inputs)
@@ -149,12 +150,13 @@ def test_export_honours_the_switch(tmp_path: Path) -> None:
 
 # -- the second BEV-only value: channels unfolded into the height bins (the paper's reading) ---------------
 def test_unfold_gives_every_height_its_own_feature_from_the_bev_map_alone() -> None:
+    """In float64: the head classifies all 16 height bins in one batch, the reference one bin at a time."""
     torch.manual_seed(0)
     cfg = preset("nano", interp_features=False, bev_height="unfold")
-    head = FastOccHead(cfg).eval()
+    head = FastOccHead(cfg).eval().double()
     inputs = synthetic_inputs(1, cfg.input_hw)
-    feat_a, bev = _head_inputs(cfg, 1)
-    feat_b, _ = _head_inputs(cfg, 2)
+    feat_a, bev = _head_inputs(cfg, 1, torch.float64)
+    feat_b, _ = _head_inputs(cfg, 2, torch.float64)
     assert head.fuse_img is None and head.sampler is None
     assert head.fuse_bev.out_channels == cfg.fuse_channels * 16
     with torch.no_grad():

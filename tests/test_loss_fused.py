@@ -1,5 +1,6 @@
 """The combined `occupancy_loss` (one gather, one softmax, per-class sums, one Lovasz sort) against the
-per-term formulas it replaced, applied one by one with the mask: values to 1e-5 relative, and gradients."""
+per-term formulas it replaced, applied one by one with the mask: values to 1e-5 relative, and gradients.
+In float64: the two sum the same terms in other orders, which float32 rounding could push past 1e-5."""
 
 from __future__ import annotations
 
@@ -45,19 +46,19 @@ def _case(seed: int, shape=(2, 18, 12, 10, 4), missing=(3, 9), scale=3.0):
     """Random logits, labels skewed to free (17) with some classes absent, a ~30% mask, depth and BEV."""
     g = torch.Generator().manual_seed(seed)
     B, C, X, Y, Z = shape
-    logits = (torch.randn(shape, generator=g) * scale).requires_grad_()
+    logits = (torch.randn(shape, generator=g, dtype=torch.float64) * scale).requires_grad_()
     probs = torch.full((C,), 1.0)
     probs[17] = 12.0
     for c in missing:
         probs[c] = 0.0
     labels = torch.multinomial(probs, B * X * Y * Z, replacement=True, generator=g).reshape(B, X, Y, Z)
     mask = torch.rand((B, X, Y, Z), generator=g) < 0.3
-    depth_logits = torch.randn(B * 6, 88, 4, 6, generator=g).requires_grad_()
+    depth_logits = torch.randn(B * 6, 88, 4, 6, generator=g, dtype=torch.float64).requires_grad_()
     k = torch.randint(0, 88, (B * 6, 4, 6), generator=g)
-    onehot = torch.nn.functional.one_hot(k, 88).permute(0, 3, 1, 2).float()
+    onehot = torch.nn.functional.one_hot(k, 88).permute(0, 3, 1, 2).double()
     onehot[:, :, 0, :] = 0  # rows without a depth target
-    bev = torch.randn(B, 18, 8, 8, generator=g).requires_grad_()
-    bev_t = (torch.rand(B, 18, 8, 8, generator=g) < 0.2).float()
+    bev = torch.randn(B, 18, 8, 8, generator=g, dtype=torch.float64).requires_grad_()
+    bev_t = (torch.rand(B, 18, 8, 8, generator=g) < 0.2).double()
     targets = LossTargets(voxel_labels=labels, mask_camera=mask, depth_onehot=onehot, bev_multihot=bev_t)
     return logits, depth_logits, bev, targets
 

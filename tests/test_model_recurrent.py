@@ -2,15 +2,20 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
 import torch
+from conftest import REPO
 
-from fastocc.model.config import COARSE_GRID, ModelConfig, preset
+from benchmarks.ablations import ROWS
+from fastocc.model import FastOcc
+from fastocc.model.config import COARSE_GRID, TEMPORAL_CHANNELS, ModelConfig, TemporalFusionKind, preset
 from fastocc.model.inputs import SceneInputs
 from fastocc.model.recurrent import RecurrentFusion
-from fastocc.model.temporal import T_curaug_from_prevaug, warp_bev
+from fastocc.model.temporal import T_curaug_from_prevaug, TemporalFusion, warp_bev
+from fastocc.train.config import ConfigError, TrainConfig, config_from_dict, incompatible_fields
 
 
 def _frames(n: int, batch: int = 1, seed: int = 0, channels: int = 8) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -180,3 +185,36 @@ def test_config_validates_the_recurrent_fusion() -> None:
         ModelConfig(temporal_fusion="recurrent", num_history=1, temporal_unroll=0)
     with pytest.raises(ValueError, match="zero_history_fusion"):
         ModelConfig(temporal_fusion="recurrent", zero_history_fusion=True)
+
+
+def test_each_fusion_defaults_to_the_width_it_was_measured_at() -> None:
+    """The widths behind docs/ablations.md and docs/benchmarks-model.md (docs/results/bench_temporal.json:
+    cached16 at the run's C_r, recurrent at its own C_s; the trained `hist16rec` row) are the defaults of
+    the config, of TrainConfig and of both modules: none of them can drift from the others."""
+    run = json.loads((REPO / "docs/results/bench_temporal.json").read_text())["config"]
+    measured = {TemporalFusionKind.CACHED: run["temporal_channels"],
+                TemporalFusionKind.RECURRENT: run["rows"]["recurrent"]["temporal_channels"]}
+    assert dict(ROWS["hist16rec"].overrides)["temporal_channels"] == measured[TemporalFusionKind.RECURRENT]
+    assert TEMPORAL_CHANNELS == measured
+    for kind, width in measured.items():
+        assert FastOcc(preset("nano", num_history=2, temporal_fusion=kind)).temporal.queue_channels == width
+        assert TrainConfig(num_history=2, temporal_fusion=str(kind)).model_config().temporal_width == width
+    assert RecurrentFusion(8, COARSE_GRID).queue_channels == measured[TemporalFusionKind.RECURRENT]
+    cached = TemporalFusion(8, 2, COARSE_GRID, TemporalFusionKind.CACHED)
+    assert cached.queue_channels == measured[TemporalFusionKind.CACHED]
+    assert preset("nano", temporal_fusion="recurrent", temporal_channels=8).temporal_width == 8  # given: kept
+
+
+def test_a_run_saved_with_the_old_explicit_default_resumes_only_where_the_network_is_the_same() -> None:
+    """Runs saved before the per-fusion default stored `temporal_channels = 16`: a concat or cached run
+    builds the same network with the default now and resumes; a recurrent one would get 32 channels."""
+    old = {**TrainConfig().to_dict(), "temporal_channels": 16}
+    assert incompatible_fields(old, TrainConfig()) == []
+    assert incompatible_fields({**old, "temporal_fusion": "cached"}, TrainConfig(temporal_fusion="cached")) == []
+    recurrent = TrainConfig(num_history=16, temporal_fusion="recurrent")
+    assert incompatible_fields({**old, **recurrent.to_dict(), "temporal_channels": 16}, recurrent) == [
+        "temporal_channels"]
+    assert config_from_dict({"temporal_channels": 24}).temporal_channels == 24
+    for bad in ("16", True, 1.5):
+        with pytest.raises(ConfigError, match="temporal_channels"):
+            config_from_dict({"temporal_channels": bad})

@@ -144,13 +144,14 @@ def _cached(num_history: int = 3) -> TemporalFusion:
 def test_cached_fusion_equals_the_literal_concat_reference() -> None:
     """Reference written out: every frame's reduced map r_t = conv(bev_t); the queue = the T previous r (the
     first frame's r repeated at the sequence start); each warped by M_cur inv(T_g_cur) T_g_prev inv(M_prev);
-    ONE conv over the literal concatenation [r_t, warped...]; BN, ReLU, expand, plus the current map."""
-    fusion = _cached()
-    flip_y = torch.diag(torch.tensor([1.0, -1.0, 1.0, 1.0]))  # a BEV augmentation, the same M in every frame
+    ONE conv over the literal concatenation [r_t, warped...]; BN, ReLU, expand, plus the current map. In
+    float64: the module's two convs and the reference's one sum the same products in another order."""
+    fusion = _cached().double()
+    flip_y = torch.diag(torch.tensor([1.0, -1.0, 1.0, 1.0], dtype=torch.float64))  # the same M in every frame
     T = fusion.num_history
     w_mix = torch.cat([fusion.mix_current.weight, fusion.mix_history.weight], dim=1)  # the concat conv
     reduced: list[tuple[torch.Tensor, torch.Tensor]] = []
-    for t, (bev, pose) in enumerate(_moving_stream(6)):
+    for t, (bev, pose) in enumerate((b.double(), p.double()) for b, p in _moving_stream(6)):
         out = fusion(bev, _frame(pose, flip_y, start=t == 0))
         r = F.conv2d(bev, fusion.compress.weight, fusion.compress.bias)
         queue = [reduced[max(0, t - k)] for k in range(1, T + 1)] if t > 0 else [(r, pose)] * T
@@ -223,12 +224,13 @@ def test_cached_fusion_trains_every_parameter_and_detaches_the_queue() -> None:
 
 def test_grad_history_gives_the_cached_values_and_trains_the_reduction_through_the_queue() -> None:
     """temporal_grad_history: the training queue keeps full maps and reduces them with gradient; the
-    forward values are the cached queue's (reduce, then warp), so the deployed cache serves the same model."""
-    eye = torch.eye(4)
-    stream = _moving_stream(4)
+    forward values are the cached queue's (reduce, then warp), so the deployed cache serves the same model.
+    In float64: the training queue reduces T maps in one batch, the cache one map at a time."""
+    eye = torch.eye(4, dtype=torch.float64)
+    stream = [(b.double(), p.double()) for b, p in _moving_stream(4)]
     outs, grads = {}, {}
     for grad_history in (False, True):
-        fusion = _cached()
+        fusion = _cached().double()
         fusion.grad_history = grad_history
         fusion.train()
         compress_grads = []

@@ -17,6 +17,7 @@ __all__ = [
     "HeadKind",
     "ModelConfig",
     "PRESETS",
+    "TEMPORAL_CHANNELS",
     "TemporalFusionKind",
     "ViewTransformKind",
     "preset",
@@ -58,7 +59,12 @@ class TemporalFusionKind(StrEnum):
 
     CONCAT = "concat"  # queue of full V_B maps (C2*8 channels); 1x1 conv over all T + 1 of them
     CACHED = "cached"  # each frame reduced once to C_r channels when current; warp + small fusion per frame
-    RECURRENT = "recurrent"  # one state of C_r channels carried forward: warp + a gated (ConvGRU) update per frame
+    RECURRENT = "recurrent"  # one state of C_s channels carried forward: warp + a gated (ConvGRU) update per frame
+
+
+# The width each fusion was measured at (docs/ablations.md: `hist16cached` C_r = 16, `hist16rec` C_s = 32):
+# its default when `temporal_channels` is not given. "concat" queues full maps and has no such width.
+TEMPORAL_CHANNELS: dict[TemporalFusionKind, int] = {TemporalFusionKind.CACHED: 16, TemporalFusionKind.RECURRENT: 32}
 
 
 class ViewTransformKind(StrEnum):
@@ -107,7 +113,8 @@ class ModelConfig:
     # With interp_features off: REPEAT (constant along z) or UNFOLD (channels unfolded into the height bins).
     bev_height: BevHeight = BevHeight.REPEAT
     temporal_fusion: TemporalFusionKind = TemporalFusionKind.CONCAT
-    temporal_channels: int = 16  # C_r: channels of a frame in the "cached" queue, of the "recurrent" state
+    # C_r of a frame in the "cached" queue / C_s of the "recurrent" state; None: the fusion's TEMPORAL_CHANNELS
+    temporal_channels: int | None = None
     # "recurrent" only: frames the recurrence is unrolled over with gradient in training (truncated BPTT)
     temporal_unroll: int = 4
     # "cached" only, a training control: the training queue keeps each frame's full map (detached) and
@@ -134,7 +141,7 @@ class ModelConfig:
                 bad.append(f"{name} = {getattr(self, name)!r} (choose from {[k.value for k in kind]})")
         if self.num_history < 0:
             bad.append(f"num_history = {self.num_history} (must be >= 0)")
-        if self.temporal_channels < 1:
+        if self.temporal_channels is not None and self.temporal_channels < 1:
             bad.append(f"temporal_channels = {self.temporal_channels} (must be >= 1)")
         if self.temporal_grad_history and self.temporal_fusion != TemporalFusionKind.CACHED:
             bad.append("temporal_grad_history needs temporal_fusion = 'cached'")
@@ -154,6 +161,13 @@ class ModelConfig:
     def has_temporal(self) -> bool:
         """Whether the network builds a temporal fusion layer (history, or the zero-history control)."""
         return self.num_history > 0 or self.zero_history_fusion
+
+    @property
+    def temporal_width(self) -> int:
+        """C_r / C_s: `temporal_channels`, else the fusion's measured width ("concat" does not use it)."""
+        if self.temporal_channels is not None:
+            return self.temporal_channels
+        return TEMPORAL_CHANNELS.get(self.temporal_fusion, TEMPORAL_CHANNELS[TemporalFusionKind.CACHED])
 
     @property
     def feat_hw(self) -> tuple[int, int]:

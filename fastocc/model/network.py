@@ -31,8 +31,8 @@ def _temporal(cfg: ModelConfig, channels: int) -> TemporalFusion | RecurrentFusi
     if not cfg.has_temporal:
         return None
     if cfg.temporal_fusion is TemporalFusionKind.RECURRENT:
-        return RecurrentFusion(channels, cfg.coarse_grid, cfg.temporal_channels, cfg.temporal_unroll)
-    return TemporalFusion(channels, cfg.num_history, cfg.coarse_grid, cfg.temporal_fusion, cfg.temporal_channels,
+        return RecurrentFusion(channels, cfg.coarse_grid, cfg.temporal_width, cfg.temporal_unroll)
+    return TemporalFusion(channels, cfg.num_history, cfg.coarse_grid, cfg.temporal_fusion, cfg.temporal_width,
                           cfg.temporal_grad_history)
 
 

@@ -11,6 +11,7 @@ from torch import Tensor, nn
 
 from occdata.constants import OccGrid
 
+from .config import TEMPORAL_CHANNELS, TemporalFusionKind
 from .inputs import SceneInputs
 from .temporal import T_curaug_from_prevaug, warp_bev, warp_bev_inverse
 
@@ -39,7 +40,8 @@ class RecurrentFusion(nn.Module):
     window is empty (`unroll` 1): one cell step per frame.
     """
 
-    def __init__(self, channels: int, grid: OccGrid, state_channels: int = 32, unroll: int = 4) -> None:
+    def __init__(self, channels: int, grid: OccGrid,
+                 state_channels: int = TEMPORAL_CHANNELS[TemporalFusionKind.RECURRENT], unroll: int = 4) -> None:
         super().__init__()
         self.grid = grid
         self.unroll = unroll

@@ -8,7 +8,7 @@ from torch import Tensor, nn
 
 from occdata.constants import OccGrid
 
-from .config import TemporalFusionKind
+from .config import TEMPORAL_CHANNELS, TemporalFusionKind
 from .geometry import voxel_centres
 from .inputs import SceneInputs
 
@@ -70,7 +70,8 @@ class TemporalFusion(nn.Module):
     """
 
     def __init__(self, channels: int, num_history: int, grid: OccGrid,
-                 kind: TemporalFusionKind = TemporalFusionKind.CONCAT, cached_channels: int = 16,
+                 kind: TemporalFusionKind = TemporalFusionKind.CONCAT,
+                 cached_channels: int = TEMPORAL_CHANNELS[TemporalFusionKind.CACHED],
                  grad_history: bool = False) -> None:
         super().__init__()
         self.num_history = num_history

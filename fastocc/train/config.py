@@ -95,7 +95,7 @@ class TrainConfig:
     bev_height: str = "repeat"  # with interp_features off: repeat (constant along z) | unfold (channel-to-height)
     # concat | cached (each frame reduced once to temporal_channels, when current) | recurrent (one state)
     temporal_fusion: str = "concat"
-    temporal_channels: int = 16  # C_r of the cached queue / of the recurrent state
+    temporal_channels: int | None = None  # C_r / C_s; None = the fusion's measured width (TEMPORAL_CHANNELS)
     temporal_unroll: int = 4  # recurrent only: frames unrolled with gradient in training (truncated BPTT)
     temporal_grad_history: bool = False  # cached only: train the reduction through the queued frames too
     zero_history_fusion: bool = False  # ablation: the temporal fusion layer without history (num_history 0)
@@ -174,7 +174,7 @@ class TrainConfig:
         if self.temporal_fusion not in {k.value for k in TemporalFusionKind}:
             kinds = [k.value for k in TemporalFusionKind]
             bad.append(f"temporal_fusion {self.temporal_fusion!r} (choose from {kinds})")
-        if self.temporal_channels < 1:
+        if self.temporal_channels is not None and self.temporal_channels < 1:
             bad.append(f"temporal_channels = {self.temporal_channels} (must be >= 1)")
         if self.temporal_grad_history and self.temporal_fusion != TemporalFusionKind.CACHED.value:
             bad.append("temporal_grad_history needs temporal_fusion 'cached'")
@@ -252,8 +252,8 @@ def _coerce(field: dataclasses.Field, value: Any) -> Any:
         if unknown:
             raise ConfigError(f"unknown [loss] key(s) {unknown}; known: {', '.join(known)}")
         return dataclasses.replace(LossWeights(), **{k: _coerce(known[k], v) for k, v in value.items()})
-    if name in ("num_history", "pretrained", "init_from"):
-        ok = value is None or isinstance(value, int if name == "num_history" else str)
+    if name in ("num_history", "temporal_channels", "pretrained", "init_from"):
+        ok = value is None or isinstance(value, str if name in ("pretrained", "init_from") else int)
         if not ok or isinstance(value, bool):
             raise ConfigError(f"config key {name!r}: bad value {value!r}")
         return value
@@ -361,12 +361,19 @@ def flat_config(d: dict[str, Any]) -> dict[str, Any]:
 def incompatible_fields(saved: dict[str, Any], cfg: TrainConfig) -> list[str]:
     """Fields (`loss.<term>` for weights) whose values differ between a saved config dict and `cfg`, other
     than RESUME_MAY_CHANGE; `epochs` counts only when it shrinks."""
-    was, now = flat_config(saved), flat_config(cfg.to_dict())
+    was, now = _built_width(flat_config(saved)), _built_width(flat_config(cfg.to_dict()))
     bad = sorted(k for k in set(was) | set(now)
                  if k not in RESUME_MAY_CHANGE and was.get(k, _DEFAULTS.get(k)) != now.get(k))
     if int(was.get("epochs", 0)) > cfg.epochs:
         bad = sorted([*bad, "epochs"])
     return bad
+
+
+def _built_width(d: dict[str, Any]) -> dict[str, Any]:
+    """`temporal_channels` as the width the network gets, so that None and the number it stands for compare
+    equal (runs saved before None meant "the fusion's default")."""
+    m = ModelConfig(temporal_fusion=d.get("temporal_fusion", "concat"), temporal_channels=d.get("temporal_channels"))
+    return {**d, "temporal_channels": m.temporal_width}
 
 
 _DEFAULTS = flat_config(TrainConfig().to_dict())  # fields added after a checkpoint was written compare as defaults

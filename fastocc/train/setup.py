@@ -36,7 +36,7 @@ from fastocc.storegrid import check_store_grid, check_store_rig
 from fastocc.train.config import TrainConfig, flat_config, incompatible_fields
 from fastocc.train.preempt import StopRequest
 from fastocc.train.state import EMA, TrainState, class_counts, load_resume
-from occdata.constants import CAMERA_ORDER
+from occdata.constants import CAMERA_ORDER, FREE_LABEL
 from occdata.errors import OccDataError
 from occdata.fileio import write_atomic
 from occdata.store.layout import store_rig
@@ -255,7 +255,7 @@ def estimate_step_seconds(run: Run, model: nn.Module) -> float:
     dev = run.info.device
     inputs = synthetic_inputs(run.micro, run.model_cfg.input_hw, run.model_cfg.num_cams, seed=0, device=str(dev))
     X, Y, Z = run.model_cfg.fine_grid.shape
-    targets = LossTargets(voxel_labels=torch.full((run.micro, X, Y, Z), 17, device=dev),
+    targets = LossTargets(voxel_labels=torch.full((run.micro, X, Y, Z), FREE_LABEL, device=dev),
                           mask_camera=torch.ones(run.micro, X, Y, Z, dtype=torch.bool, device=dev))
     dt = 0.0
     for _ in range(2):

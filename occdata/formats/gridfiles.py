@@ -13,8 +13,9 @@ import numpy as np
 
 from occdata.constants import FREE_LABEL
 from occdata.errors import OccDataError
-from occdata.fileio import npz_bytes, write_atomic
+from occdata.fileio import write_atomic
 from occdata.formats.gridspec import GridSpec, LabelLayout
+from occdata.formats.occ3d import label_path, write_label
 
 __all__ = ["IGNORE", "LAYOUT_FILES", "LabelSite", "grid_label_path", "read_grid_label", "to_occ3d_ids",
            "write_grid_label"]
@@ -54,7 +55,7 @@ def grid_label_path(spec: GridSpec, root: str | Path, site: LabelSite) -> Path:
         return root / "samples" / f"{site.lidar_file}.npy"
     if spec.layout is LabelLayout.OPENOCCUPANCY:
         return root / f"scene_{site.scene_token}" / "occupancy" / f"{site.lidar_token}.npy"
-    return root / site.scene_name / site.sample_token / "labels.npz"
+    return label_path(root, site.scene_name, site.sample_token)
 
 
 def write_grid_label(spec: GridSpec, root: str | Path, site: LabelSite, labels: dict[str, np.ndarray]) -> Path:
@@ -80,7 +81,7 @@ def write_grid_label(spec: GridSpec, root: str | Path, site: LabelSite, labels: 
     if spec.layout is LabelLayout.OPENOCC_V2:
         flow = labels.get("flow")
         arrays["flow"] = np.zeros((*spec.shape, 2), np.float32) if flow is None else flow.astype(np.float32)
-    write_atomic(path, npz_bytes(arrays))
+    write_label(path, arrays)
     return path
 
 

@@ -13,7 +13,7 @@ from enum import StrEnum
 
 import numpy as np
 
-from occdata.constants import CLASS_NAMES, FREE_LABEL, NUM_CLASSES, OccGrid
+from occdata.constants import CLASS_NAMES, FREE_LABEL, GRID, NUM_CLASSES, OccGrid
 from occdata.errors import OccDataError
 
 __all__ = ["GRID_NAMES", "GRID_PRESETS", "GridSpec", "LabelFrame", "LabelLayout", "custom_grid", "grid_preset",
@@ -39,7 +39,7 @@ class LabelLayout(StrEnum):
 # Target id of each Occ3D class (index = our id: others, barrier, ..., vegetation, free).
 _OCC3D_IDS = tuple(range(NUM_CLASSES))
 # nuScenes-lidarseg's 16 evaluation classes keep our order 1..16; "others" has no class there (noise, 0).
-_LIDARSEG16_IDS = (0, *range(1, 17), 0)
+_LIDARSEG16_IDS = (0, *range(1, FREE_LABEL), 0)
 # OpenOcc v2: car, truck, trailer, bus, construction_vehicle, bicycle, motorcycle, pedestrian, traffic_cone,
 # barrier, driveable_surface, other_flat, sidewalk, terrain, manmade, vegetation (0..15), free 16. It has no
 # "others" class and no ignore id: our "others" voxels are written as free (docs/labels.md).
@@ -126,10 +126,9 @@ class GridSpec:
 
 
 GRID_PRESETS: dict[str, GridSpec] = {g.name: g for g in (
-    GridSpec("occ3d", OccGrid((-40.0, -40.0, -1.0), (40.0, 40.0, 5.4), 0.4), LabelFrame.KEY_EGO, LabelLayout.OCC3D,
-             _OCC3D_IDS, CLASS_NAMES, FREE_LABEL),
-    GridSpec("openocc-v2", OccGrid((-40.0, -40.0, -1.0), (40.0, 40.0, 5.4), 0.4), LabelFrame.KEY_EGO,
-             LabelLayout.OPENOCC_V2, _OPENOCC_IDS, _OPENOCC_NAMES, 16),
+    GridSpec("occ3d", GRID, LabelFrame.KEY_EGO, LabelLayout.OCC3D, _OCC3D_IDS, CLASS_NAMES, FREE_LABEL),
+    GridSpec("openocc-v2", GRID, LabelFrame.KEY_EGO,
+             LabelLayout.OPENOCC_V2, _OPENOCC_IDS, _OPENOCC_NAMES, _OPENOCC_NAMES.index("free")),
     GridSpec("surroundocc", OccGrid((-50.0, -50.0, -5.0), (50.0, 50.0, 3.0), 0.5), LabelFrame.LIDAR,
              LabelLayout.SURROUNDOCC, _LIDARSEG16_IDS, ("noise", *CLASS_NAMES[1:17]), 0, masks=False),
     GridSpec("openoccupancy", OccGrid((-51.2, -51.2, -5.0), (51.2, 51.2, 3.0), 0.2), LabelFrame.LIDAR,

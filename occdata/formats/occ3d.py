@@ -10,7 +10,9 @@ same path but their own class ids (car 0 ... vegetation 15, free 16; no "others"
 `(200, 200, 16, 2)` array; `read_openocc_v2_label` reads them into our ids. A file with `flow` is an
 OpenOcc v2 file: `read_label` refuses it rather than read its ids as Occ3D's.
 
-Every reader and writer of these files in occdata and fastocc goes through this module.
+`write_label` is the one writer of these files (`occdata labels` through `occdata.formats.gridfiles`,
+`occdata synth`, `fastocc infer`). The readers here validate and map ids; `gridfiles.read_grid_label`
+reads a file of any grid as its benchmark's loader does.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import numpy as np
 from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES
 from occdata.errors import OccDataError
 from occdata.fileio import npz_bytes, write_atomic
+from occdata.formats.gridspec import GRID_PRESETS
 
 __all__ = ["LABEL_FILE", "LABEL_KEYS", "OPENOCC_V2", "label_keys", "list_label_files", "label_path",
            "label_relpaths", "openocc_to_occ3d", "read_label", "read_openocc_v2_label", "read_prediction",
@@ -32,14 +35,13 @@ __all__ = ["LABEL_FILE", "LABEL_KEYS", "OPENOCC_V2", "label_keys", "list_label_f
 LABEL_FILE = "labels.npz"
 LABEL_KEYS = ("semantics", "mask_lidar", "mask_camera")
 OPENOCC_V2 = "openocc-v2"  # the label format whose files carry `flow`
-_OPENOCC_FREE = 16
+_OPENOCC_FREE = GRID_PRESETS[OPENOCC_V2].free_value  # OpenOcc v2's free id, its highest
 
 
 def openocc_to_occ3d() -> np.ndarray:
     """`(17,) uint8`: OpenOcc v2 class id -> our (Occ3D) id (free 16 -> 17): the openocc-v2 grid's own
     class map, inverted (`occdata.formats.gridfiles.to_occ3d_ids`)."""
     from occdata.formats.gridfiles import to_occ3d_ids
-    from occdata.formats.gridspec import GRID_PRESETS
 
     return to_occ3d_ids(GRID_PRESETS[OPENOCC_V2], np.arange(_OPENOCC_FREE + 1, dtype=np.uint8))
 

@@ -21,7 +21,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from occdata.constants import CLASS_NAMES
+from occdata.constants import CLASS_NAMES, FREE_LABEL
 from occdata.errors import OccDataError
 from occdata.fileio import remove_stale_temps, write_atomic
 from occdata.formats.gridfiles import LAYOUT_FILES, LabelSite, write_grid_label
@@ -120,8 +120,8 @@ def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool) -> dict[str, 
         "classes": ("keyframe points: lidarseg mapped to Occ3D (noise, ego dropped); sweep points: nearest "
                     "labelled keyframe point" if with_seg else
                     f"points in a box: the box's category; static points: class {static}"),
-        "layout": "<scene>/<sample_token>/labels.npz: semantics, mask_lidar, mask_camera; uint8 (200, 200, 16); "
-                  "17 = free",
+        "layout": "<scene>/<sample_token>/labels.npz: semantics, mask_lidar, mask_camera; uint8 "
+                  f"{GRID_PRESETS['occ3d'].shape}; {FREE_LABEL} = free",
         "grids": [{**spec.describe(), "folder": str(cfg.grid_root(spec).relative_to(cfg.out)),
                    "files": LAYOUT_FILES[spec.layout]} for spec in cfg.grids],
     }

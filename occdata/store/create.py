@@ -92,13 +92,15 @@ def create_arrays(root: zarr.Group, n: int, block: int, attrs: dict[str, Any], t
     root.attrs.put(attrs)
 
 
-_FLOW_ATTR = {
-    "array": "labels/flow", "shape": "(N, 200, 200, 16, 2)", "dtype": "float32", "components": ["vx", "vy"],
-    "unit": "m/s", "frame": "the grid's axes (key ego), velocity over the ground",
-    "source": "the 'flow' array of the OpenOcc v2 labels.npz files read with --gts",
-    "classes": "labels/semantics holds our (Occ3D) ids, mapped from OpenOcc v2's by name; OpenOcc v2 has no "
-               "'others' (class 0 never occurs)",
-}
+def _flow_attr(grid_shape: list[int]) -> dict[str, Any]:
+    """`attrs["flow"]`: labels/flow in words, on the store's label grid `(X, Y, Z)`."""
+    return {
+        "array": "labels/flow", "shape": f"(N, {', '.join(map(str, grid_shape))}, 2)", "dtype": "float32",
+        "components": ["vx", "vy"], "unit": "m/s", "frame": "the grid's axes (key ego), velocity over the ground",
+        "source": "the 'flow' array of the OpenOcc v2 labels.npz files read with --gts",
+        "classes": "labels/semantics holds our (Occ3D) ids, mapped from OpenOcc v2's by name; OpenOcc v2 has no "
+                   "'others' (class 0 never occurs)",
+    }
 
 
 def root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str], gts: Path | None,
@@ -118,6 +120,7 @@ def root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str],
         })
         first += len(sc.sample_tokens)
     opts = config.options
+    grid = grid_attr(config.grid)
     return {
         "schema": SCHEMA_NAME,
         "schema_version": schema_version(flow),
@@ -126,7 +129,7 @@ def root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str],
         "class_names": list(CLASS_NAMES),
         "class_colors": [list(c) for c in CLASS_COLORS],
         "free_label": FREE_LABEL,
-        "grid": grid_attr(config.grid),
+        "grid": grid,
         "splits": split_names,
         "scenes": scenes,
         "images": {"encoding": "jpeg", "scale": opts.image_scale,
@@ -146,7 +149,7 @@ def root_attrs(config: BuildConfig, ds: NuScenesDataset, split_names: list[str],
         "build_config": {"workers": config.cluster.workers, "on_error": config.on_error},
         "errors": [],
         "complete": False,
-    } | ({"flow": dict(_FLOW_ATTR)} if flow else {}) | ({} if rig.is_nuscenes else {"rig": rig.as_attr()})
+    } | ({"flow": _flow_attr(grid["shape"])} if flow else {}) | ({} if rig.is_nuscenes else {"rig": rig.as_attr()})
 
 
 STAGING_SUFFIX = ".staging"  # <store>.staging: where schema-1 builds staged blocks (removed, never written now)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from occdata.constants import FREE_LABEL, GRID, OccGrid
+from occdata.constants import FREE_LABEL, GRID, NUM_CLASSES, OccGrid
 from occdata.synth.world import GroundRaster, Primitives
 
 __all__ = [
@@ -23,7 +23,7 @@ __all__ = [
 
 # Higher wins where primitives share a voxel: small dynamic objects first, ground last, free lowest.
 _ORDER = (7, 2, 6, 8, 1, 4, 10, 3, 9, 5, 0, 16, 15, 11, 12, 13, 14, 17)
-CLASS_PRIORITY = np.zeros(18, np.int32)
+CLASS_PRIORITY = np.zeros(NUM_CLASSES, np.int32)
 for _rank, _c in enumerate(_ORDER):
     CLASS_PRIORITY[_c] = len(_ORDER) - _rank
 _OVERLAP_EPS = 1e-4  # m; boundary slack so surface points on voxel faces still count

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from occdata.constants import CLASS_COLORS, CLASS_NAMES, EGO_BOX, FREE_LABEL, GRID, OccGrid
+from occdata.constants import CLASS_COLORS, CLASS_NAMES, EGO_BOX, FREE_LABEL, GRID, NUM_CLASSES, OccGrid
 
 __all__ = [
     "EGO_COLOR",
@@ -30,6 +30,7 @@ __all__ = [
 ]
 
 EGO_COLOR = (110, 110, 110)  # the ego car's box (not a class colour)
+_EGO = NUM_CLASSES  # the ego car's voxels in a drawn grid: the label after the classes
 _BACKGROUND = (255, 255, 255)
 _SHADE = {"top": 1.0, "x": 0.8, "y": 0.62, "bottom": 0.45}
 _UNSEEN = 185.0  # grey of BEV columns outside the camera mask
@@ -58,12 +59,12 @@ class View:
 
 
 def _with_ego(occ_labels: np.ndarray, grid: OccGrid) -> tuple[np.ndarray, np.ndarray]:
-    """Label grid -> (labels, colour table) with the free voxels of the ego car (`EGO_BOX`) as label 18."""
+    """Label grid -> (labels, colour table) with the free voxels of the ego car (`EGO_BOX`) as label `_EGO`."""
     labels = occ_labels.copy()
     centers = grid.voxel_centers()
     lo, hi = np.array(EGO_BOX[0]), np.array(EGO_BOX[1])
     ego = ((centers > lo) & (centers < hi)).all(axis=-1)
-    labels[ego & (labels == FREE_LABEL)] = 18
+    labels[ego & (labels == FREE_LABEL)] = _EGO
     palette = np.vstack([_PALETTE, np.array([EGO_COLOR], dtype=np.uint8)])
     return labels, palette
 
@@ -211,10 +212,10 @@ def class_legend(classes: Sequence[int], width: int, row_h: int = 22) -> np.ndar
     for k, c in enumerate(classes):
         r, q = divmod(k, cols)
         x, y = 8 + q * (width // cols), 4 + r * row_h
-        color = EGO_COLOR if c == 18 else tuple(int(v) for v in _PALETTE[c])
+        color = EGO_COLOR if c == _EGO else tuple(int(v) for v in _PALETTE[c])
         cv2.rectangle(img, (x, y + 3), (x + 16, y + row_h - 5), color, -1)
         cv2.rectangle(img, (x, y + 3), (x + 16, y + row_h - 5), (0, 0, 0), 1)
-        name = "ego" if c == 18 else CLASS_NAMES[c]
+        name = "ego" if c == _EGO else CLASS_NAMES[c]
         cv2.putText(img, name, (x + 22, y + row_h - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     return img
 
@@ -289,7 +290,7 @@ def prediction_picture(
     bev_row = _pad_to(bev_row, width)
 
     present = sorted({int(c) for g in (pred, gt) if g is not None for c in np.unique(g) if c < FREE_LABEL})
-    legend = class_legend(present + [18], width)
+    legend = class_legend(present + [_EGO], width)
     note = "top views: grey = outside the camera mask" if m is not None else ""
     parts = [*cams, row3d, bev_row, legend]
     if title or note:
