@@ -267,6 +267,7 @@ def test_scene_order_training_forward_equals_the_streaming_predictor(synth_store
     alone = Predictor.from_model(load_model(ckpt)[0], _lane_rig(reader, lanes[0][0][0]))
     _, p = alone(reader.images(idx), poses[idx], seq_start=True, with_probs=True)
     effect = float((torch.from_numpy(p).log() - probs[idx]).abs().max())
+    # measured (Intel Xeon VM): worst 1.2e-6 against the 1e-4 bound, effect 1.6e-3: margins of 80x and 1300x
     assert effect > 5e-4 and effect > 50 * worst
 
 
