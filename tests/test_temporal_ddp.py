@@ -138,10 +138,16 @@ def test_temporal_predictions_do_not_depend_on_workers_or_ranks(uneven_store: Pa
     with torch.no_grad():
         alone = model(load_batch(uneven_store, [2], _sample_config(cfg)).inputs()).voxel_logits.softmax(1)[0]
     assert int((alone.argmax(0) != ref[2].argmax(0)).sum()) > 100
-    # Bit-identical: every scene runs whole, in time order, on one rank; a lane never changes slot.
+    # Every scene runs whole, in time order, on one rank; a lane never changes slot. At batch 1 the result
+    # is bit-identical; at batch 2 float32 kernels for two samples may round otherwise (as on an AMD EPYC
+    # in tests/test_model_recurrent.py), so probabilities agree to 1e-4 and the classes almost everywhere.
     for ranks, workers, batch_size in [(1, 2, 1), (3, 0, 1), (2, 2, 2), (3, 0, 2)]:
         got = _predict(model, cfg, uneven_store, ranks=ranks, workers=workers, batch_size=batch_size)
-        assert _max_diff(ref, got) == 0.0, (ranks, workers, batch_size)
+        if batch_size == 1:
+            assert _max_diff(ref, got) == 0.0, (ranks, workers, batch_size)
+        else:
+            assert _max_diff(ref, got) < 1e-4, (ranks, workers, batch_size)
+            assert all(float((ref[i].argmax(0) == got[i].argmax(0)).float().mean()) > 0.999 for i in ref)
 
 
 def _eval_json(cmd: list[str], timeout: int = 300) -> dict:
