@@ -1,4 +1,4 @@
-"""The paper's ablation tables on the synthetic world (issue 18, part 2), one command per step.
+"""The paper's ablation tables on the synthetic world, one command per step.
 
 World (6 train / 2 val scenes) and recipe (benchmarks/configs/learn_nano_18ep.toml, shortened to E epochs,
 the same E for every row; seeds 0 and 1 per row):
@@ -103,13 +103,13 @@ ROWS: dict[str, Row] = {r.name: r for r in (
     Row("bev-unfold", (("interp_features", False), ("bev_height", "unfold"))),
     Row("hist0fuse", (("num_history", 0), ("scene_sequential", True), ("zero_history_fusion", True))),
     Row("hist16cached", (("num_history", 16), ("scene_sequential", True), ("temporal_fusion", "cached"))),
-    # Issue 35's controls of why the cached fusion loses: a wider reduction; the reduction trained
+    # Controls of why the cached fusion loses: a wider reduction; the reduction trained
     # through the history (the queued frames' full maps reduced with gradient in training).
     Row("hist16cached64", (("num_history", 16), ("scene_sequential", True), ("temporal_fusion", "cached"),
                            ("temporal_channels", 64))),
     Row("hist16cachedgrad", (("num_history", 16), ("scene_sequential", True), ("temporal_fusion", "cached"),
                              ("temporal_grad_history", True))),
-    # Issue 35's constant-cost history: one recurrent BEV state (ConvGRU-style, C_s = 32), trained with
+    # A constant-cost history: one recurrent BEV state (ConvGRU-style, C_s = 32), trained with
     # truncated back-propagation over 4 frames.
     Row("hist16rec", (("num_history", 16), ("scene_sequential", True), ("temporal_fusion", "recurrent"),
                       ("temporal_channels", 32), ("temporal_unroll", 4))),
@@ -152,7 +152,7 @@ TABLES: tuple[Table, ...] = (
        "`hist0fuse` has the history rows' fusion layer (1x1 conv + BN + ReLU) over the current map alone, so it "
        "differs from `hist16` only by the history. `hist16cached` (`temporal_fusion = \"cached\"`) reduces each "
        "frame once, when current, to 16 channels and queues those; per frame only their warp and a small "
-       "residual fusion run (docs/model.md). Its two controls (issue 35): `hist16cached64` reduces to 64 channels; "
+       "residual fusion run (docs/model.md). Its two controls: `hist16cached64` reduces to 64 channels; "
        "`hist16cachedgrad` (`temporal_grad_history`) keeps the queued frames' full maps in training and reduces "
        "them with gradient, so the reduction learns from the history too (the same forward values; inference "
        "keeps the cache). `hist16rec` (`temporal_fusion = \"recurrent\"`) carries one 32-channel state forward "
@@ -246,8 +246,8 @@ def _train(cfg: TrainConfig, toml: Path, resume: bool = False) -> int:
 
 
 def _open_call(out: Path, start: float) -> None:
-    """Log a call in ablate_run.json before it trains, so that a call killed with its session (SIGKILL: no
-    end record) still counts. Its wall time is closed here, at the next call, up to the last write of
+    """Log a call in ablate_run.json before it trains, so that a call killed with SIGKILL (no end record)
+    still counts. Its wall time is closed here, at the next call, up to the last write of
     metrics.jsonl (every few steps), and marked estimated."""
     log = _wall_log(out)
     metrics = out / "metrics.jsonl"
@@ -668,7 +668,7 @@ def render_markdown(results: dict[str, Any], epochs: int, png: dict[str, str] | 
                     readings: dict[str, str] | None = None) -> str:
     """docs/ablations.md from the results JSON: "pending" where runs are missing (pure function)."""
     png, readings = png or {}, readings or {}
-    lines = ["# Ablations on the synthetic world (issue 18)", "",
+    lines = ["# Ablations on the synthetic world", "",
              f"World: 8 scenes x 40 samples (6 train / 2 val; store `{results.get('store', 'w8v.zarr')}`), recipe "
              f"`{RECIPE.relative_to(REPO)}` shortened to **E = {epochs} epochs** for every row, seeds "
              f"{', '.join(map(str, SEEDS))}. Metrics in percent on the val scenes: mIoU with the camera mask, "
