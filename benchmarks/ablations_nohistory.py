@@ -8,7 +8,7 @@ Indexed in benchmarks/README.md.
 Each checkpoint `RUNS/<row>-s<seed>/last.pt` is scored on the val split (`fastocc.infer.score`, mIoU
 with the camera mask, RayIoU, geometry IoU) as if every frame started a sequence: the recurrent
 fusion's state is zero each time, so the network sees the current frame only. Compare with the row's
-own scores in docs/results/ablations.json (issue 35's reading in docs/ablations.md).
+own scores in docs/results/ablations.json (the reading in docs/ablations.md, "History").
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Benchmark `occdata build` (issue #3): throughput per core with a per-stage breakdown, the floor
+"""Benchmark `occdata build`: throughput per core with a per-stage breakdown, the floor
 (just reading the input bytes), the LiDAR projection kernel vs a peer-style numpy projection,
 store bytes vs source bytes, and the image-encoding measurement behind the store default.
 
@@ -173,7 +173,7 @@ def _projection(s: Any, repeats: int) -> dict[str, Any]:
 
 
 def _jpeg_check(s: Any, repeats: int) -> dict[str, float]:
-    """The corrupt-JPEG check (issue #12): the same 1/8-scale validation decode of the 6 images with
+    """The corrupt-JPEG check: the same 1/8-scale validation decode of the 6 images with
     and without capturing libjpeg's warnings (stderr redirected per decode), interleaved."""
     blobs = [np.frombuffer(c.path.read_bytes(), np.uint8) for c in s.cameras]
     t_plain, t_checked = time_pair(

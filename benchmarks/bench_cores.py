@@ -1,4 +1,4 @@
-"""How far this machine's cores scale on their own (issue 33's "physical limit"): the same work in one
+"""How far this machine's cores scale on their own: the same work in one
 process, then in one process per core at once, for a pure-Python loop, JPEG decoding + resizing with
 OpenCV (what a build task does most) and large memory copies.
 

@@ -1,4 +1,4 @@
-"""Cost of the store integrity checks on the read path (issue 12 item 6).
+"""Cost of the store integrity checks on the read path.
 
 Reads every done sample of a store through the loader's `StoreSamples.read_run` (one block at a
 time, as the shuffled loader does), with the per-row checksum checks on and off (alternating

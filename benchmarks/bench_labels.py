@@ -1,4 +1,4 @@
-"""Benchmark `occdata labels` on a synthetic world whose exact labels are known (issue 27).
+"""Benchmark `occdata labels` on a synthetic world whose exact labels are known.
 
 For each variant (boxes vs the naive global-aggregation control; keyframes only vs + sweeps; with vs
 without lidarseg) it generates the labels in a child process (seconds and peak RSS per scene), then
@@ -43,7 +43,7 @@ VARIANTS = {  # name: (extra CLI options, drop lidarseg)
     "boxes-sweeps-noseg": (["--all-sweeps"], True),
     "boxes-sweeps-densify": (["--all-sweeps", "--densify"], False),
     "control-sweeps-noseg": (["--all-sweeps", "--no-boxes"], True),
-    # Issue 32: every benchmark's grid from one aggregation (scored on the occ3d grid, which is the same)
+    # Every benchmark's grid from one aggregation (scored on the occ3d grid, which is the same)
     "boxes-sweeps-4grids": (["--all-sweeps", "--grid", "occ3d", "--grid", "openocc-v2", "--grid", "surroundocc",
                              "--grid", "openoccupancy"], False),
 }

@@ -1,4 +1,4 @@
-"""Benchmark the training loader (issue #4): samples/s per worker process, ours vs a peer-style loader.
+"""Benchmark the training loader: samples/s per worker process, ours vs a peer-style loader.
 
 Ours: `StoreDataset` (train augmentation, depth targets, BEV aug, temporal poses), one process.
 Reference, written to do what peer loaders do per sample: read and fully decode the 6 JPEG files,

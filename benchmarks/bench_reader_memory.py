@@ -1,4 +1,4 @@
-"""Memory and start-up of `occdata build`, `labels` and `scan` against the size of the tables (issues 32, 33).
+"""Memory and start-up of `occdata build`, `labels` and `scan` against the size of the tables.
 
     python -m benchmarks.bench_reader_memory --json docs/results/bench_reader_memory.json
     python -m benchmarks.bench_reader_memory --code /path/to/older/checkout --json before.json  # the same on older code

@@ -1,8 +1,9 @@
-"""Scale figures for `occdata build` and `occdata labels` on Dask (issues 24 and 33), for docs/scale.md.
+"""Scale figures for `occdata build` and `occdata labels` on Dask, for docs/scale.md.
 
-The issue 33 table (alone on the machine; ~25 min on the project's 2-core VM, plus ~5-8 min to make the
-world once, `occdata synth --scenes 6 --samples 40 --seed 91`: 240 keyframes at 1600x900, ~9 GB mostly
-depth maps, kept in `--world` for a rerun; plus ~5 min for `--profile`'s profiled builds):
+The 240-keyframe table of docs/scale.md (alone on the machine; ~25 min on the project's 2-core VM, plus
+~5-8 min to make the world once, `occdata synth --scenes 6 --samples 40 --seed 91`: 240 keyframes at
+1600x900, ~9 GB mostly depth maps, kept in `--world` for a rerun; plus ~5 min for `--profile`'s
+profiled builds):
 
     python -m benchmarks.bench_scale --world /tmp/bench_scale_world --synth-scenes 6 --synth-samples 240 \\
         --synth-seed 91 --block-samples 24 --lidar-sweeps 9 --rounds 2 --profile /tmp/bench_scale_profile \\
@@ -272,7 +273,7 @@ def _bytes_written() -> int:
 
 def bench_bytes(root: Path, gts: Path | None, block: int, tmp: Path, lidar_sweeps: int = 0) -> dict[str, Any]:
     """Bytes written per sample / bytes stored per sample for one build in this process (1 worker:
-    every write of the build is this process's). Goal (issue 33): 1.0x; with staging it was ~2x."""
+    every write of the build is this process's). Goal: 1.0x; a schema-1 build (staging object) wrote ~2x."""
     from occdata.store.sample import SampleOptions
 
     out_store = tmp / "bytes.zarr"

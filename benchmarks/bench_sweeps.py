@@ -1,4 +1,4 @@
-"""Benchmark `occdata build --lidar-sweeps N` (issue #19) on synthetic worlds, where the true depth
+"""Benchmark `occdata build --lidar-sweeps N` on synthetic worlds, where the true depth
 is known: depth-target density at the network's stride (16) for 256x704 input, build samples/s per
 core, store size, how far aggregated targets lie from the rendered depth (moving actors vs the same
 world with every actor frozen), and the free-space coverage of `occdata visibility --lidar-sweeps N`.

@@ -1,7 +1,7 @@
-"""Temporal fusion at single-frame cost (issues 26 and 35): the cost of history, "concat", "cached", "recurrent".
+"""Temporal fusion at single-frame cost: the cost of history, "concat", "cached", "recurrent".
 
 Four models of one preset in one process, same seed: 0 previous frames (`hist0`), 16 frames with
-today's fusion (`concat16`: the queue holds full V_B maps, a 1x1 conv over 17 x C2*8 channels), 16
+the default fusion (`concat16`: the queue holds full V_B maps, a 1x1 conv over 17 x C2*8 channels), 16
 frames with the cached fusion (`cached16`: each frame reduced once to C_r channels when current, the
 queue holds the reduced maps; warp + small fusion per frame) and the recurrent state (`recurrent`: one
 32-channel state warped and updated by a 1x1 ConvGRU cell per frame; training unrolls 4 frames).

@@ -1,4 +1,4 @@
-"""Does `fastocc train` learn? Image-free baseline, checkpoint evaluation and the learning-curve PNG (issue #11).
+"""Does `fastocc train` learn? Image-free baseline, checkpoint evaluation and the learning-curve PNG.
 
     # 1. the best image-free baseline: per-voxel most frequent TRAINING label, scored on val (camera mask)
     python -m benchmarks.bench_train baseline --store data.zarr --json baseline.json

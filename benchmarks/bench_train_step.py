@@ -1,5 +1,5 @@
 """Seconds per optimizer step of `fastocc train` on the CPU, broken down by stage, optionally side by side
-with another commit (issue #16).
+with another commit.
 
     # this checkout, the three configurations, real batches from a store (augmented, camera-masked losses)
     python -m benchmarks.bench_train_step --store data.zarr --json out.json

@@ -1,4 +1,4 @@
-"""Benchmark BEV-flip test-time augmentation (issue #9): time factor and metric change on a split.
+"""Benchmark BEV-flip test-time augmentation: time factor and metric change on a split.
 
 Runs `fastocc.infer.evaluate` on the same split without and with `--tta`, interleaved, `--repeats`
 times each; the time factor is min(TTA prediction time) / min(plain prediction time), where prediction

@@ -1,4 +1,4 @@
-"""One picture per label grid preset on the real scene-0916 (issue 32, docs/labels.md "Grids").
+"""One picture per label grid preset on the real scene-0916 (docs/labels.md "Grids").
 
     python -m benchmarks.labels_presets [--root ../shared/data/nuscenes-real-seq] [--keyframe 20] \
         [--pictures docs/img] [--json docs/results/labels_presets.json]

@@ -1,4 +1,4 @@
-"""The accounting of one timed run for benchmarks.bench_scale (issue 33). Linux only (/proc).
+"""The accounting of one timed run for benchmarks.bench_scale. Linux only (/proc).
 
 - wall time, and the units the run did (samples, keyframes);
 - CPU seconds, user and kernel, of this process (the client: tables, planning, the embedded

@@ -1,4 +1,4 @@
-"""Where the build's threads wait (issue 33): `occdata build` run as a user runs it (the CLI, its own
+"""Where the build's threads wait: `occdata build` run as a user runs it (the CLI, its own
 process, `--workers N`), under a profiler, once per tool and worker count. Not timed figures: a
 profiler slows the run. The tools are found on PATH (and beside this Python):
 
