@@ -146,7 +146,7 @@ def test_predictor_onnx_matches_checkpoint(nano_export: tuple[Path, Path, str]) 
 # Each fusion runs one of the two temporal deploy tests by default (about 50 s each); the other pairing is slow.
 @pytest.mark.parametrize(("fusion", "queue_shape"), [("concat", (2, 16 * 8)),
                                                     pytest.param("cached", (2, 16), marks=pytest.mark.slow),
-                                                    ("recurrent", (1, 16))])
+                                                    ("recurrent", (1, 32))])  # the measured default widths
 def test_temporal_stream_parity_and_fixed_state(tmp_path: Path, fusion: str, queue_shape: tuple[int, int]) -> None:
     """A temporal nano: exported step with the queue as inputs/outputs; the Predictor keeps it. ONNX and
     PyTorch agree over a moving stream, and the state keeps its size whatever the stream length. The
