@@ -117,7 +117,8 @@ def scene_modes(inputs: LabelSources, options: LabelOptions) -> dict[str, str]:
     """Scene name -> how it is labelled (`LabelOptions.mode`: boxes, naive, carve, boxes+carve): a tree
     may have boxes for some scenes and not for others."""
     boxed = set(inputs.annotations.boxes_by_sample)
-    return {sc.name: options.mode(any(t in boxed for t in sc.sample_tokens)) for sc in inputs.dataset.scenes}
+    return {sc.name: options.mode(any(t in boxed for t in sc.sample_tokens), len(sc.sample_tokens))
+            for sc in inputs.dataset.scenes}
 
 
 def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool,

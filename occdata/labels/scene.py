@@ -94,14 +94,16 @@ class LabelOptions:
         if not 0 <= self.dynamic_class < NUM_CLASSES - 1:
             raise ValueError(f"dynamic_class must be an Occ3D class 0..{NUM_CLASSES - 2}")
 
-    def carves(self, has_boxes: bool) -> bool:
-        """Whether a scene with (`has_boxes`) or without boxes is carved."""
-        return (not has_boxes) if self.carve is None else self.carve
+    def carves(self, has_boxes: bool, keyframes: int = 2) -> bool:
+        """Whether a scene with (`has_boxes`) or without boxes, of `keyframes` keyframes, is carved. By
+        default (`carve` None) the scenes without boxes are, unless they have one keyframe: carving needs
+        other times' rays, and one keyframe's own points do not smear (such a scene is labelled naively)."""
+        return (not has_boxes and keyframes > 1) if self.carve is None else self.carve
 
-    def mode(self, has_boxes: bool) -> str:
+    def mode(self, has_boxes: bool, keyframes: int = 2) -> str:
         """How a scene is labelled, in a word: boxes, naive (every point static), carve, boxes+carve."""
         boxes = has_boxes and self.use_boxes
-        if self.carves(has_boxes):
+        if self.carves(has_boxes, keyframes):
             return "boxes+carve" if boxes else "carve"
         return "boxes" if boxes else "naive"
 
@@ -589,14 +591,14 @@ def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
     indices = [ds.index_of(t) for t in scene.sample_tokens]
     counts = SceneCounts(keyframes=len(indices))
     has_boxes = any(inputs.annotations.boxes_by_sample.get(t) for t in scene.sample_tokens)
-    carving = opts.carves(has_boxes)
-    counts.mode = opts.mode(has_boxes)
+    carving = opts.carves(has_boxes, len(indices))
+    counts.mode = opts.mode(has_boxes, len(indices))
     withheld = carving and not opts.use_boxes  # --boxes none: the boxes give nothing, not even classes
     carve_grid = None
     if carving:
         if len(indices) < 2:
-            raise OccDataError(f"scene {scene.name} has {len(indices)} keyframe: too short to carve (it needs "
-                               "other times' rays); label it with boxes or --no-boxes")
+            raise OccDataError(f"scene {scene.name} has {len(indices)} keyframe: too short to carve (carving needs "
+                               "other times' rays); label it without --carve / --boxes none")
         frames = _frames(ds, indices, opts.lidar_sweeps)
         carve_grid = _carve(frames, *carve_region([ds.samples[i] for i in indices], grids), opts.carve_options,
                             should_stop)
