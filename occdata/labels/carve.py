@@ -18,7 +18,8 @@ global frame (`CarveGrid`, `voxel_size` metres, covering every keyframe's label 
      partly filled, or a ray grazing it; no evidence either way).
 
 A point is dynamic when its voxel has `crossed >= min_frames` and `crossed >= ratio * hits`: at least
-`min_frames` other times saw its place empty, and at least as many (`ratio` 1) as saw something there.
+`min_frames` other times saw its place empty, and at least as many (`ratio` 1) as saw something there;
+with lidarseg a third as many (`ratio_seg`), since its ground, buildings and vegetation stay static.
 Counts saturate at 255. Grids are `(X, Y, Z)`; `lower (3,) float64` the lower corner in global. Every
 numba kernel here has a plain numpy twin in tests/reference/labels_carve.py, and a test that they agree.
 """
@@ -47,7 +48,9 @@ class CarveOptions:
     """The evidence rules of the module docstring (recorded in labels.json when carving is on).
 
     voxel_size: carve grid voxel (m). min_frames: time slots that must have seen a point's voxel empty.
-    ratio: ... and at least this many times the slots that saw it occupied. margin / graze_max: the
+    ratio: ... and at least this many times the slots that saw it occupied. ratio_seg: the same for
+    points with a lidarseg class, whose ground, buildings and vegetation are never dynamic whatever
+    the rays say (so a looser rule risks only objects). margin / graze_max: the
     least and the most of each ray's last metres left out (m). window: seconds either side of a
     keyframe within which dynamic points are drawn at it (its own sweep always; 0.055 s also takes
     the neighbouring sweeps of a 20 Hz LiDAR)."""
@@ -55,6 +58,7 @@ class CarveOptions:
     voxel_size: float = 0.2
     min_frames: int = 2
     ratio: float = 1.0
+    ratio_seg: float = 0.33
     margin: float = FREE_MARGIN
     graze_max: float = 5.0
     window: float = 0.055
@@ -64,7 +68,7 @@ class CarveOptions:
             raise ValueError("carve voxel_size must be in [0.05, 2] m")
         if not 1 <= self.min_frames <= 255:
             raise ValueError("carve min_frames must be in [1, 255]")
-        if not 0 < self.ratio <= 100:
+        if not 0 < self.ratio <= 100 or not 0 < self.ratio_seg <= 100:
             raise ValueError("carve ratio must be in (0, 100]")
         if not 0 <= self.margin <= self.graze_max <= 50:
             raise ValueError("carve margins need 0 <= margin <= graze_max <= 50 m")
@@ -191,11 +195,13 @@ class CarveGrid:
             carve_rays(origins, pts, self.lower, v, self.shape, slot, float(self.opts.margin),
                        float(self.opts.graze_max), self.crossed, self.stamp)
 
-    def dynamic(self, points: np.ndarray) -> np.ndarray:
-        """`(N,) bool`: which of `points (N, 3)` (global) are dynamic (`dynamic_points`)."""
+    def dynamic(self, points: np.ndarray, classified: bool = False) -> np.ndarray:
+        """`(N,) bool`: which of `points (N, 3)` (global) are dynamic (`dynamic_points`; `classified`:
+        the points have lidarseg classes, `ratio_seg` applies)."""
         pts = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+        ratio = self.opts.ratio_seg if classified else self.opts.ratio
         return dynamic_points(pts, self.lower, float(self.opts.voxel_size), self.shape, self.hits, self.crossed,
-                              int(self.opts.min_frames), float(self.opts.ratio))
+                              int(self.opts.min_frames), float(ratio))
 
     @property
     def nbytes(self) -> int:

@@ -159,7 +159,8 @@ def _carving_words(o: LabelOptions, with_seg: bool, carved: list[str]) -> dict[s
         "scenes": carved,
         "rule": (f"a point outside every box is dynamic when at least {c.min_frames} other time slots' LiDAR rays "
                  f"crossed its {c.voxel_size} m voxel (global frame), and at least {c.ratio:g} times as many slots "
-                 "as had a return there; a ray's last clamp(voxel / |sin elevation|, "
+                 f"as had a return there ({c.ratio_seg:g} times for points with a lidarseg class); a ray's last "
+                 "clamp(voxel / |sin elevation|, "
                  f"{c.margin}, {c.graze_max}) m before its return, the return's voxel, and voxels where the same "
                  "slot has a return are no evidence"),
         "static": "the other points: aggregated over the scene in the global frame and drawn at every keyframe",

@@ -287,9 +287,11 @@ def _add_sweep(cloud: _Cloud, points: np.ndarray, boxes: tuple[BoxRecord, ...], 
     takes the class of the nearest labelled keyframe point, of its box's instance (box frame) or of
     the static scene (global), whichever is nearer (an in-box point with neither in reach: the box's
     class). A static point with no labelled point in reach is dropped (counted). With `dynamic`
-    (carving), a point outside boxes marked there is a dynamic point of frame `t_us` with the class of
-    the nearest dynamic keyframe point (`dynamic_index`; none in reach: `dynamic_class`), unless a
-    ground, building or vegetation keyframe point is nearer (then it is static)."""
+    (carving; for sweeps always the rule for unclassified points: their classes are borrowed), a point
+    outside boxes marked there is a dynamic point of frame `t_us` with the class of the nearest dynamic
+    keyframe point (`dynamic_index`; none in reach: `dynamic_class`). No ground test here: the nearest
+    static keyframe point of a mover's sweep point is often the road under it (its keyframe points are
+    elsewhere then), which would keep the mover's low points static and smear them."""
     if static_index is None:
         _add_keyframe(cloud, points, None, boxes, opts, counts, dynamic, t_us)
         return
@@ -312,11 +314,9 @@ def _add_sweep(cloud: _Cloud, points: np.ndarray, boxes: tuple[BoxRecord, ...], 
         idx[sel[~own]] = -1
     if dynamic is not None:
         moving = np.flatnonzero((idx == -1) & dynamic)
-        cls_d, d2_d = (dynamic_index.query(points[moving]) if dynamic_index is not None
-                       else (np.full(len(moving), NO_LABEL, np.uint8), np.full(len(moving), np.inf)))
-        stuff = np.isin(cls_s[moving], _STUFF) & (d2_s[moving] < d2_d)
-        moving = moving[~stuff]
-        c = np.where(cls_d[~stuff] == NO_LABEL, opts.dynamic_class, cls_d[~stuff]).astype(np.uint8)
+        cls_d = (dynamic_index.query(points[moving])[0] if dynamic_index is not None
+                 else np.full(len(moving), NO_LABEL, np.uint8))
+        c = np.where(cls_d == NO_LABEL, opts.dynamic_class, cls_d).astype(np.uint8)
         cloud.add_dynamic(t_us, points[moving], c)
         counts.dynamic_points += len(moving)
         idx[moving] = -2
@@ -607,8 +607,8 @@ def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
     def boxes_of(i: int, k: int, rec: LidarRecord) -> tuple[BoxRecord, ...]:
         return () if withheld else _frame_boxes(inputs, i, k, rec)
 
-    def moving(points: np.ndarray) -> np.ndarray | None:
-        return None if carve_grid is None else carve_grid.dynamic(points)
+    def moving(points: np.ndarray, classified: bool) -> np.ndarray | None:
+        return None if carve_grid is None else carve_grid.dynamic(points, classified)
 
     cloud = _Cloud()
     rays: dict[str, Rays] = {}
@@ -634,7 +634,7 @@ def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
             counts.dropped_ego += int((~off_ego).sum())
             counts.dropped_class += int((off_ego & ~keep).sum())
             _add_keyframe(cloud, points[keep], None if cls is None else cls[keep], boxes_of(i, k, rec), opts, counts,
-                          moving(points[keep]), rec.timestamp)
+                          moving(points[keep], cls is not None), rec.timestamp)
     sweeps = later + [f for f in _frames(ds, indices, True) if f[2] not in ds.samples[f[0]].lidars] \
         if opts.lidar_sweeps else later
     if sweeps:  # pass 2: sweeps, labelled from the keyframes
@@ -652,7 +652,7 @@ def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
             counts.points += len(points)
             counts.dropped_ego += int((~off_ego).sum())
             _add_sweep(cloud, points[off_ego], boxes_of(i, k, rec), static_index, object_index or {}, opts, counts,
-                       moving(points[off_ego]), rec.timestamp, dynamic_index)
+                       moving(points[off_ego], False), rec.timestamp, dynamic_index)
     counts.instances = len(cloud.obj_pts)
     static = cloud.static()
     static = (np.ascontiguousarray(static[0]), np.ascontiguousarray(static[1]))
