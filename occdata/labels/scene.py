@@ -559,19 +559,21 @@ def _frames(ds: NuScenesDataset, indices: list[int], sweeps: bool) -> list[tuple
     return out
 
 
-def _carve(frames: list[tuple[int, int, LidarRecord]], lo: np.ndarray, hi: np.ndarray, opts: CarveOptions,
-           should_stop: Callable[[], None]) -> CarveGrid:
+def _carve(frames: list[tuple[int, int, LidarRecord]], keyframe_frames: int, lo: np.ndarray, hi: np.ndarray,
+           opts: CarveOptions, should_stop: Callable[[], None]) -> CarveGrid:
     """The scene's free-space evidence (`occdata.labels.carve`): every frame's rays, from its own LiDAR,
-    counted once per time slot (a keyframe's LiDARs fire together)."""
+    counted once per time slot (a keyframe's LiDARs fire together); `frames` as `_frames` gives them,
+    the first `keyframe_frames` the keyframes' (the sweeps' rays are thinned, `CarveOptions.ray_stride`)."""
     grid = CarveGrid(lo, hi, opts)
     slots = time_slots([rec.timestamp for _, _, rec in frames])
     for slot in np.unique(slots):
         should_stop()
-        rays = []
+        rays, sweep = [], False
         for f in np.flatnonzero(slots == slot):
             points, origin, off_ego = _frame_points(frames[f][2])
             rays.append((origin, points[off_ego]))
-        grid.add_slot(int(slot), rays)
+            sweep |= f >= keyframe_frames
+        grid.add_slot(int(slot), rays, thin=sweep)
     return grid
 
 
@@ -600,8 +602,9 @@ def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
             raise OccDataError(f"scene {scene.name} has {len(indices)} keyframe: too short to carve (carving needs "
                                "other times' rays); label it without --carve / --boxes none")
         frames = _frames(ds, indices, opts.lidar_sweeps)
-        carve_grid = _carve(frames, *carve_region([ds.samples[i] for i in indices], grids), opts.carve_options,
-                            should_stop)
+        n_key = sum(len(ds.samples[i].lidars) for i in indices)
+        carve_grid = _carve(frames, n_key, *carve_region([ds.samples[i] for i in indices], grids),
+                            opts.carve_options, should_stop)
         counts.carve_voxels = int(np.prod(carve_grid.shape))
 
     def boxes_of(i: int, k: int, rec: LidarRecord) -> tuple[BoxRecord, ...]:
