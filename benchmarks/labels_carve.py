@@ -155,6 +155,18 @@ def real_part(a: argparse.Namespace, work: Path) -> dict[str, object]:
         rows[name] |= _score(root, work / f"gen_{name}", work / "gen_boxes", truth=False)
         print(name, json.dumps({k: round(v, 4) for k, v in rows[name].items()}), flush=True)
     rows["carve"]["smear_removed_vs_naive"] = _removed(rows, "carve", "naive")
+    for spec in a.carve_options:  # the evidence rule's trade-off (library call: the CLI has no such options)
+        from occdata.labels import LabelOptions, LabelsConfig, generate_labels
+        from occdata.labels.carve import CarveOptions
+
+        name = f"carve {spec}"
+        out = work / f"gen_carve_{len(rows)}"
+        shutil.rmtree(out, ignore_errors=True)
+        opts = LabelOptions(use_boxes=False, carve=True, carve_options=CarveOptions(**json.loads(spec)))
+        generate_labels(LabelsConfig(root=root, out=out, options=opts, progress=False))
+        rows[name] = _score(root, out, work / "gen_boxes", truth=False)
+        rows[name]["smear_removed_vs_naive"] = 1.0 - rows[name]["path_wrong"] / max(rows["naive"]["path_wrong"], 1)
+        print(name, json.dumps({k: round(v, 4) for k, v in rows[name].items()}), flush=True)
     return {"root": str(root), "rows": rows}
 
 
@@ -207,8 +219,7 @@ def lyft_part(a: argparse.Namespace, work: Path) -> dict[str, object]:
         naive, carved = (_load(work / f"gen_{k}", s.scene_name, s.token) for k in ("naive", "carve"))
         # No camera images: the real data stay out of the repository.
         pic = prediction_picture([], naive["semantics"], carved["semantics"], carved["mask_camera"], width=1200,
-                                 title=f"Lyft keyframe {a.keyframe} (3 LiDARs, no boxes); black = static (class "
-                                       "unknown), blue = dynamic (carved, drawn at its own time)",
+                                 title=f"Lyft keyframe {a.keyframe}, 3 LiDARs, no boxes; black static, blue dynamic",
                                  names=("naive: every point static", "carved by the scene's own rays"))
         path = a.pictures / f"labels_carve_lyft_k{a.keyframe:02d}.png"
         cv2.imwrite(str(path), pic[:, :, ::-1])
@@ -225,6 +236,8 @@ def main() -> None:
     ap.add_argument("--sweeps", action="store_true", help="synth: with --lidar-sweeps")
     ap.add_argument("--variants", default=",".join(SYNTH_VARIANTS))
     ap.add_argument("--keyframe", type=int, default=8, help="lyft: the keyframe to draw")
+    ap.add_argument("--carve-options", nargs="*", default=[], metavar="JSON",
+                    help='real: also carve with these CarveOptions, e.g. \'{"min_frames": 3, "ratio": 2}\'')
     ap.add_argument("--pictures", type=Path, default=None)
     ap.add_argument("--keep", type=Path, default=None, help="work folder to keep (default: a temporary one)")
     ap.add_argument("--json", type=Path, default=None)
