@@ -136,7 +136,7 @@ def _smear(world: Path, gen: Path) -> tuple[int, int]:
 
 def test_carving_keeps_precision_and_removes_smear(world: Path, tmp_path: Path) -> None:
     """Keyframes only, lidarseg: carving without boxes against the box-aware run and naive accumulation,
-    scored on the world's exact truth (measured: precision 0.990, recall 0.765 vs 0.771, 76% of the
+    scored on the world's exact truth (measured: precision 0.992, recall 0.764 vs 0.771, 79% of the
     naive path smear removed; 40 keyframes with sweeps: docs/labels.md)."""
     runs = {"boxes": LabelOptions(), "carve": LabelOptions(use_boxes=False, carve=True),
             "naive": LabelOptions(use_boxes=False, carve=False)}
