@@ -247,3 +247,19 @@ def test_lidar_files_without_returns(world: Path, tmp_path: Path) -> None:
     with pytest.raises(OccDataError, match="corrupt LiDAR file .*0 bytes") as e:
         generate_labels(LabelsConfig(root=tree, out=tmp_path / "b", options=opts, progress=False))
     assert "\n" not in str(e.value)
+
+
+LYFT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lyft-real"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not LYFT.is_dir(), reason="the real Lyft keyframes are not in ../shared/data/lyft-real")
+def test_real_lyft_tree_labels_end_to_end(tmp_path: Path) -> None:
+    """The real Lyft keyframes (3 LiDARs, no boxes) label with no option: carved, every LiDAR's frames
+    aggregated (16 keyframes x 3), some points dynamic, one label per keyframe (~20 s)."""
+    report = generate_labels(LabelsConfig(root=LYFT, out=tmp_path / "out", progress=False))
+    counts = next(iter(json.loads((tmp_path / "out" / "labels.json").read_text())["scenes"].values()))["counts"]
+    assert set(report.modes.values()) == {"carve"}
+    assert counts["frames"] == 48 and counts["keyframes"] == 16
+    assert 0 < counts["dynamic_points"] < 0.5 * counts["points"]
+    assert len(list((tmp_path / "out").rglob("labels.npz"))) == 16
