@@ -234,6 +234,15 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
               help="Metres within which a sweep point takes the class of the nearest labelled keyframe point.")
 @click.option("--no-boxes", is_flag=True,
               help="The control: aggregate every point in the global frame, ignoring boxes (moving objects smear).")
+@click.option("--boxes", "boxes_mode", type=click.Choice(["auto", "none"]), default="auto", show_default=True,
+              help="none: withhold the boxes and split points into static and dynamic by the scene's own rays "
+                   "(free-space carving). auto: boxes where a scene has them, carving where it has none.")
+@click.option("--carve/--no-carve", default=None,
+              help="Carve on top of the boxes too (movers the annotators missed), or never carve. Default: carve "
+                   "exactly the scenes without boxes (docs/labels.md, 'Without boxes').")
+@click.option("--dynamic-class", type=click.IntRange(0, 16), default=4, show_default=True,
+              help="Without lidarseg, the Occ3D class of points found dynamic by carving (4 = car, a stand-in for "
+                   "'something that moved'). Recorded in labels.json.")
 @click.option("--densify", is_flag=True,
               help="Fill what surfaces imply where no LiDAR ray saw free space: objects' boxes, a few voxels "
                    "behind buildings and vegetation, holes in surfaces (docs/labels.md, 'Densification').")
@@ -251,12 +260,14 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
 @progress_option()
 @friendly_errors
 def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], scenes: tuple[str, ...],
-           all_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, densify: bool,
+           all_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, boxes_mode: str,
+           carve: bool | None, dynamic_class: int, densify: bool,
            grids: tuple[str, ...],
            voxel_size: float | None, grid_range: tuple[float, ...] | None, cluster: ClusterConfig,
            resume: bool, progress: bool) -> None:
     """Generate occupancy labels from LiDAR and 3D boxes (and lidarseg when present), on the grid of
-    Occ3D-nuScenes and, with --grid / --voxel-size, of other benchmarks.
+    Occ3D-nuScenes and, with --grid / --voxel-size, of other benchmarks; without boxes (or with --boxes
+    none), moving objects are found by free-space carving.
 
     Per scene: LiDAR points aggregated over time, static points in the global frame, points inside a
     box in that box's frame (moving objects stay sharp); then per keyframe and grid a majority vote of
@@ -272,12 +283,20 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
             root=local_path(root, "--root"), out=out_path, version=version, splits=splits or None,
             scenes=scenes or None, resume=resume, progress=progress,
             options=LabelOptions(lidar_sweeps=all_sweeps, static_class=static_class, knn_radius=knn_radius,
-                                 use_boxes=not no_boxes, densify=densify),
+                                 use_boxes=not no_boxes and boxes_mode == "auto", densify=densify,
+                                 carve=carve if carve is not None else (True if boxes_mode == "none" else
+                                                                        False if no_boxes else None),
+                                 dynamic_class=dynamic_class),
             cluster=cluster, grids=specs,
         ))
     seg = "lidarseg classes" if report.with_lidarseg else f"no lidarseg: static points are class {static_class}"
+    carved = sorted(name for name, mode in report.modes.items() if "carve" in mode)
+    if carved and len(carved) < len(report.modes):
+        click.echo(f"carved (no boxes, or --carve): {len(carved)} of {len(report.modes)} scenes: "
+                   f"{', '.join(carved[:5])}{' ...' if len(carved) > 5 else ''}", err=True)
     click.echo(f"{out_path}: {report.scenes_done} scene(s) labelled, {report.scenes_skipped} already done, "
-               f"{report.keyframes} keyframes ({seg}); manifest {report.manifest}")
+               f"{report.keyframes} keyframes ({seg}"
+               f"{'; moving objects by free-space carving' if carved else ''}); manifest {report.manifest}")
 
 
 @main.command("bev-gt")

@@ -219,8 +219,9 @@ def densify(semantics: np.ndarray, origin: np.ndarray, endpoints: np.ndarray, T_
             static_rays: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """`semantics (X, Y, Z) uint8` with the fills of the module docstring: boxes first, then behind
     solid static surfaces, then holes. Evidence: the keyframe's rays from `origin (3,)` to `endpoints
-    (N, 3)` (float64, grid frame), and for the static scene also `static_rays` (origins (M, 3), endpoints
-    (M, 3): other keyframes' rays; the static scene does not move, objects may). Boxes: `T_box_from_grid
+    (N, 3)` (float64, grid frame; for several LiDARs `origin` is `(N, 3)`, one per ray), and for the
+    static scene also `static_rays` (origins (M, 3), endpoints (M, 3): other keyframes' rays; the static
+    scene does not move, objects may). Boxes: `T_box_from_grid
     (B, 4, 4)`, `half_size (B, 3)` (length, width, height halves), `box_classes (B,) uint8` (the objects
     whose points are in the labels). Returns the new semantics and `(X, Y, Z) int32` the box that filled
     each voxel (-1: none)."""
@@ -237,8 +238,10 @@ def densify(semantics: np.ndarray, origin: np.ndarray, endpoints: np.ndarray, T_
                        np.ascontiguousarray(half_size, np.float64).reshape(-1, 3), lower, float(voxel_size))
     cls = np.append(np.asarray(box_classes, np.uint8).reshape(-1), np.uint8(FREE_LABEL))  # owner -1: free
     out = np.where(owner >= 0, cls[owner], semantics).astype(np.uint8)
+    # Several LiDARs (`origin (N, 3)`): the walks start from the first ray's origin, the reference LiDAR.
+    origin_xy = np.asarray(origin, np.float64).reshape(-1, 3)[0, :2].copy()
     behind = fill_behind(semantics, free_static, np.isin(np.arange(NUM_CLASSES), SOLID_STATIC),
-                         np.asarray(origin, np.float64)[:2].copy(), DEPTH, lower, float(voxel_size))
+                         origin_xy, DEPTH, lower, float(voxel_size))
     out = np.where(out == FREE_LABEL, behind, out)
     ground_cls = np.isin(np.arange(NUM_CLASSES), GROUND_CLASSES)
     holes = close_holes(semantics, free, (np.arange(NUM_CLASSES) != FREE_LABEL) & ~ground_cls, GAP)

@@ -19,7 +19,7 @@ from occdata.geometry import invert_rigid, points_in_box
 from occdata.nuscenes.annotations import moving_instances
 
 __all__ = ["BANDS", "Fidelity", "SceneScore", "band_regions", "instance_containment", "moving_containment",
-           "observable_surface", "score_scene", "voxel_fidelity"]
+           "observable_surface", "score_scene", "swept_path", "voxel_fidelity"]
 
 # Bands of horizontal distance (m) from the key-ego origin to a voxel's centre: [lo, hi).
 BANDS: tuple[tuple[float, float], ...] = ((0.0, 20.0), (20.0, 40.0), (40.0, np.inf))
@@ -203,3 +203,45 @@ def score_scene(generated: list[np.ndarray], truth: list[tuple[np.ndarray, ...]]
         total.add(band)
     moving = moving_containment(generated, T_keyego_from_global, boxes_by_keyframe, class_of)
     return SceneScore(total, moving, bands)
+
+
+def _box_voxels(T_keyego_from_box: np.ndarray, size_wlh: np.ndarray, dilate: int) -> np.ndarray:
+    """`(X, Y, Z) bool` of Occ3D's grid: voxel centres in the box grown by `dilate` voxels (the
+    box's bounding block alone is tested)."""
+    w, length, h = np.asarray(size_wlh, np.float64)
+    half = np.array([length / 2, w / 2, h / 2]) + dilate * GRID.voxel_size
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * half
+    c = corners @ T_keyego_from_box[:3, :3].T + T_keyego_from_box[:3, 3]
+    lower, v, shape = np.asarray(GRID.lower), GRID.voxel_size, np.array(GRID.shape)
+    i0 = np.clip(np.floor((c.min(axis=0) - lower) / v).astype(int), 0, shape)
+    i1 = np.clip(np.ceil((c.max(axis=0) - lower) / v).astype(int) + 1, 0, shape)
+    out = np.zeros(GRID.shape, bool)
+    if (i1 <= i0).any():
+        return out
+    axes = [lower[a] + (np.arange(i0[a], i1[a]) + 0.5) * v for a in range(3)]
+    block = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    inside = points_in_box(block, invert_rigid(T_keyego_from_box), half)
+    out[i0[0]:i1[0], i0[1]:i1[1], i0[2]:i1[2]] = inside.reshape(i1 - i0)
+    return out
+
+
+def swept_path(generated: np.ndarray, reference_free: np.ndarray, T_keyego_from_global: np.ndarray,
+               boxes_by_keyframe: list[list], now: int, movers: set[str], dilate: int = 1) -> tuple[int, int]:
+    """Smear along moving objects' paths at keyframe `now`: `(wrong, free)` voxels.
+
+    The path is the union of every box of the `movers` (instance tokens) over the scene's keyframes
+    (`boxes_by_keyframe`, BoxRecords), moved into this keyframe's key ego, less every box at this
+    keyframe (where something is now), each grown by `dilate` voxels. `free` counts the path's voxels
+    free in the reference (`reference_free (X, Y, Z) bool`: the truth, or a box-aware run), `wrong`
+    those of them occupied in `generated (X, Y, Z) uint8` (17 = free): what was left where an object
+    passed. Occ3D's grid."""
+    T = T_keyego_from_global
+    path = np.zeros(GRID.shape, bool)
+    for boxes in boxes_by_keyframe:
+        for b in boxes:
+            if b.instance_token in movers:
+                path |= _box_voxels(T @ b.T_global_from_box(), b.size_wlh, dilate)
+    for b in boxes_by_keyframe[now]:
+        path &= ~_box_voxels(T @ b.T_global_from_box(), b.size_wlh, dilate)
+    path &= reference_free
+    return int((path & (generated != FREE_LABEL)).sum()), int(path.sum())

@@ -26,7 +26,7 @@ from occdata.errors import OccDataError
 from occdata.fileio import remove_stale_temps, write_atomic
 from occdata.formats.gridfiles import LAYOUT_FILES, LabelSite, write_grid_label
 from occdata.formats.gridspec import GRID_PRESETS, GridSpec, LabelLayout
-from occdata.labels.scene import LabelOptions, LabelSources, label_scene
+from occdata.labels.scene import LabelOptions, LabelSources, SceneCounts, label_scene
 from occdata.nuscenes import NuScenesDataset, SampleRecord, find_version, load_nuscenes, validate_sample
 from occdata.nuscenes.annotations import load_annotations
 from occdata.nuscenes.lidarseg import lidarseg_index_names, load_lidarseg_index, occ3d_lut
@@ -35,7 +35,7 @@ from occdata.runtime.lock import store_lock
 from occdata.runtime.tasks import StopCheck, no_stop
 
 __all__ = ["ALGORITHM_VERSION", "LabelsConfig", "LabelsReport", "SceneJob", "generate_labels", "load_inputs",
-           "run_scene", "scene_record_path"]
+           "run_scene", "scene_modes", "scene_record_path"]
 
 # Bumped whenever the labels a given input produces change.
 ALGORITHM_VERSION = 1
@@ -78,6 +78,7 @@ class LabelsReport:
     keyframes: int
     with_lidarseg: bool
     manifest: Path
+    modes: dict[str, str] = field(default_factory=dict)  # scene -> boxes / naive / carve / boxes+carve
 
 
 def scene_record_path(out: Path, scene: str) -> Path:
@@ -106,11 +107,29 @@ def _only_scenes(ds: NuScenesDataset, names: set[str]) -> NuScenesDataset:
     return dataclasses.replace(ds, scenes=scenes, samples=tuple(s for s in ds.samples if s.scene_token in keep))
 
 
-def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool) -> dict[str, Any]:
+# Options that exist for carving alone: recorded only when some scene is carved, so that the box path's
+# manifest keeps its bytes.
+_CARVE_KEYS = ("carve", "dynamic_class", "carve_options")
+_CARVE_COUNTS = ("mode", "dynamic_points", "carve_voxels")
+
+
+def scene_modes(inputs: LabelSources, options: LabelOptions) -> dict[str, str]:
+    """Scene name -> how it is labelled (`LabelOptions.mode`: boxes, naive, carve, boxes+carve): a tree
+    may have boxes for some scenes and not for others."""
+    boxed = set(inputs.annotations.boxes_by_sample)
+    return {sc.name: options.mode(any(t in boxed for t in sc.sample_tokens), len(sc.sample_tokens))
+            for sc in inputs.dataset.scenes}
+
+
+def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool,
+                  modes: dict[str, str] | None = None) -> dict[str, Any]:
     opts = dataclasses.asdict(cfg.options)
+    carved = sorted(name for name, mode in (modes or {}).items() if "carve" in mode)
+    if not carved:
+        opts = {k: v for k, v in opts.items() if k not in _CARVE_KEYS}
     static = (f"{opts['static_class']} ({CLASS_NAMES[opts['static_class']]}): every point outside a box; the "
               "tree has no lidarseg, so this class says 'occupied, not an annotated object', not what it is")
-    return {
+    header = {
         "generator": "occdata labels",
         "algorithm_version": ALGORITHM_VERSION,
         "package_version": _package_version(),
@@ -124,6 +143,29 @@ def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool) -> dict[str, 
                   f"{GRID_PRESETS['occ3d'].shape}; {FREE_LABEL} = free",
         "grids": [{**spec.describe(), "folder": str(cfg.grid_root(spec).relative_to(cfg.out)),
                    "files": LAYOUT_FILES[spec.layout]} for spec in cfg.grids],
+    }
+    if carved:
+        header["carving"] = _carving_words(cfg.options, with_seg, carved)
+    return header
+
+
+def _carving_words(o: LabelOptions, with_seg: bool, carved: list[str]) -> dict[str, Any]:
+    """What carving did and what its classes mean, in words (labels.json)."""
+    c = o.carve_options
+    dyn = ("lidarseg classes as for every point (ground, buildings and vegetation are never dynamic)"
+           if with_seg else f"{o.dynamic_class} ({CLASS_NAMES[o.dynamic_class]}): a stand-in meaning 'on something "
+           "that moved' (a car, a cyclist, a pedestrian alike); the tree has no lidarseg to say which")
+    return {
+        "scenes": carved,
+        "rule": (f"a point outside every box is dynamic when at least {c.min_frames} other time slots' LiDAR rays "
+                 f"crossed its {c.voxel_size} m voxel (global frame), and at least {c.ratio:g} times as many slots "
+                 f"as had a return there ({c.ratio_seg:g} times for points with a lidarseg class); a ray's last "
+                 "clamp(voxel / |sin elevation|, "
+                 f"{c.margin}, {c.graze_max}) m before its return, the return's voxel, and voxels where the same "
+                 "slot has a return are no evidence"),
+        "static": "the other points: aggregated over the scene in the global frame and drawn at every keyframe",
+        "dynamic": (f"drawn only at the keyframes within {c.window} s of their frame, where they were then; "
+                    f"class {dyn}"),
     }
 
 
@@ -168,6 +210,14 @@ def _settings(header: dict[str, Any]) -> dict[str, Any]:
             "lidarseg": header["lidarseg"], "grids": [g["name"] for g in header["grids"]]}
 
 
+def _counts_record(counts: SceneCounts) -> dict[str, Any]:
+    """A scene's counts for its record; the carving ones only where it was carved."""
+    out = dataclasses.asdict(counts)
+    if "carve" not in counts.mode:
+        out = {k: v for k, v in out.items() if k not in _CARVE_COUNTS}
+    return out
+
+
 @dataclass(frozen=True)
 class SceneJob:
     """One task: label scene `scene` of `cfg`'s tree. `inputs` is that scene's slice of what the
@@ -196,7 +246,7 @@ class SceneJob:
         scene = self.inputs.dataset.scenes[0]
         flow = [g.name for g in self.cfg.grids if g.layout is LabelLayout.OPENOCC_V2]  # the layout that holds flow
         labels, counts = label_scene(self.inputs, scene, self.cfg.options, should_stop, self.cfg.grids, flow)
-        record = {"settings": json.loads(self.settings), "counts": dataclasses.asdict(counts),
+        record = {"settings": json.loads(self.settings), "counts": _counts_record(counts),
                   "samples": sorted(labels[self.cfg.grids[0].name])}
         sites = {s.token: _site(s) for s in self.inputs.dataset.samples}  # the scene's slice: its samples
         for spec in self.cfg.grids:
@@ -218,7 +268,8 @@ def generate_labels(cfg: LabelsConfig, client: Any = None) -> LabelsReport:
     on `client`, a `distributed.Client` already open. Raises `occdata.runtime.cluster.Interrupted` on Ctrl-C /
     SIGTERM (finished scenes are kept)."""
     inputs, version = load_inputs(cfg)
-    header = _options_dict(cfg, version, bool(inputs.lidarseg))
+    modes = scene_modes(inputs, cfg.options)
+    header = _options_dict(cfg, version, bool(inputs.lidarseg), modes)
     cfg.out.mkdir(parents=True, exist_ok=True)
     with store_lock(cfg.out, "labels"):
         _check_out(cfg, header)
@@ -232,4 +283,4 @@ def generate_labels(cfg: LabelsConfig, client: Any = None) -> LabelsReport:
         with contextlib.nullcontext(client) if client is not None else cluster_client(cfg.cluster) as run_on:
             run_tasks(run_on, jobs, desc="labels", unit="sample", progress=cfg.progress)
         manifest = _commit(cfg.out, header, (sc.name for sc in inputs.dataset.scenes))
-    return LabelsReport(len(todo), skipped, len(inputs.dataset.samples), bool(inputs.lidarseg), manifest)
+    return LabelsReport(len(todo), skipped, len(inputs.dataset.samples), bool(inputs.lidarseg), manifest, modes)

@@ -15,6 +15,11 @@
    occdata.visibility.
 5. Optionally (`flow`), per voxel the ground velocity of the box whose points won its vote (the devkit's
    `box_velocity`, rotated into the grid's frame); 0 for the static scene and free space.
+6. Carving (`carve`; by default exactly in the scenes without boxes): the points outside every box are
+   split into static and dynamic by the scene's own rays (`occdata.labels.carve`). The static ones are
+   aggregated as above; a dynamic point is drawn only at the keyframes within `carve_options.window`
+   seconds of its frame, where it was then. Every LiDAR of the rig takes part: each frame's points
+   through its own calibration and ego pose, each ray from its own LiDAR's origin.
 """
 
 from __future__ import annotations
@@ -26,8 +31,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from occdata.constants import EGO_BOX, FREE_LABEL, NUM_CLASSES, OccGrid
+from occdata.errors import OccDataError
 from occdata.formats.gridspec import GRID_PRESETS, GridSpec, LabelFrame
 from occdata.geometry import invert_rigid, transform_points
+from occdata.labels.carve import CarveGrid, CarveOptions, time_slots
 from occdata.labels.densify import densify
 from occdata.labels.kernels import NO_LABEL, NearestIndex, majority, points_in_boxes, vote_sources, vote_voxels
 from occdata.nuscenes import LidarRecord, NuScenesDataset, SampleRecord, SceneRecord, load_lidar_points
@@ -35,7 +42,7 @@ from occdata.nuscenes.annotations import Annotations, BoxRecord, boxes_for_lidar
 from occdata.nuscenes.lidarseg import DROP, OCC3D_FROM_LIDARSEG, read_lidarseg
 from occdata.visibility import GROUND_CLASSES, camera_mask, lidar_mask
 
-__all__ = ["LabelOptions", "LabelSources", "SceneCounts", "label_scene"]
+__all__ = ["LabelOptions", "LabelSources", "SceneCounts", "carve_region", "label_scene"]
 
 # Densification casts about this many keyframes' worth of other keyframes' rays (`_static_rays`).
 STATIC_RAY_FRAMES = 8
@@ -57,7 +64,11 @@ class LabelOptions:
     spans less than this many metres in x and y over the scene is parked (`moving_instances`): at
     keyframes where it has no box (annotation stops once an object is out of sight) it is drawn at
     its nearest annotated pose (0: never). densify: fill the insides of objects' boxes and of solid
-    static surfaces, and holes in surfaces, where no ray saw free space (`occdata.labels.densify`)."""
+    static surfaces, and holes in surfaces, where no ray saw free space (`occdata.labels.densify`).
+    carve: split the points outside boxes into static and dynamic by free-space carving (None: in
+    the scenes without boxes only; True: also on top of boxes; False: never). With carve True and
+    use_boxes False the boxes are withheld altogether (`--boxes none`). dynamic_class: the Occ3D class
+    of dynamic points without lidarseg; carve_options: the evidence rules (`occdata.labels.carve`)."""
 
     lidar_sweeps: bool = False
     knn_radius: float = 0.5
@@ -67,6 +78,9 @@ class LabelOptions:
     hold_static: float = 1.0
     use_boxes: bool = True  # False: naive global aggregation, the smearing control
     densify: bool = False
+    carve: bool | None = None
+    dynamic_class: int = 4
+    carve_options: CarveOptions = CarveOptions()
 
     def __post_init__(self) -> None:
         if not 0 < self.knn_radius <= 5:
@@ -77,6 +91,21 @@ class LabelOptions:
             raise ValueError("box_margin and floor_margin must be in [0, 1] m")
         if not 0 <= self.static_class < NUM_CLASSES - 1:
             raise ValueError(f"static_class must be an Occ3D class 0..{NUM_CLASSES - 2}")
+        if not 0 <= self.dynamic_class < NUM_CLASSES - 1:
+            raise ValueError(f"dynamic_class must be an Occ3D class 0..{NUM_CLASSES - 2}")
+
+    def carves(self, has_boxes: bool, keyframes: int = 2) -> bool:
+        """Whether a scene with (`has_boxes`) or without boxes, of `keyframes` keyframes, is carved. By
+        default (`carve` None) the scenes without boxes are, unless they have one keyframe: carving needs
+        other times' rays, and one keyframe's own points do not smear (such a scene is labelled naively)."""
+        return (not has_boxes and keyframes > 1) if self.carve is None else self.carve
+
+    def mode(self, has_boxes: bool, keyframes: int = 2) -> str:
+        """How a scene is labelled, in a word: boxes, naive (every point static), carve, boxes+carve."""
+        boxes = has_boxes and self.use_boxes
+        if self.carves(has_boxes, keyframes):
+            return "boxes+carve" if boxes else "carve"
+        return "boxes" if boxes else "naive"
 
 
 @dataclass(frozen=True, eq=False)
@@ -95,7 +124,7 @@ class LabelSources:
         boxes and lidarseg files. A task carries this slice, so a worker's memory does not grow with
         the tree (a sweep's boxes need only its own sample and that sample's `prev`, both in the scene)."""
         ds = self.dataset.scene_slice(scene)
-        lidar_tokens = [rec.token for s in ds.samples for rec in (s.lidar, *s.sweeps)]
+        lidar_tokens = [rec.token for s in ds.samples for rec in (s.lidar, *s.sweeps)]  # lidarseg: LIDAR_TOP only
         return LabelSources(ds, self.annotations.for_samples(scene.sample_tokens),
                            {t: self.lidarseg[t] for t in lidar_tokens if t in self.lidarseg}, self.lidarseg_lut)
 
@@ -113,6 +142,11 @@ class SceneCounts:
     dropped_class: int = 0  # lidarseg noise / ego
     dropped_unlabelled: int = 0  # sweep points with no labelled keyframe point within knn_radius
     instances: int = 0
+    # Carving only (left out of a scene's record otherwise): the labelling mode, points found dynamic,
+    # and the carve grid's voxels.
+    mode: str = "boxes"
+    dynamic_points: int = 0
+    carve_voxels: int = 0
 
 
 @dataclass
@@ -123,6 +157,16 @@ class _Cloud:
     static_cls: list[np.ndarray] = field(default_factory=list)
     obj_pts: dict[str, list[np.ndarray]] = field(default_factory=lambda: defaultdict(list))
     obj_cls: dict[str, list[np.ndarray]] = field(default_factory=lambda: defaultdict(list))
+    dyn: list[tuple[int, np.ndarray, np.ndarray]] = field(default_factory=list)  # (timestamp us, points, classes)
+
+    def add_dynamic(self, t_us: int, pts: np.ndarray, cls: np.ndarray) -> None:
+        if len(pts):
+            self.dyn.append((t_us, pts, cls))
+
+    def dynamic_at(self, t_us: int, window_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """The dynamic points `(N, 3)` (global) and classes of the frames within `window_s` of `t_us`."""
+        near = [(p, c) for t, p, c in self.dyn if abs(t - t_us) <= window_s * 1e6]
+        return _cat([p for p, _ in near], [c for _, c in near])
 
     def add_static(self, pts: np.ndarray, cls: np.ndarray) -> None:
         self.static_pts.append(pts)
@@ -208,8 +252,10 @@ def _members(points: np.ndarray, cls: np.ndarray | None, boxes: tuple[BoxRecord,
 
 
 def _add_keyframe(cloud: _Cloud, points: np.ndarray, cls: np.ndarray | None, boxes: tuple[BoxRecord, ...],
-                  opts: LabelOptions, counts: SceneCounts) -> None:
-    """Split a keyframe's global points into static and per-instance (box frame) points with classes."""
+                  opts: LabelOptions, counts: SceneCounts, dynamic: np.ndarray | None = None, t_us: int = 0) -> None:
+    """Split a keyframe's global points into static and per-instance (box frame) points with classes;
+    with `dynamic (N,) bool` (carving) the points outside boxes marked there, less ground, buildings and
+    vegetation by lidarseg, are kept as frame `t_us`'s dynamic points instead of static ones."""
     idx = _members(points, cls, boxes, opts)
     for b in np.unique(idx[idx >= 0]):
         sel = idx == b
@@ -221,20 +267,33 @@ def _add_keyframe(cloud: _Cloud, points: np.ndarray, cls: np.ndarray | None, box
         else:  # the control: the box gives the class only, the point stays where it was seen
             cloud.add_static(points[sel], c)
     static = idx < 0
+    if dynamic is not None:
+        moving = static & dynamic & (True if cls is None else ~np.isin(cls, _STUFF))
+        c = cls[moving] if cls is not None else np.full(int(moving.sum()), opts.dynamic_class, np.uint8)
+        cloud.add_dynamic(t_us, points[moving], c)
+        counts.dynamic_points += int(moving.sum())
+        idx = np.where(moving, -2, idx)  # neither static nor an instance's
+        static = idx == -1
     c = cls[static] if cls is not None else np.full(int(static.sum()), opts.static_class, np.uint8)
     cloud.add_static(points[static], c)
-    counts.object_points += int((~static).sum())
+    counts.object_points += int((idx >= 0).sum()) if dynamic is not None else int((~static).sum())
     counts.static_points += int(static.sum())
 
 
 def _add_sweep(cloud: _Cloud, points: np.ndarray, boxes: tuple[BoxRecord, ...], static_index: NearestIndex | None,
-               object_index: dict[str, NearestIndex], opts: LabelOptions, counts: SceneCounts) -> None:
+               object_index: dict[str, NearestIndex], opts: LabelOptions, counts: SceneCounts,
+               dynamic: np.ndarray | None = None, t_us: int = 0, dynamic_index: NearestIndex | None = None) -> None:
     """A sweep's points: without lidarseg (`static_index` None) as a keyframe's; with it, each point
     takes the class of the nearest labelled keyframe point, of its box's instance (box frame) or of
     the static scene (global), whichever is nearer (an in-box point with neither in reach: the box's
-    class). A static point with no labelled point in reach is dropped (counted)."""
+    class). A static point with no labelled point in reach is dropped (counted). With `dynamic`
+    (carving; for sweeps always the rule for unclassified points: their classes are borrowed), a point
+    outside boxes marked there is a dynamic point of frame `t_us` with the class of the nearest dynamic
+    keyframe point (`dynamic_index`; none in reach: `dynamic_class`). No ground test here: the nearest
+    static keyframe point of a mover's sweep point is often the road under it (its keyframe points are
+    elsewhere then), which would keep the mover's low points static and smear them."""
     if static_index is None:
-        _add_keyframe(cloud, points, None, boxes, opts, counts)
+        _add_keyframe(cloud, points, None, boxes, opts, counts, dynamic, t_us)
         return
     idx = _in_boxes(points, boxes if opts.use_boxes else (), opts)
     cls_s, d2_s = static_index.query(points)
@@ -253,6 +312,14 @@ def _add_sweep(cloud: _Cloud, points: np.ndarray, boxes: tuple[BoxRecord, ...], 
         counts.object_points += int(own.sum())
         idx[sel[own]] = -2  # placed with its instance
         idx[sel[~own]] = -1
+    if dynamic is not None:
+        moving = np.flatnonzero((idx == -1) & dynamic)
+        cls_d = (dynamic_index.query(points[moving])[0] if dynamic_index is not None
+                 else np.full(len(moving), NO_LABEL, np.uint8))
+        c = np.where(cls_d == NO_LABEL, opts.dynamic_class, cls_d).astype(np.uint8)
+        cloud.add_dynamic(t_us, points[moving], c)
+        counts.dynamic_points += len(moving)
+        idx[moving] = -2
     static = idx == -1
     labelled = static & (cls_s != NO_LABEL)
     counts.dropped_unlabelled += int((static & ~labelled).sum())
@@ -276,14 +343,19 @@ def T_grid_from_keyego(sample: SampleRecord, spec: GridSpec) -> np.ndarray:
 
 
 def _votes(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tuple[BoxRecord, ...],
-           T_grid_from_global: np.ndarray, grid: OccGrid) -> tuple[list[np.ndarray], list[int]]:
-    """`vote_voxels` keys on `grid` of the static points (first) and of each box's instance points placed
-    at that box's pose (then one list per box with points), and the index in `boxes` of each list
-    after the first."""
+           T_grid_from_global: np.ndarray, grid: OccGrid,
+           dynamic: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[list[np.ndarray], list[int]]:
+    """`vote_voxels` keys on `grid` of the static points (first; with them the keyframe's `dynamic`
+    points, global, where they were then: they have no box, so no flow) and of each box's instance
+    points placed at that box's pose (then one list per box with points), and the index in `boxes` of
+    each list after the first."""
     shape = np.array(grid.shape, np.int64)
     lower = np.array(grid.lower, np.float64)
     n = NUM_CLASSES - 1
     votes = [vote_voxels(static[0], static[1], T_grid_from_global, lower, grid.voxel_size, shape, n)]
+    if dynamic is not None and len(dynamic[0]):
+        votes[0] = np.concatenate([votes[0], vote_voxels(np.ascontiguousarray(dynamic[0]), dynamic[1],
+                                                         T_grid_from_global, lower, grid.voxel_size, shape, n)])
     box_of_vote = []
     for b, box in enumerate(boxes):  # (none placed in the control: it has no instance points)
         pts, cls = cloud.instance(box.instance_token)
@@ -315,16 +387,27 @@ def _flow(votes: list[np.ndarray], box_of_vote: list[int], semantics: np.ndarray
     return flow.reshape(*semantics.shape, 2)
 
 
-def _masks(semantics: np.ndarray, sample: SampleRecord, rays: tuple[np.ndarray, np.ndarray],
-           spec: GridSpec) -> tuple[np.ndarray, ...]:
-    """`mask_lidar`, `mask_camera` `(X, Y, Z) uint8` of a keyframe on `spec`'s grid: the keyframe sweep's
-    rays (origin `(3,)`, points `(N, 3)`, both global) traversed, plus every occupied voxel (their points
+Rays = list[tuple[np.ndarray, np.ndarray]]  # a keyframe's rays per LiDAR: (origin (3,), points (N, 3)), global
+
+
+def _rays_in(T: np.ndarray, rays: Rays) -> tuple[np.ndarray, np.ndarray]:
+    """Every LiDAR's rays of a keyframe moved by `T (4, 4)`: origins and endpoints `(N, 3) float64`
+    (one LiDAR: its origin broadcast, as before several LiDARs were read)."""
+    ends = [transform_points(T, pts) for _, pts in rays]
+    origins = [np.broadcast_to(transform_points(T, o[None])[0], e.shape) for (o, _), e in zip(rays, ends, strict=True)]
+    if len(rays) == 1:
+        return origins[0], ends[0]
+    return np.concatenate(origins), np.concatenate(ends)
+
+
+def _masks(semantics: np.ndarray, sample: SampleRecord, rays: Rays, spec: GridSpec) -> tuple[np.ndarray, ...]:
+    """`mask_lidar`, `mask_camera` `(X, Y, Z) uint8` of a keyframe on `spec`'s grid: the keyframe's rays of
+    every LiDAR (`Rays`, each from its own origin) traversed, plus every occupied voxel (their points
     were observed, by some frame); the camera mask within it (occdata.visibility)."""
     lower = np.array(spec.grid.lower, np.float64)
     T_grid_from_key = T_grid_from_keyego(sample, spec)
     T_grid_from_global = T_grid_from_key @ invert_rigid(sample.T_global_from_keyego)
-    ends = transform_points(T_grid_from_global, rays[1])
-    origins = np.broadcast_to(transform_points(T_grid_from_global, rays[0][None])[0], ends.shape)
+    origins, ends = _rays_in(T_grid_from_global, rays)
     m_lidar = lidar_mask(semantics, origins, ends, lower, spec.grid.voxel_size) | (semantics != FREE_LABEL)
     m_lidar = m_lidar.astype(np.uint8)
     rig = sample.camera_rig()
@@ -334,7 +417,7 @@ def _masks(semantics: np.ndarray, sample: SampleRecord, rays: tuple[np.ndarray, 
 
 
 def _densify(semantics: np.ndarray, votes: list[np.ndarray], box_of_vote: list[int], boxes: tuple[BoxRecord, ...],
-             rays: tuple[np.ndarray, np.ndarray], T_grid_from_global: np.ndarray, grid: OccGrid,
+             rays: Rays, T_grid_from_global: np.ndarray, grid: OccGrid,
              static_rays: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """`densify` of one keyframe's `semantics` with its rays (global) and the boxes whose instance votes
     in this grid (an object is filled only where its points are seen), and `static_rays` (global; other
@@ -344,23 +427,29 @@ def _densify(semantics: np.ndarray, votes: list[np.ndarray], box_of_vote: list[i
     T = np.array([invert_rigid(T_grid_from_global @ boxes[b].T_global_from_box()) for b in seen]).reshape(-1, 4, 4)
     half = np.array([[boxes[b].size_wlh[1] / 2, boxes[b].size_wlh[0] / 2, boxes[b].size_wlh[2] / 2] for b in seen])
     cls = np.array([box_class(boxes[b]) for b in seen], np.uint8)
-    origin = transform_points(T_grid_from_global, rays[0][None])[0]
     more = tuple(transform_points(T_grid_from_global, a) for a in static_rays)
-    dense, owner = densify(semantics, origin, transform_points(T_grid_from_global, rays[1]), T, half.reshape(-1, 3),
+    if len(rays) == 1:  # as before several LiDARs were read (byte-identical)
+        origin = transform_points(T_grid_from_global, rays[0][0][None])[0]
+        ends = transform_points(T_grid_from_global, rays[0][1])
+    else:  # each ray from its own LiDAR; the walks behind surfaces start from the reference LiDAR
+        origin, ends = _rays_in(T_grid_from_global, rays)
+    dense, owner = densify(semantics, origin, ends, T, half.reshape(-1, 3),
                            cls, np.array(grid.lower, np.float64), grid.voxel_size, more)
     return dense, np.where(owner >= 0, np.append(np.asarray(seen, np.int64), -1)[owner], -1)
 
 
 def _grid_labels(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tuple[BoxRecord, ...],
-                 sample: SampleRecord, rays: tuple[np.ndarray, np.ndarray], spec: GridSpec,
+                 sample: SampleRecord, rays: Rays, spec: GridSpec,
                  masks: bool, v_global: np.ndarray | None = None,
-                 static_rays: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+                 static_rays: tuple[np.ndarray, np.ndarray] | None = None,
+                 dynamic: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """One keyframe on one grid: `semantics` in Occ3D classes (17 = free) and, with `masks`, the masks;
     all `(X, Y, Z) uint8` in the grid's frame. With `v_global (B, 3)` (m/s, global, one row per box of
     `boxes`, NaN as 0) also `flow (X, Y, Z, 2) float32` (`_flow`). With `static_rays` (`_static_rays`),
-    `_densify` the semantics before the masks (a voxel a box filled takes its flow)."""
+    `_densify` the semantics before the masks (a voxel a box filled takes its flow). `dynamic`: the
+    keyframe's dynamic points and classes (carving; global)."""
     T = T_grid_from_keyego(sample, spec) @ invert_rigid(sample.T_global_from_keyego)
-    votes, box_of_vote = _votes(static, cloud, boxes, T, spec.grid)
+    votes, box_of_vote = _votes(static, cloud, boxes, T, spec.grid, dynamic)
     semantics = majority(votes, spec.grid.shape, NUM_CLASSES - 1, FREE_LABEL)
     filled_by = None
     if static_rays is not None:
@@ -387,17 +476,16 @@ def _box_velocities(inputs: LabelSources, keyframe_boxes: list[tuple[BoxRecord, 
     return out
 
 
-def _static_rays(rays: list[tuple[np.ndarray, np.ndarray]], n: int,
-                 budget: int = STATIC_RAY_FRAMES) -> tuple[np.ndarray, np.ndarray]:
-    """Densification's evidence for the static scene at keyframe `n`: the rays (origin `(3,)`, points
-    `(N, 3)`, global) of the scene's other keyframes, each thinned to every `s`-th ray (offset by `n`) so
-    that about `budget` keyframes' worth are cast: more viewpoints, bounded cost. Returns origins and
-    endpoints `(M, 3) float64`."""
+def _static_rays(rays: list[Rays], n: int, budget: int = STATIC_RAY_FRAMES) -> tuple[np.ndarray, np.ndarray]:
+    """Densification's evidence for the static scene at keyframe `n`: the rays (`Rays`: per LiDAR, origin
+    `(3,)`, points `(N, 3)`, global) of the scene's other keyframes, each thinned to every `s`-th ray
+    (offset by `n`) so that about `budget` keyframes' worth are cast: more viewpoints, bounded cost.
+    Returns origins and endpoints `(M, 3) float64`."""
     stride = max(1, -(-len(rays) // budget))
-    picked = [(m, pts[(m + n) % stride::stride]) for m, (_, pts) in enumerate(rays) if m != n]
+    picked = [(o, pts[(m + n) % stride::stride]) for m, frame in enumerate(rays) if m != n for o, pts in frame]
     if not picked:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    origins = np.concatenate([np.broadcast_to(rays[m][0], p.shape) for m, p in picked])
+    origins = np.concatenate([np.broadcast_to(o, p.shape) for o, p in picked])
     return origins, np.concatenate([p for _, p in picked])
 
 
@@ -424,6 +512,71 @@ def _no_stop() -> None:
     pass
 
 
+def _frame_boxes(inputs: LabelSources, sample_index: int, k: int, rec: LidarRecord) -> tuple[BoxRecord, ...]:
+    """The boxes at frame `rec`'s time, of LiDAR `k` (rig order) of sample `sample_index`: the devkit's
+    `get_boxes` for the reference LiDAR (`boxes_for_lidar`); for another LiDAR the same rule, its
+    keyframe taking the sample's boxes and a sweep interpolated between the sample it is filed under
+    and that sample's `prev`."""
+    ds = inputs.dataset
+    if k == 0:
+        return boxes_for_lidar(inputs.annotations, ds, sample_index, rec)
+    sample = ds.samples[sample_index]
+    if rec is sample.lidars[k]:
+        return inputs.annotations.boxes_at(sample.token, "", 0, 0, rec.timestamp)
+    try:
+        owner = ds.sample(rec.sample_token or sample.token)
+        prev = ds.sample(owner.prev) if owner.prev else None
+    except KeyError as exc:
+        raise OccDataError(f"sample_data {rec.token!r}: sample {exc.args[0]!r} is not in the dataset") from None
+    if prev is None:
+        return inputs.annotations.boxes_at(owner.token, "", 0, 0, rec.timestamp)
+    return inputs.annotations.boxes_at(owner.token, prev.token, prev.timestamp, owner.timestamp, rec.timestamp)
+
+
+def carve_region(samples: list[SampleRecord], grids: tuple[GridSpec, ...],
+                 pad: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """The global axis-aligned box `(lo (3,), hi (3,))` (m) holding every keyframe's `grids` (their
+    corners through each keyframe's key-ego pose), grown by `pad`: where carving can change a label."""
+    corners = []
+    for s in samples:
+        for spec in grids:
+            lo, hi = np.array(spec.grid.lower, np.float64), np.array(spec.grid.upper, np.float64)
+            box = np.array([[(lo, hi)[a][0], (lo, hi)[b][1], (lo, hi)[c][2]] for a in (0, 1) for b in (0, 1)
+                            for c in (0, 1)])
+            T_global_from_grid = s.T_global_from_keyego @ invert_rigid(T_grid_from_keyego(s, spec))
+            corners.append(transform_points(T_global_from_grid, box))
+    every = np.concatenate(corners)
+    return every.min(axis=0) - pad, every.max(axis=0) + pad
+
+
+def _frames(ds: NuScenesDataset, indices: list[int], sweeps: bool) -> list[tuple[int, int, LidarRecord]]:
+    """Every LiDAR frame of the scene as (sample index, LiDAR index in rig order, record): keyframes,
+    then (with `sweeps`) each keyframe's sweeps of each LiDAR."""
+    out = [(i, k, rec) for i in indices for k, rec in enumerate(ds.samples[i].lidars)]
+    if sweeps:
+        out += [(i, k, rec) for i in indices for k in range(len(ds.samples[i].lidars))
+                for rec in ds.samples[i].sweeps_of(k)]
+    return out
+
+
+def _carve(frames: list[tuple[int, int, LidarRecord]], keyframe_frames: int, lo: np.ndarray, hi: np.ndarray,
+           opts: CarveOptions, should_stop: Callable[[], None]) -> CarveGrid:
+    """The scene's free-space evidence (`occdata.labels.carve`): every frame's rays, from its own LiDAR,
+    counted once per time slot (a keyframe's LiDARs fire together); `frames` as `_frames` gives them,
+    the first `keyframe_frames` the keyframes' (the sweeps' rays are thinned, `CarveOptions.ray_stride`)."""
+    grid = CarveGrid(lo, hi, opts)
+    slots = time_slots([rec.timestamp for _, _, rec in frames])
+    for slot in np.unique(slots):
+        should_stop()
+        rays, sweep = [], False
+        for f in np.flatnonzero(slots == slot):
+            points, origin, off_ego = _frame_points(frames[f][2])
+            rays.append((origin, points[off_ego]))
+            sweep |= f >= keyframe_frames
+        grid.add_slot(int(slot), rays, thin=sweep)
+    return grid
+
+
 def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
                 should_stop: Callable[[], None] = _no_stop, grids: tuple[GridSpec, ...] = (GRID_PRESETS["occ3d"],),
                 flow: bool | Collection[str] = False,
@@ -433,46 +586,81 @@ def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
     the writers map them to the grid's ids), and the scene's point counts. `flow`: True for every grid,
     or the names of the grids whose labels also hold `flow (X, Y, Z, 2) float32`, the box velocity (m/s,
     grid frame) of their object voxels (`_flow`; X*Y*Z*8 bytes a keyframe: 84 MB at 512x512x40).
+    Every LiDAR of the rig is aggregated (each frame through its own calibration and ego pose); with
+    carving (`LabelOptions.carves`) the points outside boxes are split by the scene's rays.
     `should_stop()` is called between frames (nothing is written here): it raises to stop the run."""
     ds = inputs.dataset
     indices = [ds.index_of(t) for t in scene.sample_tokens]
     counts = SceneCounts(keyframes=len(indices))
+    has_boxes = any(inputs.annotations.boxes_by_sample.get(t) for t in scene.sample_tokens)
+    carving = opts.carves(has_boxes, len(indices))
+    counts.mode = opts.mode(has_boxes, len(indices))
+    withheld = carving and not opts.use_boxes  # --boxes none: the boxes give nothing, not even classes
+    carve_grid = None
+    if carving:
+        if len(indices) < 2:
+            raise OccDataError(f"scene {scene.name} has {len(indices)} keyframe: too short to carve (carving needs "
+                               "other times' rays); label it without --carve / --boxes none")
+        frames = _frames(ds, indices, opts.lidar_sweeps)
+        n_key = sum(len(ds.samples[i].lidars) for i in indices)
+        carve_grid = _carve(frames, n_key, *carve_region([ds.samples[i] for i in indices], grids),
+                            opts.carve_options, should_stop)
+        counts.carve_voxels = int(np.prod(carve_grid.shape))
+
+    def boxes_of(i: int, k: int, rec: LidarRecord) -> tuple[BoxRecord, ...]:
+        return () if withheld else _frame_boxes(inputs, i, k, rec)
+
+    def moving(points: np.ndarray, classified: bool) -> np.ndarray | None:
+        return None if carve_grid is None else carve_grid.dynamic(points, classified)
+
     cloud = _Cloud()
-    rays: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    rays: dict[str, Rays] = {}
     with_seg = False
+    # lidarseg labels the reference LiDAR alone: with it, the other LiDARs' keyframes are labelled as sweeps.
+    seg_tree = bool(inputs.lidarseg) and inputs.lidarseg_lut is not None
+    later: list[tuple[int, int, LidarRecord]] = []
     for i in indices:  # pass 1: keyframes, the labelled references
         should_stop()  # Ctrl-C / SIGTERM of an in-process run: stop between frames
         s = ds.samples[i]
-        points, origin, off_ego = _frame_points(s.lidar)
-        cls = _keyframe_classes(inputs, s.lidar, len(points))
-        keep = off_ego if cls is None else off_ego & (cls != DROP)
-        with_seg |= cls is not None
-        counts.frames += 1
-        counts.points += len(points)
-        counts.dropped_ego += int((~off_ego).sum())
-        counts.dropped_class += int((off_ego & ~keep).sum())
-        rays[s.token] = (origin, points[off_ego])
-        _add_keyframe(cloud, points[keep], None if cls is None else cls[keep],
-                      boxes_for_lidar(inputs.annotations, ds, i, s.lidar), opts, counts)
-    if opts.lidar_sweeps:  # pass 2: sweeps, labelled from the keyframes
-        static_index = object_index = None
+        rays[s.token] = []
+        for k, rec in enumerate(s.lidars):
+            points, origin, off_ego = _frame_points(rec)
+            rays[s.token].append((origin, points[off_ego]))
+            if k > 0 and seg_tree:
+                later.append((i, k, rec))
+                continue
+            cls = _keyframe_classes(inputs, rec, len(points)) if k == 0 else None
+            keep = off_ego if cls is None else off_ego & (cls != DROP)
+            with_seg |= cls is not None
+            counts.frames += 1
+            counts.points += len(points)
+            counts.dropped_ego += int((~off_ego).sum())
+            counts.dropped_class += int((off_ego & ~keep).sum())
+            _add_keyframe(cloud, points[keep], None if cls is None else cls[keep], boxes_of(i, k, rec), opts, counts,
+                          moving(points[keep], cls is not None), rec.timestamp)
+    sweeps = later + [f for f in _frames(ds, indices, True) if f[2] not in ds.samples[f[0]].lidars] \
+        if opts.lidar_sweeps else later
+    if sweeps:  # pass 2: sweeps, labelled from the keyframes
+        static_index = object_index = dynamic_index = None
         if with_seg:
             static_index = NearestIndex.build(*cloud.static(), opts.knn_radius)
             object_index = {k: NearestIndex.build(*cloud.instance(k), opts.knn_radius) for k in cloud.obj_pts}
-        for i in indices:
-            for rec in ds.samples[i].sweeps:
-                should_stop()
-                points, _, off_ego = _frame_points(rec)
-                counts.frames += 1
-                counts.points += len(points)
-                counts.dropped_ego += int((~off_ego).sum())
-                _add_sweep(cloud, points[off_ego], boxes_for_lidar(inputs.annotations, ds, i, rec), static_index,
-                           object_index or {}, opts, counts)
+            if carve_grid is not None:
+                dynamic_index = NearestIndex.build(*_cat([p for _, p, _ in cloud.dyn], [c for _, _, c in cloud.dyn]),
+                                                   opts.knn_radius)
+        for i, k, rec in sweeps:
+            should_stop()
+            points, _, off_ego = _frame_points(rec)
+            counts.frames += 1
+            counts.points += len(points)
+            counts.dropped_ego += int((~off_ego).sum())
+            _add_sweep(cloud, points[off_ego], boxes_of(i, k, rec), static_index, object_index or {}, opts, counts,
+                       moving(points[off_ego], False), rec.timestamp, dynamic_index)
     counts.instances = len(cloud.obj_pts)
     static = cloud.static()
     static = (np.ascontiguousarray(static[0]), np.ascontiguousarray(static[1]))
     out: dict[str, dict[str, dict[str, np.ndarray]]] = {spec.name: {} for spec in grids}
-    keyframe_boxes = [boxes_for_lidar(inputs.annotations, ds, i, ds.samples[i].lidar) for i in indices]
+    keyframe_boxes = [boxes_of(i, 0, ds.samples[i].lidar) for i in indices]
     held = _held_static(keyframe_boxes, opts.hold_static)
     flow_names = {spec.name for spec in grids} if flow is True else set(flow or ())
     v_global = _box_velocities(inputs, keyframe_boxes, held) if flow_names else []
@@ -486,12 +674,13 @@ def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
         s = ds.samples[i]
         boxes = keyframe_boxes[n] + held[n]
         more = _static_rays(ray_list, n) if opts.densify else None
+        dynamic = cloud.dynamic_at(s.timestamp, opts.carve_options.window) if carve_grid is not None else None
         for members in groups.values():
             should_stop()
             any_flow = any(g.name in flow_names for g in members)
             shared = _grid_labels(static, cloud, boxes, s, rays[s.token], members[0],
                                   any(g.masks for g in members), v_global[n] if any_flow else None,
-                                  static_rays=more)
+                                  static_rays=more, dynamic=dynamic)
             for spec in members:
                 keep = {"semantics", *(("mask_lidar", "mask_camera") if spec.masks else ()),
                         *(("flow",) if spec.name in flow_names else ())}
