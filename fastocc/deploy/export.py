@@ -207,7 +207,12 @@ def export_model(model: FastOcc, rig: Rig, cfg: ExportConfig) -> ExportReport:
         custom = custom_domain_ops(tmp)
         if custom:
             raise DeployError(f"the exported graph uses non-standard operators {custom}; refusing to write {out}")
-        session = ort.InferenceSession(str(tmp), providers=["CPUExecutionProvider"])
+        # One thread: ONNX Runtime's threaded ScatterND (the LSS pooling's sum into voxels) adds in a
+        # different order on every session, which moved the logits of a real Lyft rig by up to 2.3e-3
+        # between sessions of the same file; one thread adds in a fixed order (3.8e-5 from PyTorch there).
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = 1
+        session = ort.InferenceSession(str(tmp), options, providers=["CPUExecutionProvider"])
         parity = check_parity(model, static, rig, session, cfg)
         if not parity.passed:
             raise DeployError(
