@@ -133,3 +133,38 @@ def test_depth_targets_equal_the_lyft_sdk_projection_of_every_lidar(
                 per_camera[cam][0] += len(truth)
                 per_camera[cam][1] += int((~keep).sum())
     assert all(n > 0 for n, _ in per_camera.values()), per_camera
+
+
+@pytest.mark.slow
+def test_real_lyft_labels_train_export_predict_and_view(real_lyft_root: Path, tmp_path: Path) -> None:
+    """The whole chain on the real Lyft keyframes: labels by carving (no boxes), a store with them, nano for
+    an epoch, ONNX export with the 7-camera rig baked in, predictions, and the viewer's offline page."""
+    from cli.fastocc_cli import main as fastocc_main
+
+    def ok(group, args: list[str]) -> str:  # noqa: ANN001 - a click group
+        res = CliRunner().invoke(group, args)
+        assert res.exit_code == 0, (args[0], res.output)
+        return res.output
+
+    gts, store, run = tmp_path / "gts", tmp_path / "lyft.zarr", tmp_path / "run"
+    assert "moving objects by free-space carving" in ok(main, ["labels", "--root", str(real_lyft_root), "--out",
+                                                               str(gts), "--no-progress"])
+    ok(main, ["build", "--root", str(real_lyft_root), "--gts", str(gts), "--out", str(store), "--no-progress"])
+    assert open_store(store).group["labels/present"][:].all()
+    conf = tmp_path / "nano.toml"
+    conf.write_text('preset = "nano"\ninput_hw = [128, 352]\nepochs = 1\nbatch_size = 2\nworkers = 0\nval_every = 0\n')
+    ok(fastocc_main, ["train", "--store", str(store), "--config", str(conf), "--out", str(run), "--no-progress"])
+    out = ok(fastocc_main, ["export", "--checkpoint", str(run / "last.pt"), "--rig", str(store),
+                            "--out", str(tmp_path / "lyft.onnx")])
+    assert "PASS" in out
+    meta = json.loads((tmp_path / "lyft.json").read_text())
+    assert meta["camera_order"] == list(LYFT_CAMERAS) and meta["inputs"]["images"]["shape"][1] == 7
+    from fastocc.deploy import Predictor
+
+    reader = open_store(store)
+    assert Predictor(tmp_path / "lyft.onnx")(reader.images(3)).shape == (200, 200, 16)  # 7 raw 1920x1080 images
+    ok(fastocc_main, ["predict", "--checkpoint", str(run / "last.pt"), "--store", str(store), "--split",
+                      "train", "--out", str(tmp_path / "pred"), "--no-progress"])
+    assert len(list((tmp_path / "pred").glob("*/*/labels.npz"))) == 16
+    ok(main, ["view", "--store", str(store), "--pred", str(tmp_path / "pred"), "--export", str(tmp_path / "v.html")])
+    assert (tmp_path / "v.html").stat().st_size > 1_000_000
