@@ -13,7 +13,7 @@ from reference.labels_densify import (
 )
 
 from occdata.constants import FREE_LABEL
-from occdata.labels.densify import close_holes, densify, fill_behind, fill_boxes, seen_free
+from occdata.labels.densify import DEPTH_M, GAP_M, close_holes, densify, fill_behind, fill_boxes, seen_free, voxels_of
 
 F = FREE_LABEL
 LOWER = np.zeros(3)
@@ -197,3 +197,36 @@ def test_ground_hole_is_refused_only_by_a_ray_below_it() -> None:
     assert over[3, 3, 1] == 11 and (over != sem).sum() == 1
     under = densify(sem, np.array([0.5, 3.5, 0.5]), np.array([[7.5, 3.5, 0.5]]), *none, LOWER, 1.0)[0]
     assert (under == sem).all()
+
+
+def test_densify_distances_are_metres_not_voxels() -> None:
+    """GAP_M 0.8 m and DEPTH_M 2.8 m: 2 and 7 voxels at Occ3D's 0.4 m, twice as many at 0.2 m. A road
+    plane (0.2 m voxels) with a 1.0 m hole is closed; at a 2-voxel gap (what a count in voxels
+    gave on every grid) it stays open. A voxel is filled when occupied voxels lie within the gap on both
+    sides along two axes: in a 5-voxel (1.0 m) hole along x, 3 voxels at a 4-voxel gap, none at 2."""
+    assert (voxels_of(GAP_M, 0.4), voxels_of(DEPTH_M, 0.4)) == (2, 7)
+    assert (voxels_of(GAP_M, 0.2), voxels_of(DEPTH_M, 0.2)) == (4, 14)
+    assert voxels_of(GAP_M, 2.0) == 1
+    sem = _grid((12, 12, 3))
+    sem[:, :, 1] = 15  # a horizontal slab of manmade (not a ground class: the plain hole rule)
+    sem[4:9, 5, 1] = F  # a 5-voxel hole along x (1.0 m)
+    far = np.array([[0.1, 0.1, 0.1]])
+    empty = (np.zeros((0, 4, 4)), np.zeros((0, 3)), np.zeros(0, np.uint8))
+    out, _ = densify(sem, np.array([1.2, 1.2, 0.5]), far, *empty, LOWER, 0.2, solids=False)
+    assert (out[5:8, 5, 1] == 15).all() and out[4, 5, 1] == out[8, 5, 1] == F
+    assert (close_holes(sem, np.zeros(sem.shape, np.uint8), ALL, 2)[4:9, 5, 1] == F).all()  # 2 voxels: open
+
+
+def test_without_lidarseg_nothing_is_filled_behind_static_surfaces() -> None:
+    """Labels without lidarseg give every static voxel one class (`--static-class`, default 0 `others`,
+    which is a solid): the walk behind solids would fill under and beyond the road. With `solids=False`
+    (what `occdata labels` passes when the scene has no lidarseg) only boxes and holes are filled."""
+    sem = _grid((10, 1, 2))
+    sem[:, 0, 0] = 0  # the road, labelled `others`
+    sem[3, 0, 1] = 0  # a post
+    far = np.array([[0.5, 0.5, 0.5]])
+    empty = (np.zeros((0, 4, 4)), np.zeros((0, 3)), np.zeros(0, np.uint8))
+    filled, _ = densify(sem, np.array([0.5, 0.5, 1.5]), far, *empty, LOWER, 1.0)
+    assert (filled[4:7, 0, 1] == 0).all()  # with solids: behind the post, `depth` voxels take its class
+    kept, _ = densify(sem, np.array([0.5, 0.5, 1.5]), far, *empty, LOWER, 1.0, solids=False)
+    np.testing.assert_array_equal(kept, sem)

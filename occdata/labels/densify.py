@@ -31,13 +31,16 @@ from occdata.constants import FREE_LABEL, NUM_CLASSES
 from occdata.sensors.raycast import segment_advance, segment_setup
 from occdata.visibility import GROUND_CLASSES, MAX_OCCLUDERS
 
-__all__ = ["FREE_MARGIN", "GAP", "SOLID_STATIC", "close_holes", "densify", "fill_behind", "fill_boxes", "seen_free"]
+__all__ = ["DEPTH_M", "FREE_MARGIN", "GAP_M", "SOLID_STATIC", "close_holes", "densify", "fill_behind", "fill_boxes",
+           "seen_free", "voxels_of"]
 
 # Metres of each ray before its return that count as no evidence: a ray that grazes a surface crosses
 # the voxels of that surface next to its return (the road in front of a ground return).
 FREE_MARGIN = 0.4
-GAP = 2  # voxels: widest hole `close_holes` bridges
-DEPTH = MAX_OCCLUDERS
+# Distances in metres, as FREE_MARGIN is, so that a finer grid fills as far (`voxels_of`); on Occ3D's
+# 0.4 m voxels they are the 2 and 7 voxels the fills were tuned with.
+GAP_M = 0.8  # the widest hole `close_holes` bridges
+DEPTH_M = MAX_OCCLUDERS * 0.4  # the camera mask's depth inside an object (MAX_OCCLUDERS Occ3D voxels)
 # Occ3D classes that are solids whose inside no LiDAR sees: others, manmade, vegetation.
 SOLID_STATIC = (0, 15, 16)
 
@@ -214,17 +217,24 @@ def close_holes(semantics: np.ndarray, free: np.ndarray, eligible: np.ndarray, g
     return out
 
 
+def voxels_of(metres: float, voxel_size: float) -> int:
+    """A distance in whole voxels (at least 1)."""
+    return max(1, int(round(metres / voxel_size)))
+
+
 def densify(semantics: np.ndarray, origin: np.ndarray, endpoints: np.ndarray, T_box_from_grid: np.ndarray,
             half_size: np.ndarray, box_classes: np.ndarray, lower: np.ndarray, voxel_size: float,
-            static_rays: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+            static_rays: tuple[np.ndarray, np.ndarray] | None = None,
+            solids: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """`semantics (X, Y, Z) uint8` with the fills of the module docstring: boxes first, then behind
     solid static surfaces, then holes. Evidence: the keyframe's rays from `origin (3,)` to `endpoints
     (N, 3)` (float64, grid frame; for several LiDARs `origin` is `(N, 3)`, one per ray), and for the
     static scene also `static_rays` (origins (M, 3), endpoints (M, 3): other keyframes' rays; the static
     scene does not move, objects may). Boxes: `T_box_from_grid
     (B, 4, 4)`, `half_size (B, 3)` (length, width, height halves), `box_classes (B,) uint8` (the objects
-    whose points are in the labels). Returns the new semantics and `(X, Y, Z) int32` the box that filled
-    each voxel (-1: none)."""
+    whose points are in the labels). `solids` False (labels without lidarseg: every static voxel, the road
+    too, has one class) skips the walk behind solid static surfaces, which would fill under the road.
+    Returns the new semantics and `(X, Y, Z) int32` the box that filled each voxel (-1: none)."""
     lower = np.asarray(lower, np.float64)
     shape = np.asarray(semantics.shape, np.int64)
     ends = np.ascontiguousarray(endpoints, np.float64).reshape(-1, 3)
@@ -240,15 +250,17 @@ def densify(semantics: np.ndarray, origin: np.ndarray, endpoints: np.ndarray, T_
     out = np.where(owner >= 0, cls[owner], semantics).astype(np.uint8)
     # Several LiDARs (`origin (N, 3)`): the walks start from the first ray's origin, the reference LiDAR.
     origin_xy = np.asarray(origin, np.float64).reshape(-1, 3)[0, :2].copy()
-    behind = fill_behind(semantics, free_static, np.isin(np.arange(NUM_CLASSES), SOLID_STATIC),
-                         origin_xy, DEPTH, lower, float(voxel_size))
-    out = np.where(out == FREE_LABEL, behind, out)
+    gap, depth = voxels_of(GAP_M, voxel_size), voxels_of(DEPTH_M, voxel_size)
+    if solids:
+        behind = fill_behind(semantics, free_static, np.isin(np.arange(NUM_CLASSES), SOLID_STATIC),
+                             origin_xy, depth, lower, float(voxel_size))
+        out = np.where(out == FREE_LABEL, behind, out)
     ground_cls = np.isin(np.arange(NUM_CLASSES), GROUND_CLASSES)
-    holes = close_holes(semantics, free, (np.arange(NUM_CLASSES) != FREE_LABEL) & ~ground_cls, GAP)
+    holes = close_holes(semantics, free, (np.arange(NUM_CLASSES) != FREE_LABEL) & ~ground_cls, gap)
     out = np.where(out == FREE_LABEL, holes, out)
     # The ground is a height field: a ray grazing it crosses its voxels just above the surface and proves
     # nothing; only a ray through the voxel below shows the ground is not in this layer.
     below = np.zeros_like(free_static)
     below[:, :, 1:] = free_static[:, :, :-1]
-    ground = close_holes(semantics, below, ground_cls, GAP)
+    ground = close_holes(semantics, below, ground_cls, gap)
     return np.where(out == FREE_LABEL, ground, out), owner

@@ -418,11 +418,12 @@ def _masks(semantics: np.ndarray, sample: SampleRecord, rays: Rays, spec: GridSp
 
 def _densify(semantics: np.ndarray, votes: list[np.ndarray], box_of_vote: list[int], boxes: tuple[BoxRecord, ...],
              rays: Rays, T_grid_from_global: np.ndarray, grid: OccGrid,
-             static_rays: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+             static_rays: tuple[np.ndarray, np.ndarray], solids: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """`densify` of one keyframe's `semantics` with its rays (global) and the boxes whose instance votes
     in this grid (an object is filled only where its points are seen), and `static_rays` (global; other
-    keyframes' rays, `_static_rays`) as evidence for the static scene: the new semantics, and `(X, Y, Z)
-    int64` the index in `boxes` of the box that filled each voxel (-1: none)."""
+    keyframes' rays, `_static_rays`) as evidence for the static scene; `solids`: the static classes are
+    lidarseg's (else no walk behind surfaces, `densify`): the new semantics, and `(X, Y, Z) int64` the index
+    in `boxes` of the box that filled each voxel (-1: none)."""
     seen = [box_of_vote[m] for m in range(len(box_of_vote)) if len(votes[m + 1])]
     T = np.array([invert_rigid(T_grid_from_global @ boxes[b].T_global_from_box()) for b in seen]).reshape(-1, 4, 4)
     half = np.array([[boxes[b].size_wlh[1] / 2, boxes[b].size_wlh[0] / 2, boxes[b].size_wlh[2] / 2] for b in seen])
@@ -434,7 +435,7 @@ def _densify(semantics: np.ndarray, votes: list[np.ndarray], box_of_vote: list[i
     else:  # each ray from its own LiDAR; the walks behind surfaces start from the reference LiDAR
         origin, ends = _rays_in(T_grid_from_global, rays)
     dense, owner = densify(semantics, origin, ends, T, half.reshape(-1, 3),
-                           cls, np.array(grid.lower, np.float64), grid.voxel_size, more)
+                           cls, np.array(grid.lower, np.float64), grid.voxel_size, more, solids)
     return dense, np.where(owner >= 0, np.append(np.asarray(seen, np.int64), -1)[owner], -1)
 
 
@@ -442,7 +443,7 @@ def _grid_labels(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tu
                  sample: SampleRecord, rays: Rays, spec: GridSpec,
                  masks: bool, v_global: np.ndarray | None = None,
                  static_rays: tuple[np.ndarray, np.ndarray] | None = None,
-                 dynamic: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+                 dynamic: tuple[np.ndarray, np.ndarray] | None = None, solids: bool = True) -> dict[str, np.ndarray]:
     """One keyframe on one grid: `semantics` in Occ3D classes (17 = free) and, with `masks`, the masks;
     all `(X, Y, Z) uint8` in the grid's frame. With `v_global (B, 3)` (m/s, global, one row per box of
     `boxes`, NaN as 0) also `flow (X, Y, Z, 2) float32` (`_flow`). With `static_rays` (`_static_rays`),
@@ -453,7 +454,8 @@ def _grid_labels(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tu
     semantics = majority(votes, spec.grid.shape, NUM_CLASSES - 1, FREE_LABEL)
     filled_by = None
     if static_rays is not None:
-        semantics, filled_by = _densify(semantics, votes, box_of_vote, boxes, rays, T, spec.grid, static_rays)
+        semantics, filled_by = _densify(semantics, votes, box_of_vote, boxes, rays, T, spec.grid, static_rays,
+                                        solids)
     out = {"semantics": semantics}
     if masks:
         out["mask_lidar"], out["mask_camera"] = _masks(semantics, sample, rays, spec)
@@ -680,7 +682,7 @@ def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
             any_flow = any(g.name in flow_names for g in members)
             shared = _grid_labels(static, cloud, boxes, s, rays[s.token], members[0],
                                   any(g.masks for g in members), v_global[n] if any_flow else None,
-                                  static_rays=more, dynamic=dynamic)
+                                  static_rays=more, dynamic=dynamic, solids=seg_tree)
             for spec in members:
                 keep = {"semantics", *(("mask_lidar", "mask_camera") if spec.masks else ()),
                         *(("flow",) if spec.name in flow_names else ())}
