@@ -82,15 +82,20 @@ class CarveOptions:
             raise ValueError("carve ray_stride must be in [1, 64]")
 
 
+@njit(cache=True, inline="always")
+def _voxel_of(point: np.ndarray, lower: np.ndarray, voxel_size: float) -> tuple[int, int, int]:
+    """The voxel index of a point `(3,)` (may lie outside the grid: the callers test the bounds)."""
+    return (int(np.floor((point[0] - lower[0]) / voxel_size)), int(np.floor((point[1] - lower[1]) / voxel_size)),
+            int(np.floor((point[2] - lower[2]) / voxel_size)))
+
+
 @njit(cache=True)
 def mark_hits(points: np.ndarray, lower: np.ndarray, voxel_size: float, shape: np.ndarray, slot: int,
               hits: np.ndarray, stamp: np.ndarray) -> None:
     """Count time slot `slot` once in `hits` (X, Y, Z) uint8 for each voxel holding a point of
     `points (N, 3) float64` (global); `stamp (X, Y, Z) int32` becomes `2 * slot` there (in place)."""
     for n in range(points.shape[0]):
-        i = int(np.floor((points[n, 0] - lower[0]) / voxel_size))
-        j = int(np.floor((points[n, 1] - lower[1]) / voxel_size))
-        k = int(np.floor((points[n, 2] - lower[2]) / voxel_size))
+        i, j, k = _voxel_of(points[n], lower, voxel_size)
         if i < 0 or j < 0 or k < 0 or i >= shape[0] or j >= shape[1] or k >= shape[2]:
             continue
         if stamp[i, j, k] != 2 * slot:
@@ -145,9 +150,7 @@ def dynamic_points(points: np.ndarray, lower: np.ndarray, voxel_size: float, sha
     `crossed >= ratio * hits`; False outside the grid."""
     out = np.zeros(points.shape[0], np.bool_)
     for n in range(points.shape[0]):
-        i = int(np.floor((points[n, 0] - lower[0]) / voxel_size))
-        j = int(np.floor((points[n, 1] - lower[1]) / voxel_size))
-        k = int(np.floor((points[n, 2] - lower[2]) / voxel_size))
+        i, j, k = _voxel_of(points[n], lower, voxel_size)
         if i < 0 or j < 0 or k < 0 or i >= shape[0] or j >= shape[1] or k >= shape[2]:
             continue
         c = crossed[i, j, k]
