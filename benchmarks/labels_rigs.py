@@ -15,7 +15,8 @@ labelled without its lidarseg too (`bench_labels.without_lidarseg`), so that the
 like for like. `object_semantic_agreement`: on voxels the truth holds an object class (barrier ..
 truck, the classes boxes give) and the labels hold occupied, the share of the same class.
 
-    python -m benchmarks.labels_rigs [--rig nuscenes,lyft,truckscenes --seed 11 --samples 20] [--json out.json]
+    python -m benchmarks.labels_rigs [--rig nuscenes,lyft,truckscenes --seed 11,12 --samples 40] [--json out.json]
+    python -m benchmarks.labels_rigs --table out.json   # the markdown tables of docs/labels.md "Other rigs"
 """
 
 from __future__ import annotations
@@ -123,6 +124,37 @@ def run_rig(rig: str, seed: int, a: argparse.Namespace, work: Path) -> dict[str,
     return rows
 
 
+_COLUMNS = (  # (heading, key, format)
+    ("precision", "precision", "{:.4f}"), ("surface recall", "surface_recall", "{:.3f}"),
+    ("object semantic agreement", "object_semantic_agreement", "{:.3f}"),
+    ("semantic agreement (all)", "semantic_agreement", "{:.3f}"),
+    ("moving in box (worst)", "moving_inside", "{:.3f}"), ("true occupied voxels found", "true_occupied_found", "{:,}"),
+)
+
+
+def table(result: dict[str, Any], prefix: str = "") -> str:
+    """A markdown table of `result["rows"]` (one line per rig and variant, the seeds side by side as
+    `a / b`), on Occ3D's grid (`prefix` "") or the truck grid ("truck_grid_")."""
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for key, row in result["rows"].items():
+        groups.setdefault((row["rig"], key.rsplit("/", 1)[1]), []).append(row)
+    seeds = sorted({row["seed"] for row in result["rows"].values()})
+    head = ["rig", "LiDARs", *(c[0] for c in _COLUMNS), "labels CPU ms / keyframe"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for (rig, variant), rows in groups.items():
+        rows = sorted(rows, key=lambda r: r["seed"])
+
+        def cell(key: str, fmt: str, rows: list[dict[str, Any]] = rows) -> str:
+            return " / ".join(fmt.format(r[key]) for r in rows)
+
+        cells = [cell(prefix + k, f) for _, k, f in _COLUMNS]
+        cells[4] += " (" + cell(prefix + "moving_inside_worst_instance", "{:.3f}") + ")"
+        lidars = rows[0]["lidars"]
+        who = f"{len(lidars)}: all" if variant == "all-lidars" else f"1: {lidars[0]} alone"
+        lines.append(f"| {rig} | {who} | " + " | ".join(cells) + f" | {cell('cpu_ms_per_keyframe', '{:.0f}')} |")
+    return f"seeds {' / '.join(map(str, seeds))}\n\n" + "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--rig", default="nuscenes,lyft,truckscenes", help="comma-separated rigs of `occdata synth`")
@@ -133,7 +165,12 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=180)
     ap.add_argument("--json", type=Path, default=None, help="written after every rig (a partial run keeps its rows)")
     ap.add_argument("--keep", type=Path, default=None, help="work folder to keep (default: a temporary one)")
+    ap.add_argument("--table", type=Path, default=None, help="print the tables of a result file and stop")
     a = ap.parse_args()
+    if a.table:
+        result = json.loads(a.table.read_text())
+        print("Occ3D's grid:", table(result), "", "Truck grid:", table(result, "truck_grid_"), sep="\n")
+        return
     rigs, seeds = a.rig.split(","), [int(s) for s in a.seed.split(",")]
     unknown = sorted(set(rigs) - set(RIGS))
     if unknown:
