@@ -29,12 +29,13 @@ from benchmarks.common import write_json
 from benchmarks.provenance import REPO, machine
 from occdata.constants import CLASS_NAMES, FREE_LABEL
 from occdata.eval.evaluate import EvalConfig, evaluate_predictions
+from occdata.formats.gridspec import GRID_PRESETS, GridSpec
 from occdata.labels.fidelity import BANDS
-from occdata.labels.score import score_tree
+from occdata.labels.score import TreeScore, score_tree
 from occdata.store.build import BuildConfig, build_store
 from occdata.synth import SynthConfig, synthesize
 
-__all__ = ["VARIANTS"]
+__all__ = ["VARIANTS", "figures", "generate", "score", "without_lidarseg"]
 
 VARIANTS = {  # name: (extra CLI options, drop lidarseg)
     "boxes-keyframes": ([], False),
@@ -49,7 +50,7 @@ VARIANTS = {  # name: (extra CLI options, drop lidarseg)
 }
 
 
-def _generate(root: Path, out: Path, extra: list[str]) -> dict[str, float]:
+def generate(root: Path, out: Path, extra: list[str]) -> dict[str, float]:
     """Run `occdata labels` in a child on one core (NUMBA_NUM_THREADS=1); its wall and CPU seconds
     and peak RSS (MiB), from wait4. On a shared machine the CPU time is the per-core figure."""
     t0 = time.perf_counter()
@@ -64,10 +65,15 @@ def _generate(root: Path, out: Path, extra: list[str]) -> dict[str, float]:
             "peak_rss_mib": usage.ru_maxrss / 1024}
 
 
-def _score(root: Path, gen: Path, truth: Path) -> dict[str, float]:
-    """The fidelity figures, overall and per distance band (`band_<lo>-<hi>_...`: precision, recall of the
-    camera-visible observable surface, recall of every camera-visible occupied voxel)."""
-    t = score_tree(root, gen, truth)
+def score(root: Path, gen: Path, truth: Path, spec: GridSpec = GRID_PRESETS["occ3d"]) -> dict[str, float]:
+    """The fidelity figures on `spec` (Occ3D's grid, or an Occ3D-style custom one), overall and per
+    distance band (`band_<lo>-<hi>_...`: precision, recall of the camera-visible observable surface,
+    recall of every camera-visible occupied voxel)."""
+    return figures(score_tree(root, gen, truth, spec))
+
+
+def figures(t: TreeScore) -> dict[str, float]:
+    """`score`'s figures from a `TreeScore`."""
     row = {"precision": t.voxels.precision, "surface_recall": t.voxels.recall,
            "visible_surface_recall": t.voxels.visible_surface_recall, "visible_recall": t.voxels.visible_recall,
            "semantic_agreement": t.voxels.semantic_agreement, "moving_inside": t.moving_fraction,
@@ -77,6 +83,19 @@ def _score(root: Path, gen: Path, truth: Path) -> dict[str, float]:
         row |= {f"{name}_precision": band.precision, f"{name}_visible_surface_recall": band.visible_surface_recall,
                 f"{name}_visible_recall": band.visible_recall, f"{name}_visible_surface_voxels": band.visible_surface}
     return row
+
+
+def without_lidarseg(root: Path, work: Path) -> Path:
+    """`work/world_noseg`: the tree `root` without lidarseg (its data symlinked, the tables copied without
+    lidarseg.json); made once."""
+    src = work / "world_noseg"
+    if not src.exists():
+        src.mkdir()
+        for p in root.iterdir():
+            if p.name not in ("v1.0-mini", "lidarseg"):
+                (src / p.name).symlink_to(p.resolve())
+        shutil.copytree(root / "v1.0-mini", src / "v1.0-mini", ignore=shutil.ignore_patterns("lidarseg.json"))
+    return src
 
 
 def main() -> None:
@@ -102,19 +121,11 @@ def main() -> None:
     rows = {}
     for name in a.variants.split(","):
         extra, no_seg = VARIANTS[name]
-        src = root
-        if no_seg:  # the same tree without lidarseg (symlinked data, tables copied without lidarseg.json)
-            src = work / "world_noseg"
-            if not src.exists():
-                src.mkdir()
-                for p in root.iterdir():
-                    if p.name not in ("v1.0-mini", "lidarseg"):
-                        (src / p.name).symlink_to(p.resolve())
-                shutil.copytree(root / "v1.0-mini", src / "v1.0-mini", ignore=shutil.ignore_patterns("lidarseg.json"))
+        src = without_lidarseg(root, work) if no_seg else root
         out = work / f"gen_{name}"
         shutil.rmtree(out, ignore_errors=True)
-        cost = _generate(src, out, extra)
-        row = {**cost, "cpu_seconds_per_scene": cost["cpu_seconds"] / a.scenes, **_score(root, out, root / "gts")}
+        cost = generate(src, out, extra)
+        row = {**cost, "cpu_seconds_per_scene": cost["cpu_seconds"] / a.scenes, **score(root, out, root / "gts")}
         for split in ("train", "val") if a.scenes > 1 else ("train",):
             rep = evaluate_predictions(EvalConfig(pred=out, store=store, split=split, rayiou=False, progress=False))
             row[f"eval_miou_camera_{split}"] = float(rep.miou.miou)

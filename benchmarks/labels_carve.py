@@ -30,7 +30,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from benchmarks.bench_labels import _generate
+from benchmarks.bench_labels import generate
 from benchmarks.common import SHARED_DATA, write_json
 from benchmarks.provenance import machine
 from occdata.constants import FREE_LABEL, GRID
@@ -115,7 +115,7 @@ def _score(root: Path, gen: Path, reference: Path, truth: bool) -> dict[str, flo
 
 def _run(root: Path, out: Path, extra: list[str], keyframes: int) -> dict[str, float]:
     shutil.rmtree(out, ignore_errors=True)
-    cost = _generate(root, out, extra)
+    cost = generate(root, out, extra)
     return {**cost, "cpu_seconds_per_keyframe": cost["cpu_seconds"] / keyframes}
 
 

@@ -255,6 +255,8 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
               help="Also write a custom grid: Occ3D's frame, classes and layout at this voxel size (m), in "
                    "OUT/occ3d-<size>m/.")
 @grid_range_option()
+@rig_options()
+@split_source_options()
 @cluster_options(per_worker=", one scene each at a time")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run: finished scenes are skipped.")
 @progress_option()
@@ -263,8 +265,8 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
            all_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, boxes_mode: str,
            carve: bool | None, dynamic_class: int, densify: bool,
            grids: tuple[str, ...],
-           voxel_size: float | None, grid_range: tuple[float, ...] | None, cluster: ClusterConfig,
-           resume: bool, progress: bool) -> None:
+           voxel_size: float | None, grid_range: tuple[float, ...] | None, rig: RigChoice,
+           scene_splits: SplitChoice, cluster: ClusterConfig, resume: bool, progress: bool) -> None:
     """Generate occupancy labels from LiDAR and 3D boxes (and lidarseg when present), on the grid of
     Occ3D-nuScenes and, with --grid / --voxel-size, of other benchmarks; without boxes (or with --boxes
     none), moving objects are found by free-space carving.
@@ -287,7 +289,7 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
                                  carve=carve if carve is not None else (True if boxes_mode == "none" else
                                                                         False if no_boxes else None),
                                  dynamic_class=dynamic_class),
-            cluster=cluster, grids=specs,
+            cluster=cluster, grids=specs, rig=rig, scene_splits=scene_splits,
         ))
     seg = "lidarseg classes" if report.with_lidarseg else f"no lidarseg: static points are class {static_class}"
     carved = sorted(name for name, mode in report.modes.items() if "carve" in mode)

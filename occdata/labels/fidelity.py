@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from occdata.constants import FREE_LABEL, GRID
+from occdata.constants import FREE_LABEL, GRID, OccGrid
 from occdata.geometry import invert_rigid, points_in_box
 from occdata.nuscenes.annotations import moving_instances
 
@@ -64,12 +64,12 @@ class Fidelity:
         return self.visible_found / max(self.visible, 1)
 
 
-def band_regions(shape: tuple[int, int, int] = GRID.shape) -> list[np.ndarray]:
-    """Per band of `BANDS`, `(X, Y, Z) bool`: the voxels of Occ3D's grid whose centre's horizontal
-    distance from the key-ego origin lies in the band."""
-    centres = GRID.voxel_centers()
+def band_regions(shape: tuple[int, int, int] = GRID.shape, grid: OccGrid = GRID) -> list[np.ndarray]:
+    """Per band of `BANDS`, `(X, Y, Z) bool`: the voxels of `grid` (a key-ego grid; default Occ3D's)
+    whose centre's horizontal distance from the key-ego origin lies in the band."""
+    centres = grid.voxel_centers()
     if centres.shape[:3] != tuple(shape):
-        raise ValueError(f"bands are defined on Occ3D's grid {GRID.shape}, not {shape}")
+        raise ValueError(f"bands are defined on the grid {grid.shape}, not {shape}")
     r = np.hypot(centres[..., 0], centres[..., 1])
     return [(r >= lo) & (r < hi) for lo, hi in BANDS]
 
@@ -113,14 +113,16 @@ def voxel_fidelity(generated: np.ndarray, truth: np.ndarray, truth_mask_lidar: n
     return out
 
 
-def _in_box(centers: np.ndarray, T_keyego_from_box: np.ndarray, size_wlh: np.ndarray, dilate: int) -> np.ndarray:
+def _in_box(centers: np.ndarray, T_keyego_from_box: np.ndarray, size_wlh: np.ndarray, dilate: int,
+            voxel_size: float = GRID.voxel_size) -> np.ndarray:
     w, length, h = np.asarray(size_wlh, np.float64)
-    half = np.array([length / 2, w / 2, h / 2]) + dilate * GRID.voxel_size
+    half = np.array([length / 2, w / 2, h / 2]) + dilate * voxel_size
     return points_in_box(centers, invert_rigid(T_keyego_from_box), half)
 
 
 def instance_containment(generated: np.ndarray, cls: int, track: list[tuple[np.ndarray, np.ndarray]], now: int,
-                         others: list[tuple[np.ndarray, np.ndarray]] = (), dilate: int = 1) -> tuple[int, int]:
+                         others: list[tuple[np.ndarray, np.ndarray]] = (), dilate: int = 1,
+                         grid: OccGrid = GRID) -> tuple[int, int]:
     """A moving instance's generated voxels at one keyframe: `(inside, total)`.
 
     Its voxels are those of its class `cls` within the corridor it sweeps over the scene: the union of
@@ -128,17 +130,18 @@ def instance_containment(generated: np.ndarray, cls: int, track: list[tuple[np.n
     keyframe's key ego), each grown by `dilate` voxels. `inside` counts those within its box at this
     keyframe, `track[now]`, grown the same way. Voxels in the other instances' boxes at this
     keyframe (`others`, grown the same way) belong to them and are left out. A smeared object fills
-    the corridor; a sharp one stays in its box."""
+    the corridor; a sharp one stays in its box. `generated` lies on `grid` (key ego; default Occ3D's)."""
     idx = np.argwhere(generated == cls)
     if not len(idx):
         return 0, 0
-    centers = np.asarray(GRID.lower, np.float64) + (idx + 0.5) * GRID.voxel_size
+    v = grid.voxel_size
+    centers = np.asarray(grid.lower, np.float64) + (idx + 0.5) * v
     corridor = np.zeros(len(idx), bool)
     for T, size in track:
-        corridor |= _in_box(centers, T, size, dilate)
+        corridor |= _in_box(centers, T, size, dilate, v)
     for T, size in others:
-        corridor &= ~_in_box(centers, T, size, dilate)
-    inside = _in_box(centers, *track[now], dilate) & corridor
+        corridor &= ~_in_box(centers, T, size, dilate, v)
+    inside = _in_box(centers, *track[now], dilate, v) & corridor
     return int(inside.sum()), int(corridor.sum())
 
 
@@ -162,9 +165,10 @@ class SceneScore:
 
 
 def moving_containment(generated: list[np.ndarray], T_keyego_from_global: list[np.ndarray],
-                       boxes_by_keyframe: list[list], class_of: dict[str, int]) -> dict[str, tuple[int, int]]:
+                       boxes_by_keyframe: list[list], class_of: dict[str, int],
+                       grid: OccGrid = GRID) -> dict[str, tuple[int, int]]:
     """Per moving instance, `(inside, total)` generated voxels summed over the keyframes
-    (`instance_containment`); `generated[k] (X, Y, Z) uint8`, the key-ego transform and the
+    (`instance_containment`); `generated[k] (X, Y, Z) uint8` on `grid`, the key-ego transform and the
     BoxRecords of keyframe k; `class_of`: instance -> its Occ3D class."""
     movers = moving_instances(boxes_by_keyframe)
     tracks: dict[str, list] = {}
@@ -180,7 +184,7 @@ def moving_containment(generated: list[np.ndarray], T_keyego_from_global: list[n
             track = [(T @ o.T_global_from_box(), o.size_wlh) for o in tracks[b.instance_token]]
             now = next(i for i, o in enumerate(tracks[b.instance_token]) if o.token == b.token)
             others = [(T @ o.T_global_from_box(), o.size_wlh) for o in boxes_by_keyframe[k] if o is not b]
-            i, t = instance_containment(gen, class_of[b.instance_token], track, now, others)
+            i, t = instance_containment(gen, class_of[b.instance_token], track, now, others, grid=grid)
             old = out.get(b.instance_token, (0, 0))
             out[b.instance_token] = (old[0] + i, old[1] + t)
     return out
@@ -188,11 +192,12 @@ def moving_containment(generated: list[np.ndarray], T_keyego_from_global: list[n
 
 def score_scene(generated: list[np.ndarray], truth: list[tuple[np.ndarray, ...]],
                 T_keyego_from_global: list[np.ndarray], boxes_by_keyframe: list[list],
-                class_of: dict[str, int]) -> SceneScore:
+                class_of: dict[str, int], grid: OccGrid = GRID) -> SceneScore:
     """Score one scene's keyframes: `generated[k]`, `truth[k] = (semantics, mask_lidar[, mask_camera])`
-    and the arguments of `moving_containment`; also per band of `BANDS` (Occ3D's grid only)."""
+    and the arguments of `moving_containment`, on `grid` (a key-ego grid; default Occ3D's); also per
+    band of `BANDS` when the arrays have `grid`'s shape."""
     total = Fidelity()
-    regions = band_regions(generated[0].shape) if generated and generated[0].shape == GRID.shape else []
+    regions = band_regions(grid.shape, grid) if generated and generated[0].shape == grid.shape else []
     bands = [Fidelity() for _ in regions]
     for gen, masks in zip(generated, truth, strict=True):
         if not regions:
@@ -201,7 +206,7 @@ def score_scene(generated: list[np.ndarray], truth: list[tuple[np.ndarray, ...]]
             band.add(voxel_fidelity(gen, *masks, region=region))
     for band in bands:  # the bands partition the grid and every count is per voxel: they sum to the whole
         total.add(band)
-    moving = moving_containment(generated, T_keyego_from_global, boxes_by_keyframe, class_of)
+    moving = moving_containment(generated, T_keyego_from_global, boxes_by_keyframe, class_of, grid)
     return SceneScore(total, moving, bands)
 
 

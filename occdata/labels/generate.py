@@ -30,6 +30,8 @@ from occdata.labels.scene import LabelOptions, LabelSources, SceneCounts, label_
 from occdata.nuscenes import NuScenesDataset, SampleRecord, find_version, load_nuscenes, validate_sample
 from occdata.nuscenes.annotations import load_annotations
 from occdata.nuscenes.lidarseg import lidarseg_index_names, load_lidarseg_index, occ3d_lut
+from occdata.nuscenes.rig import Rig, RigChoice
+from occdata.nuscenes.splits import SplitChoice
 from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks
 from occdata.runtime.lock import store_lock
 from occdata.runtime.tasks import StopCheck, no_stop
@@ -45,7 +47,10 @@ _RECORDS = ".scenes"
 @dataclass(frozen=True)
 class LabelsConfig:
     """`occdata labels` options. `scenes`: scene names to label (None: all of the chosen splits);
-    `cluster`: where the scene tasks run (as `occdata.store.build.BuildConfig.cluster`)."""
+    `cluster`: where the scene tasks run (as `occdata.store.build.BuildConfig.cluster`); `rig`: the
+    cameras (camera masks) and LiDARs (aggregation, LiDAR masks) used (`--cameras`, `--lidars`,
+    `--reference-lidar`; default every one of the tables); `scene_splits`: where each scene's split comes
+    from (`--split-file`, `--unlisted-split`), which `splits` then selects."""
 
     root: Path
     out: Path
@@ -57,6 +62,8 @@ class LabelsConfig:
     progress: bool = True
     cluster: ClusterConfig = ClusterConfig()
     grids: tuple[GridSpec, ...] = (GRID_PRESETS["occ3d"],)
+    rig: RigChoice = field(default_factory=RigChoice)
+    scene_splits: SplitChoice = field(default_factory=SplitChoice)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "root", Path(self.root))
@@ -88,7 +95,8 @@ def scene_record_path(out: Path, scene: str) -> Path:
 def load_inputs(cfg: LabelsConfig) -> tuple[LabelSources, str]:
     """The tables (with sweeps when used), boxes and lidarseg of `cfg.root`; and the version read."""
     version = find_version(cfg.root, cfg.version)
-    ds = load_nuscenes(cfg.root, version, sweeps=cfg.options.lidar_sweeps).select(cfg.splits)
+    ds = load_nuscenes(cfg.root, version, sweeps=cfg.options.lidar_sweeps, rig=cfg.rig,
+                       splits=cfg.scene_splits).select(cfg.splits)
     if cfg.scenes is not None:
         missing = sorted(set(cfg.scenes) - {sc.name for sc in ds.scenes})
         if missing:
@@ -122,7 +130,7 @@ def scene_modes(inputs: LabelSources, options: LabelOptions) -> dict[str, str]:
 
 
 def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool,
-                  modes: dict[str, str] | None = None) -> dict[str, Any]:
+                  modes: dict[str, str] | None = None, rig: Rig | None = None) -> dict[str, Any]:
     opts = dataclasses.asdict(cfg.options)
     carved = sorted(name for name, mode in (modes or {}).items() if "carve" in mode)
     if not carved:
@@ -146,6 +154,11 @@ def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool,
     }
     if carved:
         header["carving"] = _carving_words(cfg.options, with_seg, carved)
+    # Recorded only where they are not nuScenes' defaults, so that a nuScenes manifest keeps its bytes.
+    if rig is not None and not rig.is_nuscenes:
+        header["rig"] = rig.as_attr()
+    if cfg.scene_splits != SplitChoice():
+        header["scene_splits"] = cfg.scene_splits.describe()
     return header
 
 
@@ -206,8 +219,11 @@ def _check_out(cfg: LabelsConfig, header: dict[str, Any]) -> None:
 
 
 def _settings(header: dict[str, Any]) -> dict[str, Any]:
-    return {"algorithm_version": header["algorithm_version"], "options": header["options"],
-            "lidarseg": header["lidarseg"], "grids": [g["name"] for g in header["grids"]]}
+    """What a resumed run must share with the records it continues (the rig and split rule only where
+    the header has them: a nuScenes record keeps its bytes)."""
+    out = {"algorithm_version": header["algorithm_version"], "options": header["options"],
+           "lidarseg": header["lidarseg"], "grids": [g["name"] for g in header["grids"]]}
+    return out | {k: header[k] for k in ("rig", "scene_splits") if k in header}
 
 
 def _counts_record(counts: SceneCounts) -> dict[str, Any]:
@@ -269,7 +285,7 @@ def generate_labels(cfg: LabelsConfig, client: Any = None) -> LabelsReport:
     SIGTERM (finished scenes are kept)."""
     inputs, version = load_inputs(cfg)
     modes = scene_modes(inputs, cfg.options)
-    header = _options_dict(cfg, version, bool(inputs.lidarseg), modes)
+    header = _options_dict(cfg, version, bool(inputs.lidarseg), modes, inputs.dataset.rig)
     cfg.out.mkdir(parents=True, exist_ok=True)
     with store_lock(cfg.out, "labels"):
         _check_out(cfg, header)

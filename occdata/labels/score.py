@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from occdata.formats.gridfiles import read_grid_label
+from occdata.formats.gridspec import GRID_PRESETS, GridSpec, LabelFrame, LabelLayout
 from occdata.formats.occ3d import label_path, read_label
 from occdata.geometry import invert_rigid
 from occdata.labels.fidelity import Fidelity, score_scene
@@ -33,13 +35,20 @@ class TreeScore:
         return self.moving_inside / max(self.moving_total, 1)
 
 
-def _arrays(folder: Path, scene: str, token: str, *keys: str) -> tuple[np.ndarray, ...]:
-    label = read_label(label_path(folder, scene, token))
-    return tuple(label[k] for k in keys)
+def _arrays(folder: Path, scene: str, token: str, *keys: str, spec: GridSpec = GRID_PRESETS["occ3d"]
+            ) -> tuple[np.ndarray, ...]:
+    path = label_path(folder, scene, token)
+    label = read_label(path) if spec.name == "occ3d" else read_grid_label(spec, path)
+    return tuple(label[k] if k in label else np.zeros(spec.shape, np.uint8) for k in keys)
 
 
-def score_tree(root: Path, generated: Path, truth: Path) -> TreeScore:
-    """Score `generated/<scene>/<token>/labels.npz` against `truth/...` for every keyframe of `root`."""
+def score_tree(root: Path, generated: Path, truth: Path, spec: GridSpec = GRID_PRESETS["occ3d"]) -> TreeScore:
+    """Score `generated/<scene>/<token>/labels.npz` against `truth/...` for every keyframe of `root`,
+    both on `spec`: Occ3D's grid, or an Occ3D-style custom one (key ego, Occ3D's layout and classes:
+    `occdata labels|synth --voxel-size/--range`'s `occ3d-<V>m/` folders)."""
+    if spec.frame is not LabelFrame.KEY_EGO or spec.layout is not LabelLayout.OCC3D:
+        raise ValueError(f"score_tree scores key-ego grids in Occ3D's layout, not {spec.name}")
+    grid = spec.grid
     ds = load_nuscenes(root, None)
     ann = load_annotations(root, ds.version)
     class_of = {b.instance_token: box_class(b) for bs in ann.boxes_by_sample.values() for b in bs}
@@ -47,10 +56,11 @@ def score_tree(root: Path, generated: Path, truth: Path) -> TreeScore:
     bands: list[Fidelity] = []
     for sc in ds.scenes:
         toks = sc.sample_tokens
-        gens = [_arrays(generated, sc.name, t, "semantics")[0] for t in toks]
-        truths = [_arrays(truth, sc.name, t, "semantics", "mask_lidar", "mask_camera") for t in toks]
+        gens = [_arrays(generated, sc.name, t, "semantics", spec=spec)[0] for t in toks]
+        truths = [_arrays(truth, sc.name, t, "semantics", "mask_lidar", "mask_camera", spec=spec) for t in toks]
         Ts = [invert_rigid(ds.sample(t).T_global_from_keyego) for t in toks]
-        score = score_scene(gens, truths, Ts, [list(ann.boxes_by_sample.get(t, ())) for t in toks], class_of)
+        score = score_scene(gens, truths, Ts, [list(ann.boxes_by_sample.get(t, ())) for t in toks], class_of,
+                            grid)
         voxels.add(score.voxels)
         bands = bands or [Fidelity() for _ in score.bands]
         for band, more in zip(bands, score.bands, strict=True):
