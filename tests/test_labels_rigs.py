@@ -64,9 +64,8 @@ def test_labels_are_precise_and_every_lidar_adds(labelled: dict) -> None:
     assert manifest["ref"]["rig"]["lidars"] == [labelled["ref"]]
 
 
+@pytest.mark.parametrize("labelled", ["truckscenes"], indirect=True)  # the truck grid is the truck's
 def test_the_truck_grid_covers_the_truck_and_is_scored_on_its_truth(labelled: dict) -> None:
-    if labelled["rig"] != "truckscenes":
-        pytest.skip("the truck grid is the truck's")
     spec = truck_grid()
     (x0, y0, z0), (x1, y1, z1) = spec.grid.lower, spec.grid.upper
     rear = TRUCK_FRONT_M - TRUCK_LENGTH_M  # the semi-trailer's tail, behind the tractor's rear axle
