@@ -221,17 +221,19 @@ def test_s3_a_heartbeat_that_keeps_failing_stops_the_writer(s3, monkeypatch) -> 
     def unreachable(self, data, tag):
         raise ConnectionRefusedError(111, "Connection refused")
 
+    # A stale time 40 renewals long: on a loaded machine the heartbeat thread may first run late, and the
+    # lease must lapse after renewals have failed (and named their cause), not before the first one ran.
     monkeypatch.setattr(lock_mod, "LEASE_RENEW_S", 0.05)
-    monkeypatch.setattr(lock_mod, "LEASE_STALE_S", 0.5)
+    monkeypatch.setattr(lock_mod, "LEASE_STALE_S", 2.0)
     monkeypatch.setattr(lock_mod._S3Object, "replace", unreachable)
     url = f"s3://{BUCKET}/lapse.zarr"
     t0 = time.monotonic()
-    with pytest.raises(LeaseLostError, match=r"no heartbeat for 0 s \(ConnectionRefusedError"):
+    with pytest.raises(LeaseLostError, match=r"no heartbeat for \d+ s \(ConnectionRefusedError"):
         with store_lock(url, "build") as lock:
             while time.monotonic() - t0 < 10:
                 lock.check()
                 time.sleep(0.02)
-    assert time.monotonic() - t0 < 5
+    assert time.monotonic() - t0 < 8
     s3.rm(f"{BUCKET}/lapse.zarr.lock")  # left in place: this writer cannot tell whose it is now
 
 

@@ -234,6 +234,7 @@ class _Lease:
         self.obj = _lease_object(url)
         self.tag = ""
         self.last_ok = time.monotonic()
+        self.last_error = ""  # the latest failed renewal's "Type: message" ("" while renewals succeed)
         self.lost: str | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._beat, name="occdata-lease", daemon=True)
@@ -282,19 +283,21 @@ class _Lease:
         while not self._stop.wait(LEASE_RENEW_S):
             try:
                 self.tag = self.obj.replace(self._body(), self.tag)
-                self.last_ok = time.monotonic()
+                self.last_ok, self.last_error = time.monotonic(), ""
             except _Taken:
                 self.lost = "another writer holds it now, or it was deleted"
                 return
             except Exception as exc:  # noqa: BLE001 - an unreachable store: retried until the lease lapses
+                self.last_error = f"{type(exc).__name__}: {exc}"
                 if time.monotonic() - self.last_ok > _lapse_s():
-                    self.lost = f"no heartbeat for {_lapse_s():.0f} s ({type(exc).__name__}: {exc})"
+                    self.lost = f"no heartbeat for {_lapse_s():.0f} s ({self.last_error})"
                     return
 
     def check(self) -> None:
         """Raise `LeaseLostError` once the lease is not this writer's any more."""
         if self.lost is None and self._thread.is_alive() and time.monotonic() - self.last_ok > _lapse_s():
-            self.lost = f"no heartbeat for {_lapse_s():.0f} s"  # a renewal hanging in the network
+            # the last renewal's error when one failed, else a renewal hanging in the network
+            self.lost = f"no heartbeat for {_lapse_s():.0f} s" + (f" ({self.last_error})" if self.last_error else "")
         if self.lost is not None:
             raise LeaseLostError(
                 f"lost the write lease {self.url} of {self.store} ({self.lost}); stopped writing. What was committed "
