@@ -18,26 +18,28 @@ from occdata.labels.carve import CarveGrid, CarveOptions, dynamic_points, time_s
 from occdata.labels.score import score_tree
 from occdata.nuscenes import load_nuscenes
 
-OPTS = CarveOptions(voxel_size=0.2)  # the hand-worked figures below are for 0.2 m voxels
+# The hand-worked figures below are for 0.2 m voxels and a 0.2 m graze height.
+OPTS = CarveOptions(voxel_size=0.2, graze_height=0.2)
 
 
 # ------------------------------------------------------------------------------------------------
 # numba == numpy twin
 # ------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("seed", range(3))
-def test_carve_matches_twin(seed: int) -> None:
+@pytest.mark.parametrize(("seed", "near"), [(0, 0), (1, 1), (2, 2), (3, 1)])
+def test_carve_matches_twin(seed: int, near: int) -> None:
     rng = np.random.default_rng(seed)
-    opts = CarveOptions(voxel_size=0.5, margin=0.3, graze_max=2.0)
-    lo, hi = np.array([-1.0, -1.0, -0.5]), np.array([3.0, 2.5, 2.0])
+    opts = CarveOptions(voxel_size=0.5, margin=0.3, graze_max=2.0, graze_height=0.4, near=near)
+    lo, hi = np.array([-1.0, -1.0, -0.5]), np.array([5.0, 4.5, 2.0])
     grid = CarveGrid(lo, hi, opts)
     slots = []
     for s in range(4):
-        n_lidars = int(rng.integers(1, 3))
-        frames = [(rng.uniform(lo, hi), rng.uniform(lo - 0.5, hi + 0.5, (30, 3))) for _ in range(n_lidars)]
+        n_lidars = int(rng.integers(1, 3))  # few returns: with `near` 2 each blocks up to 125 voxels
+        frames = [(rng.uniform(lo, hi), rng.uniform(lo - 0.5, hi + 0.5, (12, 3))) for _ in range(n_lidars)]
         slots.append(frames)
         grid.add_slot(s, frames)
-    hits, crossed = carve_reference(slots, grid.lower, opts.voxel_size, grid.shape, opts.margin, opts.graze_max)
-    assert crossed.sum() > 20 and hits.sum() > 20, "the rays must reach the grid for this to mean anything"
+    hits, crossed = carve_reference(slots, grid.lower, opts.voxel_size, grid.shape, opts.margin, opts.graze_max,
+                                    opts.graze_height, near)
+    assert crossed.sum() > 10 and hits.sum() > 20, "the rays must reach the grid for this to mean anything"
     np.testing.assert_array_equal(grid.hits, hits)
     np.testing.assert_array_equal(grid.crossed, crossed)
     pts = rng.uniform(lo - 0.5, hi + 0.5, (200, 3))
@@ -77,11 +79,12 @@ def test_a_point_other_times_saw_through_is_dynamic() -> None:
 
 def test_grazing_rays_do_not_carve_the_ground() -> None:
     """A ray from 1.8 m onto the ground at x = 30 m (sin 0.06) passes 0.12 m over the ground at x = 28 m,
-    inside the ground's 0.2 m voxel. Its last 0.2 / 0.06 = 3.3 m are no evidence, so a ground point
-    there stays static; with the cut fixed at 0.4 m (graze_max = margin) the grazing rays carve it."""
+    inside the ground's 0.2 m voxel. Its last 0.2 / 0.06 = 3.3 m (graze_height 0.2 m) are no evidence, so
+    a ground point there stays static; with the cut fixed at 0.4 m (graze_max = margin) the grazing rays
+    carve it."""
     origin = np.array([0.0, 0.0, 1.8])
     ground_far, ground = np.array([[30.0, 0.0, 0.01]]), np.array([[28.0, 0.0, 0.01]])
-    for opts, expect in ((OPTS, False), (CarveOptions(voxel_size=0.2, graze_max=0.4), True)):
+    for opts, expect in ((OPTS, False), (CarveOptions(voxel_size=0.2, graze_height=0.2, graze_max=0.4), True)):
         g = _grid(opts)
         g.add_slot(0, [(origin, ground)])
         g.add_slot(1, [(origin, ground_far)])
@@ -101,6 +104,24 @@ def test_a_slot_that_hits_a_voxel_gives_it_no_free_evidence() -> None:
     assert g.crossed[tuple(j)] == 1, "one slot counts once however many of its rays cross"
     with pytest.raises(ValueError, match="twice"):
         g.add_slot(0, [])
+
+
+def test_rays_along_their_own_returns_are_no_evidence() -> None:
+    """A wall along y = 0.3 m is seen at a slant. Slot 0 has a return on it at (10.1, 0.3). Slots 1 and 2,
+    whose poses put the wall 0.2 m nearer (y = 0.1), return at (10.1, 0.1) and cast a level ray to
+    (20, 0.62) that passes (10.1, 0.3)'s voxel ([10.0, 10.2] x [0.2, 0.4]) at y = 0.31-0.32. With `near` 1
+    that voxel is next to the slots' own return's voxel ([0.0, 0.2] in y) and gets no evidence: the wall
+    point stays static. With `near` 0 both slots cross it and it is taken for a mover."""
+    origin = np.array([0.0, 0.0, 1.0])
+    wall0, own, through = np.array([[10.1, 0.3, 1.0]]), np.array([[10.1, 0.1, 1.0]]), np.array([[20.0, 0.62, 1.0]])
+    for near, expect in ((1, False), (0, True)):
+        g = _grid(CarveOptions(voxel_size=0.2, graze_height=0.2, near=near))
+        g.add_slot(0, [(origin, wall0)])
+        g.add_slot(1, [(origin, np.vstack([own, through]))])
+        g.add_slot(2, [(origin, np.vstack([own, through]))])
+        i = np.floor((wall0[0] - g.lower) / 0.2).astype(int)
+        assert (g.hits[tuple(i)], g.crossed[tuple(i)]) == (1, 0 if near else 2), near
+        assert g.dynamic(wall0).tolist() == [expect], near
 
 
 def test_time_slots_group_lidars_fired_together() -> None:

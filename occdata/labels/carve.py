@@ -8,14 +8,19 @@ global frame (`CarveGrid`, `voxel_size` metres, covering every keyframe's label 
 - `hits`: the number of **time slots** (frames fired at the same time: a keyframe's LiDARs) with a
   return in the voxel;
 - `crossed`: the number of time slots whose rays crossed the voxel **as evidence**, which leaves out
-  1. the part of each ray within `graze` metres before its return, `graze = clamp(voxel_size /
+  1. the part of each ray within `graze` metres before its return, `graze = clamp(graze_height /
      |sin(elevation)|, margin, graze_max)`: a ray descending onto the ground at a grazing angle runs
-     through the ground's own voxels over its last `voxel_size / |sin|` metres (it is within one
-     voxel height of its return's height there) and proves nothing about them; `margin` (densify's
-     `FREE_MARGIN`, 0.4 m) is the floor for steep rays, `graze_max` the cap for level ones;
-  2. the voxel holding the return itself;
-  3. a voxel where the same time slot also has a return (it was seen occupied and crossed at once:
-     partly filled, or a ray grazing it; no evidence either way).
+     within `graze_height` of the ground's height over its last `graze_height / |sin|` metres and
+     proves nothing about the ground's voxels there; `margin` (densify's `FREE_MARGIN`, 0.4 m) is the
+     floor for steep rays, `graze_max` the cap for level ones;
+  2. the voxels within `near` voxels (in x, y and z) of a return of the same time slot: a ray that
+     passes that close to what its own slot hit runs along a surface (a wall seen at a slant, a
+     kerb, leaves) and a few centimetres of pose or range error put it on either side of it (0: only
+     the return's own voxel).
+
+Before counting, each slot's frames are moved in height by the slot's error (`align_heights`,
+`occdata.labels.heights`): nuScenes ego poses have z = 0, and frames that disagree by decimetres
+about the ground's height carve each other's ground and walls.
 
 A point is dynamic when its voxel has `crossed >= min_frames` and `crossed >= ratio * hits`: at least
 `min_frames` other times saw its place empty, and at least as many (`ratio` 1) as saw something there;
@@ -34,9 +39,10 @@ from numba import njit
 
 from occdata.errors import OccDataError
 from occdata.labels.densify import FREE_MARGIN
+from occdata.labels.heights import HeightOffsets
 from occdata.sensors.raycast import segment_advance, segment_setup
 
-__all__ = ["CarveGrid", "CarveOptions", "carve_rays", "dynamic_points", "mark_hits", "time_slots"]
+__all__ = ["CarveGrid", "CarveOptions", "carve_rays", "dynamic_points", "mark_hits", "mark_near", "time_slots"]
 
 # Above this many carve voxels (6 bytes each) a scene is refused rather than swapping.
 MAX_VOXELS = 400_000_000
@@ -50,13 +56,16 @@ class CarveOptions:
     voxel_size: carve grid voxel (m). min_frames: time slots that must have seen a point's voxel empty.
     ratio: ... and at least this many times the slots that saw it occupied. ratio_seg: the same for
     points with a lidarseg class, whose ground, buildings and vegetation are never dynamic whatever
-    the rays say (so a looser rule risks only objects). margin / graze_max: the
-    least and the most of each ray's last metres left out (m). window: seconds either side of a
-    keyframe within which dynamic points are drawn at it (its own sweep always; 0.055 s also takes
-    the neighbouring sweeps of a 20 Hz LiDAR). ray_stride: of a non-keyframe sweep cast every n-th ray
-    (every return still counts as a hit): carving's cost is its rays' steps, and sweeps come 10 a
-    keyframe. Chosen on the 40-keyframe synthetic world (docs/labels.md, "Without boxes"): 0.3 m
-    voxels left 1,214 smear voxels against 1,510 at 0.2 m and 29,177 at 0.4 m."""
+    the rays say (so a looser rule risks only objects). graze_height: the height over a return
+    within which a descending ray is no evidence (m); margin / graze_max: the least and the most of
+    each ray's last metres left out (m). near: voxels around a slot's returns that its rays give no
+    evidence for. align_heights: move each slot's frames by its height error first
+    (`occdata.labels.heights`). window: seconds either side of a keyframe within which dynamic points
+    are drawn at it (its own sweep always; 0.055 s also takes the neighbouring sweeps of a 20 Hz
+    LiDAR). ray_stride: of a non-keyframe sweep cast every n-th ray (every return still counts as a
+    hit): carving's cost is its rays' steps, and sweeps come 10 a keyframe. The voxel was chosen on
+    the 40-keyframe synthetic world (docs/labels.md, "Without boxes"): 0.3 m voxels left 1,214 smear
+    voxels against 1,510 at 0.2 m and 29,177 at 0.4 m."""
 
     voxel_size: float = 0.3
     min_frames: int = 2
@@ -66,6 +75,9 @@ class CarveOptions:
     graze_max: float = 5.0
     window: float = 0.055
     ray_stride: int = 2
+    graze_height: float = 0.3
+    near: int = 1
+    align_heights: bool = True
 
     def __post_init__(self) -> None:
         if not 0.05 <= self.voxel_size <= 2.0:
@@ -80,6 +92,10 @@ class CarveOptions:
             raise ValueError("carve window must be in [0, 5] s")
         if not 1 <= self.ray_stride <= 64:
             raise ValueError("carve ray_stride must be in [1, 64]")
+        if not 0 < self.graze_height <= 5:
+            raise ValueError("carve graze_height must be in (0, 5] m")
+        if not 0 <= self.near <= 3:
+            raise ValueError("carve near must be 0, 1, 2 or 3 voxels")
 
 
 @njit(cache=True, inline="always")
@@ -105,14 +121,29 @@ def mark_hits(points: np.ndarray, lower: np.ndarray, voxel_size: float, shape: n
 
 
 @njit(cache=True)
+def mark_near(points: np.ndarray, lower: np.ndarray, voxel_size: float, shape: np.ndarray, slot: int, near: int,
+              stamp: np.ndarray) -> None:
+    """`stamp (X, Y, Z) int32` becomes `2 * slot` in every voxel within `near` voxels (in each axis) of
+    the voxel of a point of `points (N, 3) float64` (global): no evidence from this slot there. Run
+    after every frame of the slot has gone through `mark_hits` (which counts a slot once per voxel by
+    the same stamp)."""
+    for n in range(points.shape[0]):
+        i0, j0, k0 = _voxel_of(points[n], lower, voxel_size)
+        for i in range(max(i0 - near, 0), min(i0 + near + 1, shape[0])):
+            for j in range(max(j0 - near, 0), min(j0 + near + 1, shape[1])):
+                for k in range(max(k0 - near, 0), min(k0 + near + 1, shape[2])):
+                    stamp[i, j, k] = 2 * slot
+
+
+@njit(cache=True)
 def carve_rays(origins: np.ndarray, endpoints: np.ndarray, lower: np.ndarray, voxel_size: float,
-               shape: np.ndarray, slot: int, margin: float, graze_max: float, crossed: np.ndarray,
-               stamp: np.ndarray) -> None:
+               shape: np.ndarray, slot: int, margin: float, graze_max: float, graze_height: float,
+               crossed: np.ndarray, stamp: np.ndarray) -> None:
     """Count time slot `slot` once in `crossed (X, Y, Z) uint8` for each voxel its rays `origins (N, 3)
     -> endpoints (N, 3)` (float64, global) cross as evidence (module docstring: the last `graze`
     metres and the return's voxel left out, and voxels where `stamp == 2 * slot`, i.e. this slot has a
-    return, skipped). The slot's hits must be marked first (`mark_hits`); `stamp` becomes `2 * slot + 1`
-    where counted."""
+    return there or near, skipped). The slot's hits must be marked first (`mark_hits`, `mark_near`);
+    `stamp` becomes `2 * slot + 1` where counted."""
     idx = np.empty(3, np.int64)
     step = np.empty(3, np.int64)
     t_next = np.empty(3)
@@ -123,7 +154,7 @@ def carve_rays(origins: np.ndarray, endpoints: np.ndarray, lower: np.ndarray, vo
         if length == 0.0:
             continue
         sin = abs(e[2] - a[2]) / length
-        graze = graze_max if sin * graze_max <= voxel_size else voxel_size / sin
+        graze = graze_max if sin * graze_max <= graze_height else graze_height / sin
         graze = max(graze, margin)
         if length <= graze:
             continue
@@ -173,13 +204,17 @@ def time_slots(timestamps_us: Sequence[int], tolerance_us: int = 10_000) -> np.n
 
 class CarveGrid:
     """The evidence of one scene (module docstring): `hits`, `crossed` `(X, Y, Z) uint8` and a stamp,
-    on the axis-aligned global box `[lo, hi]` (m) at `opts.voxel_size`. Feed every time slot once, in
-    any order (`add_slot`: all of its frames together), then ask `dynamic(points)`."""
+    on the axis-aligned global box `[lo, hi]` (m) at `opts.voxel_size`, grown in height by the largest
+    of `heights` (each frame's height error, `occdata.labels.heights`; zero: none). Feed every time
+    slot once, in any order (`add_slot`: all of its frames together), then ask `dynamic(points, t_us)`."""
 
-    def __init__(self, lo: np.ndarray, hi: np.ndarray, opts: CarveOptions) -> None:
+    def __init__(self, lo: np.ndarray, hi: np.ndarray, opts: CarveOptions,
+                 heights: HeightOffsets | None = None) -> None:
         self.opts = opts
-        self.lower = np.asarray(lo, np.float64)
-        extent = np.asarray(hi, np.float64) - self.lower
+        self.heights = heights or HeightOffsets.zero()
+        grow = np.array([0.0, 0.0, float(np.abs(self.heights.dz).max())])
+        self.lower = np.asarray(lo, np.float64) - grow
+        extent = np.asarray(hi, np.float64) + grow - self.lower
         self.shape = np.maximum(np.ceil(extent / opts.voxel_size), 1).astype(np.int64)
         n = int(np.prod(self.shape))
         if n > MAX_VOXELS:
@@ -190,29 +225,38 @@ class CarveGrid:
         self.stamp = np.full(tuple(self.shape), _NONE, np.int32)
         self._slots: set[int] = set()
 
-    def add_slot(self, slot: int, rays: Iterable[tuple[np.ndarray, np.ndarray]], thin: bool = False) -> None:
-        """One time slot's frames: `(origin (3,), points (N, 3))` float64 in global, points off the ego;
-        `thin`: cast every `ray_stride`-th ray only (sweeps)."""
+    def _aligned(self, points: np.ndarray, t_us: int) -> np.ndarray:
+        """`points (N, 3)` (global) less the height error at `t_us`, `(N, 3) float64` contiguous."""
+        out = np.array(points, np.float64).reshape(-1, 3)
+        out[:, 2] -= self.heights.at(t_us)
+        return out
+
+    def add_slot(self, slot: int, rays: Iterable[tuple[np.ndarray, np.ndarray]], thin: bool = False,
+                 t_us: int = 0) -> None:
+        """One time slot's frames, taken at `t_us`: `(origin (3,), points (N, 3))` float64 in global,
+        points off the ego; `thin`: cast every `ray_stride`-th ray only (sweeps)."""
         if slot in self._slots or slot < 0:
             raise ValueError(f"time slot {slot} given twice (or negative)")
         self._slots.add(slot)
-        rays = [(np.asarray(o, np.float64), np.ascontiguousarray(p, np.float64).reshape(-1, 3)) for o, p in rays]
+        rays = [(self._aligned(o, t_us)[0], self._aligned(p, t_us)) for o, p in rays]
         v = float(self.opts.voxel_size)
         for _, pts in rays:
             mark_hits(pts, self.lower, v, self.shape, slot, self.hits, self.stamp)
+        if self.opts.near:
+            for _, pts in rays:
+                mark_near(pts, self.lower, v, self.shape, slot, int(self.opts.near), self.stamp)
         for origin, pts in rays:
             pts = np.ascontiguousarray(pts[::self.opts.ray_stride] if thin else pts)
             origins = np.ascontiguousarray(np.broadcast_to(origin, pts.shape))
             carve_rays(origins, pts, self.lower, v, self.shape, slot, float(self.opts.margin),
-                       float(self.opts.graze_max), self.crossed, self.stamp)
+                       float(self.opts.graze_max), float(self.opts.graze_height), self.crossed, self.stamp)
 
-    def dynamic(self, points: np.ndarray, classified: bool = False) -> np.ndarray:
-        """`(N,) bool`: which of `points (N, 3)` (global) are dynamic (`dynamic_points`; `classified`:
-        the points have lidarseg classes, `ratio_seg` applies)."""
-        pts = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+    def dynamic(self, points: np.ndarray, t_us: int = 0, classified: bool = False) -> np.ndarray:
+        """`(N,) bool`: which of `points (N, 3)` (global, of a frame taken at `t_us`) are dynamic
+        (`dynamic_points`; `classified`: the points have lidarseg classes, `ratio_seg` applies)."""
         ratio = self.opts.ratio_seg if classified else self.opts.ratio
-        return dynamic_points(pts, self.lower, float(self.opts.voxel_size), self.shape, self.hits, self.crossed,
-                              int(self.opts.min_frames), float(ratio))
+        return dynamic_points(self._aligned(points, t_us), self.lower, float(self.opts.voxel_size), self.shape,
+                              self.hits, self.crossed, int(self.opts.min_frames), float(ratio))
 
     @property
     def nbytes(self) -> int:

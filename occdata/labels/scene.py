@@ -36,6 +36,7 @@ from occdata.formats.gridspec import GRID_PRESETS, GridSpec, LabelFrame
 from occdata.geometry import invert_rigid, transform_points
 from occdata.labels.carve import CarveGrid, CarveOptions, time_slots
 from occdata.labels.densify import densify
+from occdata.labels.heights import HeightOffsets, ground_cells, height_offsets
 from occdata.labels.kernels import NO_LABEL, NearestIndex, majority, points_in_boxes, vote_sources, vote_voxels
 from occdata.nuscenes import LidarRecord, NuScenesDataset, SampleRecord, SceneRecord, load_lidar_points
 from occdata.nuscenes.annotations import Annotations, BoxRecord, boxes_for_lidar, moving_instances
@@ -565,18 +566,39 @@ def _carve(frames: list[tuple[int, int, LidarRecord]], keyframe_frames: int, lo:
            opts: CarveOptions, should_stop: Callable[[], None]) -> CarveGrid:
     """The scene's free-space evidence (`occdata.labels.carve`): every frame's rays, from its own LiDAR,
     counted once per time slot (a keyframe's LiDARs fire together); `frames` as `_frames` gives them,
-    the first `keyframe_frames` the keyframes' (the sweeps' rays are thinned, `CarveOptions.ray_stride`)."""
-    grid = CarveGrid(lo, hi, opts)
+    the first `keyframe_frames` the keyframes' (the sweeps' rays are thinned, `CarveOptions.ray_stride`).
+    With `opts.align_heights` the slots' height errors come first, from the keyframes' ground."""
     slots = time_slots([rec.timestamp for _, _, rec in frames])
+    heights = _slot_heights(frames[:keyframe_frames], slots[:keyframe_frames], should_stop) \
+        if opts.align_heights else None
+    grid = CarveGrid(lo, hi, opts, heights)
     for slot in np.unique(slots):
         should_stop()
-        rays, sweep = [], False
+        rays, sweep, t_us = [], False, None
         for f in np.flatnonzero(slots == slot):
             points, origin, off_ego = _frame_points(frames[f][2])
             rays.append((origin, points[off_ego]))
             sweep |= f >= keyframe_frames
-        grid.add_slot(int(slot), rays, thin=sweep)
+            t_us = frames[f][2].timestamp if t_us is None else t_us
+        grid.add_slot(int(slot), rays, thin=sweep, t_us=t_us)
     return grid
+
+
+def _slot_heights(frames: list[tuple[int, int, LidarRecord]], slots: np.ndarray,
+                  should_stop: Callable[[], None]) -> HeightOffsets:
+    """The keyframe slots' height errors (`occdata.labels.heights`) from their frames' ground columns,
+    each slot at its first frame's time and the origin of its first LiDAR."""
+    cells, origins, times = [], [], []
+    for slot in np.unique(slots):
+        should_stop()
+        members = np.flatnonzero(slots == slot)
+        clouds = [_frame_points(frames[f][2]) for f in members]
+        origin = clouds[0][1]
+        cells.append(ground_cells(np.concatenate([p[off] for p, _, off in clouds]), origin))
+        origins.append(origin)
+        times.append(frames[members[0]][2].timestamp)
+    order = np.argsort(times, kind="stable")
+    return height_offsets([cells[o] for o in order], np.asarray(origins)[order], np.asarray(times)[order])
 
 
 def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
@@ -612,8 +634,8 @@ def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
     def boxes_of(i: int, k: int, rec: LidarRecord) -> tuple[BoxRecord, ...]:
         return () if withheld else _frame_boxes(inputs, i, k, rec)
 
-    def moving(points: np.ndarray, classified: bool) -> np.ndarray | None:
-        return None if carve_grid is None else carve_grid.dynamic(points, classified)
+    def moving(points: np.ndarray, classified: bool, t_us: int) -> np.ndarray | None:
+        return None if carve_grid is None else carve_grid.dynamic(points, t_us, classified)
 
     cloud = _Cloud()
     rays: dict[str, Rays] = {}
@@ -639,7 +661,7 @@ def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
             counts.dropped_ego += int((~off_ego).sum())
             counts.dropped_class += int((off_ego & ~keep).sum())
             _add_keyframe(cloud, points[keep], None if cls is None else cls[keep], boxes_of(i, k, rec), opts, counts,
-                          moving(points[keep], cls is not None), rec.timestamp)
+                          moving(points[keep], cls is not None, rec.timestamp), rec.timestamp)
     sweeps = later + [f for f in _frames(ds, indices, True) if f[2] not in ds.samples[f[0]].lidars] \
         if opts.lidar_sweeps else later
     if sweeps:  # pass 2: sweeps, labelled from the keyframes
@@ -657,7 +679,7 @@ def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
             counts.points += len(points)
             counts.dropped_ego += int((~off_ego).sum())
             _add_sweep(cloud, points[off_ego], boxes_of(i, k, rec), static_index, object_index or {}, opts, counts,
-                       moving(points[off_ego], False), rec.timestamp, dynamic_index)
+                       moving(points[off_ego], False, rec.timestamp), rec.timestamp, dynamic_index)
     counts.instances = len(cloud.obj_pts)
     static = cloud.static()
     static = (np.ascontiguousarray(static[0]), np.ascontiguousarray(static[1]))

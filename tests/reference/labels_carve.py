@@ -18,11 +18,13 @@ def _voxel(points: np.ndarray, lower: np.ndarray, voxel_size: float,
 
 
 def carve_reference(slots: list[list[tuple[np.ndarray, np.ndarray]]], lower: np.ndarray, voxel_size: float,
-                    shape: np.ndarray, margin: float, graze_max: float) -> tuple[np.ndarray, np.ndarray]:
-    """Numpy twin of `CarveGrid.add_slot` over time slots `slots[s]` = [(origin (3,), points (N, 3)), ...]:
-    `(hits, crossed)` `(X, Y, Z) int64` (not saturated): per voxel, the slots with a return in it, and the
-    slots one of whose rays, cut `clamp(voxel_size / |sin elevation|, margin, graze_max)` short of its
-    return, meets the voxel's closed box, the return's own voxel and the slot's hit voxels left out."""
+                    shape: np.ndarray, margin: float, graze_max: float, graze_height: float,
+                    near: int) -> tuple[np.ndarray, np.ndarray]:
+    """Numpy twin of `CarveGrid.add_slot` (heights not aligned) over time slots `slots[s]` = [(origin (3,),
+    points (N, 3)), ...]: `(hits, crossed)` `(X, Y, Z) int64` (not saturated): per voxel, the slots with a
+    return in it, and the slots one of whose rays, cut `clamp(graze_height / |sin elevation|, margin,
+    graze_max)` short of its return, meets the voxel's closed box, the return's own voxel and every voxel
+    within `near` voxels (per axis) of the slot's hit voxels left out."""
     shape = np.asarray(shape, np.int64)
     cells = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1).reshape(-1, 3)
     lo = lower + cells * voxel_size
@@ -31,9 +33,11 @@ def carve_reference(slots: list[list[tuple[np.ndarray, np.ndarray]]], lower: np.
     flat = np.ravel_multi_index(cells.T, tuple(shape))
     for frames in slots:
         hit = np.zeros(len(cells), bool)
+        every = []  # every return's voxel, inside the grid or not: one just outside still blocks its neighbours
         for _, pts in frames:
             idx, ok = _voxel(pts, lower, voxel_size, shape)
             hit[np.ravel_multi_index(idx[ok].T, tuple(shape))] = True
+            every.append(idx)
         cross = np.zeros(len(cells), bool)
         for origin, pts in frames:
             for e in np.asarray(pts, np.float64).reshape(-1, 3):
@@ -42,7 +46,7 @@ def carve_reference(slots: list[list[tuple[np.ndarray, np.ndarray]]], lower: np.
                 if length == 0:
                     continue
                 sin = abs(e[2] - a[2]) / length
-                graze = graze_max if sin * graze_max <= voxel_size else voxel_size / sin
+                graze = graze_max if sin * graze_max <= graze_height else graze_height / sin
                 graze = max(graze, margin)
                 if length <= graze:
                     continue
@@ -50,8 +54,10 @@ def carve_reference(slots: list[list[tuple[np.ndarray, np.ndarray]]], lower: np.
                 end = np.floor((e - lower) / voxel_size).astype(np.int64)
                 meets &= ~(cells == end).all(axis=1)
                 cross |= meets
+        hit_cells = np.concatenate(every) if every else np.zeros((0, 3), np.int64)
+        blocked = (np.abs(cells[:, None, :] - hit_cells[None, :, :]) <= near).all(axis=2).any(axis=1)
         hits += hit[flat]
-        crossed += (cross & ~hit)[flat]
+        crossed += (cross & ~blocked)[flat]
     return hits.reshape(tuple(shape)), crossed.reshape(tuple(shape))
 
 
