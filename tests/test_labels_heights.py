@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from occdata.labels.carve import CarveGrid, CarveOptions
-from occdata.labels.heights import HeightOffsets, ground_cells, height_offsets
+from occdata.labels.heights import HeightOffsets, ground_cells, ground_map, height_offsets
 
 
 def test_ground_cells_hand_worked() -> None:
@@ -88,3 +88,36 @@ def test_height_offsets_validated() -> None:
         HeightOffsets(np.array([2, 1]), np.zeros(2))
     with pytest.raises(ValueError, match="one time per offset"):
         HeightOffsets(np.array([1]), np.zeros(2))
+
+
+def test_ground_map_is_the_lowest_aligned_surface() -> None:
+    """Slot 0 saw column 0 at 0.30 m (a car's floor hid the road) and column 1 at 0.05 m; slot 1, whose
+    heights are 0.1 m high (dz = 0.1), saw column 0 at 0.12 m: the road there is at 0.02 m. Column 2 was
+    never seen: NaN."""
+    key = lambda i: np.int64(i) * (1 << 31)  # noqa: E731 - column (i, 0), as ground_cells packs it
+    cells = [(np.array([key(0), key(1)]), np.array([0.30, 0.05])), (np.array([key(0)]), np.array([0.12]))]
+    g = ground_map(cells, np.array([0.0, 0.1]))
+    under = g.height_under(np.array([[0.2, 0.2, 5.0], [0.7, 0.1, 0.0], [1.2, 0.1, 0.0]]))
+    np.testing.assert_allclose(under[:2], [0.02, 0.05])
+    assert np.isnan(under[2])
+
+
+def test_points_just_over_the_ground_stay_static() -> None:
+    """Rays from 1.8 m to the ground 25 m off, which lies 0.15 m lower than the road at x = 20 (a dip),
+    pass 0.24-0.26 m over the road at x = 20-20.2 (graze 0.3 m: only their last 3.9 m are cut): in the
+    0.3 m voxel [0, 0.3] of a road point at 0.02 m. Without the ground rule that point is dynamic; with
+    `ground_clearance` 0.3 it is static. A car's point 0.75 m up, which rays to a wall at 30 m pass
+    through, stays dynamic either way."""
+    origin = np.array([0.0, 0.0, 1.8])
+    road, car = np.array([[20.1, 0.0, 0.02]]), np.array([[20.1, 0.45, 0.75]])
+    later = np.array([[25.0, 0.0, -0.13], [25.0, 0.5, -0.13], [30.0, 0.672, 0.233]])
+    ground = ground_map([(ground_cells(np.vstack([road, road + [0.01, 0.0, 0.0]]), origin)[0], np.array([0.02]))],
+                        np.zeros(1))
+    for clearance, expect in ((0.0, True), (0.3, False)):
+        opts = CarveOptions(voxel_size=0.3, ground_clearance=clearance)
+        g = CarveGrid(np.array([-1.0, -1.0, -0.6]), np.array([31.0, 1.0, 2.4]), opts, None, ground)
+        g.add_slot(0, [(origin, np.vstack([road, car]))])
+        g.add_slot(1, [(origin, later)])
+        g.add_slot(2, [(origin, later)])
+        assert g.dynamic(road).tolist() == [expect], clearance
+        assert g.dynamic(car).tolist() == [True], clearance

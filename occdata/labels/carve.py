@@ -25,6 +25,11 @@ about the ground's height carve each other's ground and walls.
 A point is dynamic when its voxel has `crossed >= min_frames` and `crossed >= ratio * hits`: at least
 `min_frames` other times saw its place empty, and at least as many (`ratio` 1) as saw something there;
 with lidarseg a third as many (`ratio_seg`), since its ground, buildings and vegetation stay static.
+A point within `ground_clearance` of the scene's ground (the lowest surface any keyframe saw in its
+0.5 m column, `occdata.labels.heights.ground_map`) is never dynamic: the ground does not move, and a
+voxel the ground only grazes (its points at the voxel's bottom) is crossed by rays that pass a few
+centimetres over the road on their way to lower ground farther off.
+
 Counts saturate at 255. Grids are `(X, Y, Z)`; `lower (3,) float64` the lower corner in global. Every
 numba kernel here has a plain numpy twin in tests/reference/labels_carve.py, and a test that they agree.
 """
@@ -39,7 +44,7 @@ from numba import njit
 
 from occdata.errors import OccDataError
 from occdata.labels.densify import FREE_MARGIN
-from occdata.labels.heights import HeightOffsets
+from occdata.labels.heights import GroundMap, HeightOffsets
 from occdata.sensors.raycast import segment_advance, segment_setup
 
 __all__ = ["CarveGrid", "CarveOptions", "carve_rays", "dynamic_points", "mark_hits", "mark_near", "time_slots"]
@@ -60,7 +65,8 @@ class CarveOptions:
     within which a descending ray is no evidence (m); margin / graze_max: the least and the most of
     each ray's last metres left out (m). near: voxels around a slot's returns that its rays give no
     evidence for. align_heights: move each slot's frames by its height error first
-    (`occdata.labels.heights`). window: seconds either side of a keyframe within which dynamic points
+    (`occdata.labels.heights`). ground_clearance: points within this height over the scene's ground
+    are static (m; 0: no ground rule). window: seconds either side of a keyframe within which dynamic points
     are drawn at it (its own sweep always; 0.055 s also takes the neighbouring sweeps of a 20 Hz
     LiDAR). ray_stride: of a non-keyframe sweep cast every n-th ray (every return still counts as a
     hit): carving's cost is its rays' steps, and sweeps come 10 a keyframe. The voxel was chosen on
@@ -78,6 +84,7 @@ class CarveOptions:
     graze_height: float = 0.3
     near: int = 1
     align_heights: bool = True
+    ground_clearance: float = 0.3
 
     def __post_init__(self) -> None:
         if not 0.05 <= self.voxel_size <= 2.0:
@@ -94,6 +101,8 @@ class CarveOptions:
             raise ValueError("carve ray_stride must be in [1, 64]")
         if not 0 < self.graze_height <= 5:
             raise ValueError("carve graze_height must be in (0, 5] m")
+        if not 0 <= self.ground_clearance <= 2:
+            raise ValueError("carve ground_clearance must be in [0, 2] m")
         if not 0 <= self.near <= 3:
             raise ValueError("carve near must be 0, 1, 2 or 3 voxels")
 
@@ -205,13 +214,15 @@ def time_slots(timestamps_us: Sequence[int], tolerance_us: int = 10_000) -> np.n
 class CarveGrid:
     """The evidence of one scene (module docstring): `hits`, `crossed` `(X, Y, Z) uint8` and a stamp,
     on the axis-aligned global box `[lo, hi]` (m) at `opts.voxel_size`, grown in height by the largest
-    of `heights` (each frame's height error, `occdata.labels.heights`; zero: none). Feed every time
+    of `heights` (each frame's height error, `occdata.labels.heights`; zero: none); `ground`: the
+    scene's ground map in aligned heights (None: no ground rule). Feed every time
     slot once, in any order (`add_slot`: all of its frames together), then ask `dynamic(points, t_us)`."""
 
     def __init__(self, lo: np.ndarray, hi: np.ndarray, opts: CarveOptions,
-                 heights: HeightOffsets | None = None) -> None:
+                 heights: HeightOffsets | None = None, ground: GroundMap | None = None) -> None:
         self.opts = opts
         self.heights = heights or HeightOffsets.zero()
+        self.ground = ground
         grow = np.array([0.0, 0.0, float(np.abs(self.heights.dz).max())])
         self.lower = np.asarray(lo, np.float64) - grow
         extent = np.asarray(hi, np.float64) + grow - self.lower
@@ -255,8 +266,12 @@ class CarveGrid:
         """`(N,) bool`: which of `points (N, 3)` (global, of a frame taken at `t_us`) are dynamic
         (`dynamic_points`; `classified`: the points have lidarseg classes, `ratio_seg` applies)."""
         ratio = self.opts.ratio_seg if classified else self.opts.ratio
-        return dynamic_points(self._aligned(points, t_us), self.lower, float(self.opts.voxel_size), self.shape,
-                              self.hits, self.crossed, int(self.opts.min_frames), float(ratio))
+        pts = self._aligned(points, t_us)
+        out = dynamic_points(pts, self.lower, float(self.opts.voxel_size), self.shape, self.hits, self.crossed,
+                             int(self.opts.min_frames), float(ratio))
+        if self.ground is not None and self.opts.ground_clearance > 0:
+            out &= ~(pts[:, 2] - self.ground.height_under(pts) <= self.opts.ground_clearance)  # NaN: no ground seen
+        return out
 
     @property
     def nbytes(self) -> int:

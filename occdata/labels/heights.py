@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["HeightOffsets", "ground_cells", "height_offsets"]
+__all__ = ["GroundMap", "HeightOffsets", "ground_cells", "ground_map", "height_offsets"]
 
 _KEY = np.int64(1 << 31)  # column index packing: ix * _KEY + iy (|ix|, |iy| < 2^30 cells)
 
@@ -53,6 +53,38 @@ class HeightOffsets:
 
     def at(self, t_us: int) -> float:
         return float(np.interp(float(t_us), self.times_us.astype(np.float64), self.dz))
+
+
+@dataclass(frozen=True, eq=False)
+class GroundMap:
+    """The scene's ground: per `cell`-m column (sorted packed keys `keys (M,) int64`) the lowest surface
+    any keyframe slot saw there, `z (M,) float64` in aligned heights (m)."""
+
+    keys: np.ndarray
+    z: np.ndarray
+    cell: float
+
+    def height_under(self, points: np.ndarray) -> np.ndarray:
+        """`(N,) float64`: the ground height of the column of each of `points (N, 3)`; NaN where no slot
+        saw that column's ground."""
+        pts = np.asarray(points, np.float64).reshape(-1, 3)
+        ij = np.floor(pts[:, :2] / self.cell).astype(np.int64)
+        key = ij[:, 0] * _KEY + ij[:, 1]
+        at = np.minimum(np.searchsorted(self.keys, key), max(len(self.keys) - 1, 0))
+        found = (self.keys[at] == key) if len(self.keys) else np.zeros(len(key), bool)
+        return np.where(found, self.z[at] if len(self.keys) else 0.0, np.nan)
+
+
+def ground_map(cells: Sequence[tuple[np.ndarray, np.ndarray]], dz: np.ndarray, cell: float = 0.5) -> GroundMap:
+    """The lowest surface of each column over the slots' `ground_cells` `cells[s]`, each less its slot's
+    height error `dz[s]`: where any slot saw the ground of a column, that is its ground (a mover hides
+    the ground under it only while it is there)."""
+    keys = np.concatenate([k for k, _ in cells]) if cells else np.zeros(0, np.int64)
+    z = np.concatenate([h - d for (_, h), d in zip(cells, dz, strict=True)]) if cells else np.zeros(0)
+    order = np.lexsort((z, keys))
+    keys, z = keys[order], z[order]
+    first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]]) if len(keys) else np.zeros(0, np.int64)
+    return GroundMap(keys[first], z[first], cell)
 
 
 def ground_cells(points: np.ndarray, origin: np.ndarray, cell: float = 0.5, reach: float = 30.0,

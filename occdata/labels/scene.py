@@ -36,7 +36,7 @@ from occdata.formats.gridspec import GRID_PRESETS, GridSpec, LabelFrame
 from occdata.geometry import invert_rigid, transform_points
 from occdata.labels.carve import CarveGrid, CarveOptions, time_slots
 from occdata.labels.densify import densify
-from occdata.labels.heights import HeightOffsets, ground_cells, height_offsets
+from occdata.labels.heights import GroundMap, HeightOffsets, ground_cells, ground_map, height_offsets
 from occdata.labels.kernels import NO_LABEL, NearestIndex, majority, points_in_boxes, vote_sources, vote_voxels
 from occdata.nuscenes import LidarRecord, NuScenesDataset, SampleRecord, SceneRecord, load_lidar_points
 from occdata.nuscenes.annotations import Annotations, BoxRecord, boxes_for_lidar, moving_instances
@@ -567,11 +567,13 @@ def _carve(frames: list[tuple[int, int, LidarRecord]], keyframe_frames: int, lo:
     """The scene's free-space evidence (`occdata.labels.carve`): every frame's rays, from its own LiDAR,
     counted once per time slot (a keyframe's LiDARs fire together); `frames` as `_frames` gives them,
     the first `keyframe_frames` the keyframes' (the sweeps' rays are thinned, `CarveOptions.ray_stride`).
-    With `opts.align_heights` the slots' height errors come first, from the keyframes' ground."""
+    The keyframes' ground comes first: the slots' height errors (`opts.align_heights`) and the ground map."""
     slots = time_slots([rec.timestamp for _, _, rec in frames])
-    heights = _slot_heights(frames[:keyframe_frames], slots[:keyframe_frames], should_stop) \
-        if opts.align_heights else None
-    grid = CarveGrid(lo, hi, opts, heights)
+    heights = ground = None
+    if opts.align_heights or opts.ground_clearance > 0:
+        heights, ground = _slot_ground(frames[:keyframe_frames], slots[:keyframe_frames], opts.align_heights,
+                                       should_stop)
+    grid = CarveGrid(lo, hi, opts, heights, ground)
     for slot in np.unique(slots):
         should_stop()
         rays, sweep, t_us = [], False, None
@@ -584,10 +586,11 @@ def _carve(frames: list[tuple[int, int, LidarRecord]], keyframe_frames: int, lo:
     return grid
 
 
-def _slot_heights(frames: list[tuple[int, int, LidarRecord]], slots: np.ndarray,
-                  should_stop: Callable[[], None]) -> HeightOffsets:
-    """The keyframe slots' height errors (`occdata.labels.heights`) from their frames' ground columns,
-    each slot at its first frame's time and the origin of its first LiDAR."""
+def _slot_ground(frames: list[tuple[int, int, LidarRecord]], slots: np.ndarray, align: bool,
+                 should_stop: Callable[[], None]) -> tuple[HeightOffsets | None, GroundMap]:
+    """The keyframe slots' height errors (`align`; else None) and the scene's ground map
+    (`occdata.labels.heights`) from their frames' ground columns, each slot at its first frame's time
+    and the origin of its first LiDAR."""
     cells, origins, times = [], [], []
     for slot in np.unique(slots):
         should_stop()
@@ -598,7 +601,9 @@ def _slot_heights(frames: list[tuple[int, int, LidarRecord]], slots: np.ndarray,
         origins.append(origin)
         times.append(frames[members[0]][2].timestamp)
     order = np.argsort(times, kind="stable")
-    return height_offsets([cells[o] for o in order], np.asarray(origins)[order], np.asarray(times)[order])
+    cells = [cells[o] for o in order]
+    heights = height_offsets(cells, np.asarray(origins)[order], np.asarray(times)[order]) if align else None
+    return heights, ground_map(cells, np.zeros(len(cells)) if heights is None else heights.dz)
 
 
 def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
