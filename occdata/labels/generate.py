@@ -173,9 +173,12 @@ def _carving_words(o: LabelOptions, with_seg: bool, carved: list[str]) -> dict[s
         "rule": (f"a point outside every box is dynamic when at least {c.min_frames} other time slots' LiDAR rays "
                  f"crossed its {c.voxel_size} m voxel (global frame), and at least {c.ratio:g} times as many slots "
                  f"as had a return there ({c.ratio_seg:g} times for points with a lidarseg class); a ray's last "
-                 "clamp(voxel / |sin elevation|, "
-                 f"{c.margin}, {c.graze_max}) m before its return, the return's voxel, and voxels where the same "
-                 "slot has a return are no evidence"),
+                 f"clamp({c.graze_height} m / |sin elevation|, {c.margin}, {c.graze_max}) m before its return and "
+                 f"the voxels within {c.near} voxel(s) of a return of the same slot are no evidence"
+                 + ("; each slot's heights are first corrected by its height error, fitted to the ground the "
+                    "keyframes share" if c.align_heights else "")
+                 + (f"; a point within {c.ground_clearance} m of the scene's ground (the lowest surface any keyframe "
+                    "saw in its 0.5 m column) is never dynamic" if c.ground_clearance > 0 else "")),
         "static": "the other points: aggregated over the scene in the global frame and drawn at every keyframe",
         "dynamic": (f"drawn only at the keyframes within {c.window} s of their frame, where they were then; "
                     f"class {dyn}"),
