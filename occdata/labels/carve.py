@@ -84,7 +84,7 @@ class CarveOptions:
     graze_height: float = 0.3
     near: int = 1
     align_heights: bool = True
-    ground_clearance: float = 0.3
+    ground_clearance: float = 0.2
 
     def __post_init__(self) -> None:
         if not 0.05 <= self.voxel_size <= 2.0:

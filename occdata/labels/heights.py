@@ -3,8 +3,8 @@
 nuScenes ego poses carry no height: every `ego_pose.translation` has z = 0, while the rotation keeps
 the car's pitch and roll. On a road that climbs or dips, a frame therefore places the ground it sees
 ahead at its true height *relative to itself*, and the frame taken there later places the same ground
-at z = 0. On real scene-0916 (93 m of road) keyframes disagree by up to 0.53 m about the height of the
-ground both saw, 0.33 m (median) for keyframes 10-20 m apart: rays of one keyframe then pass through
+at z = 0. On real scene-0916 the road dips 0.7 m, then climbs 1.6 m over 93 m, and keyframes 10-20 m
+apart disagree by 0.33 m (median) about the height of the ground both saw: rays of one keyframe then pass through
 the ground and walls that another keyframe's returns put a few decimetres higher, and carving takes
 them for movers. Carving needs the frames consistent with each other, not with the world.
 
