@@ -171,11 +171,9 @@ def carve_rays(origins: np.ndarray, endpoints: np.ndarray, lower: np.ndarray, vo
         ok, t_end = segment_setup(a, b, lower, voxel_size, shape, idx, step, t_next, t_delta)
         if not ok:
             continue
-        end = np.floor((e - lower) / voxel_size)
-        while True:
+        while True:  # the return's own voxel needs no test: `mark_hits` stamped it `2 * slot`
             i, j, k = idx[0], idx[1], idx[2]
-            if (i != end[0] or j != end[1] or k != end[2]) and stamp[i, j, k] != 2 * slot \
-                    and stamp[i, j, k] != 2 * slot + 1:
+            if stamp[i, j, k] != 2 * slot and stamp[i, j, k] != 2 * slot + 1:
                 stamp[i, j, k] = 2 * slot + 1
                 if crossed[i, j, k] < 255:
                     crossed[i, j, k] += 1

@@ -29,7 +29,19 @@ import numpy as np
 
 __all__ = ["GroundMap", "HeightOffsets", "ground_cells", "ground_map", "height_offsets"]
 
+COLUMN_M = 0.5  # the ground columns' side (m), for the slots' cells and the scene's map alike
 _KEY = np.int64(1 << 31)  # column index packing: ix * _KEY + iy (|ix|, |iy| < 2^30 cells)
+
+
+def _column_keys(points: np.ndarray, cell: float) -> np.ndarray:
+    """`(N,) int64`: the packed key of the `cell`-m column of each of `points (N, 3) float64`."""
+    ij = np.floor(points[:, :2] / cell).astype(np.int64)
+    return ij[:, 0] * _KEY + ij[:, 1]
+
+
+def _starts(keys: np.ndarray) -> np.ndarray:
+    """`(G,) int64`: where each run of equal values of the sorted `keys (M,)` starts."""
+    return np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]]) if len(keys) else np.zeros(0, np.int64)
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,15 +79,14 @@ class GroundMap:
     def height_under(self, points: np.ndarray) -> np.ndarray:
         """`(N,) float64`: the ground height of the column of each of `points (N, 3)`; NaN where no slot
         saw that column's ground."""
-        pts = np.asarray(points, np.float64).reshape(-1, 3)
-        ij = np.floor(pts[:, :2] / self.cell).astype(np.int64)
-        key = ij[:, 0] * _KEY + ij[:, 1]
-        at = np.minimum(np.searchsorted(self.keys, key), max(len(self.keys) - 1, 0))
-        found = (self.keys[at] == key) if len(self.keys) else np.zeros(len(key), bool)
-        return np.where(found, self.z[at] if len(self.keys) else 0.0, np.nan)
+        key = _column_keys(np.asarray(points, np.float64).reshape(-1, 3), self.cell)
+        if not len(self.keys):
+            return np.full(len(key), np.nan)
+        at = np.minimum(np.searchsorted(self.keys, key), len(self.keys) - 1)
+        return np.where(self.keys[at] == key, self.z[at], np.nan)
 
 
-def ground_map(cells: Sequence[tuple[np.ndarray, np.ndarray]], dz: np.ndarray, cell: float = 0.5) -> GroundMap:
+def ground_map(cells: Sequence[tuple[np.ndarray, np.ndarray]], dz: np.ndarray, cell: float = COLUMN_M) -> GroundMap:
     """The lowest surface of each column over the slots' `ground_cells` `cells[s]`, each less its slot's
     height error `dz[s]`: where any slot saw the ground of a column, that is its ground (a mover hides
     the ground under it only while it is there)."""
@@ -83,27 +94,26 @@ def ground_map(cells: Sequence[tuple[np.ndarray, np.ndarray]], dz: np.ndarray, c
     z = np.concatenate([h - d for (_, h), d in zip(cells, dz, strict=True)]) if cells else np.zeros(0)
     order = np.lexsort((z, keys))
     keys, z = keys[order], z[order]
-    first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]]) if len(keys) else np.zeros(0, np.int64)
+    first = _starts(keys)
     return GroundMap(keys[first], z[first], cell)
 
 
-def ground_cells(points: np.ndarray, origin: np.ndarray, cell: float = 0.5, reach: float = 30.0,
+def ground_cells(points: np.ndarray, origin: np.ndarray, cell: float = COLUMN_M, reach: float = 30.0,
                  band: float = 0.2) -> tuple[np.ndarray, np.ndarray]:
     """The lowest surface of each `cell`-m column of `points (N, 3) float64` (global) within `reach` m
     (horizontally) of `origin (3,)`: `(keys (M,) int64` sorted column keys, `z (M,) float64)`, the mean
     height of the column's points within `band` m of its lowest; columns with one such point are left out."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     pts = pts[np.hypot(pts[:, 0] - origin[0], pts[:, 1] - origin[1]) <= reach]
-    ij = np.floor(pts[:, :2] / cell).astype(np.int64)
-    key = ij[:, 0] * _KEY + ij[:, 1]
+    key = _column_keys(pts, cell)
     order = np.lexsort((pts[:, 2], key))
     key, z = key[order], pts[order, 2]
     if len(key) == 0:
         return np.zeros(0, np.int64), np.zeros(0)
-    first = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-    lowest = np.repeat(z[first], np.diff(np.r_[first, len(z)]))
-    near = z <= lowest + band
-    group = np.cumsum(np.r_[True, key[1:] != key[:-1]]) - 1
+    first = _starts(key)
+    sizes = np.diff(np.r_[first, len(z)])
+    near = z <= np.repeat(z[first], sizes) + band
+    group = np.repeat(np.arange(len(first)), sizes)
     count = np.bincount(group, weights=near)
     total = np.bincount(group, weights=np.where(near, z, 0.0))
     keep = count >= 2

@@ -567,42 +567,46 @@ def _carve(frames: list[tuple[int, int, LidarRecord]], keyframe_frames: int, lo:
     """The scene's free-space evidence (`occdata.labels.carve`): every frame's rays, from its own LiDAR,
     counted once per time slot (a keyframe's LiDARs fire together); `frames` as `_frames` gives them,
     the first `keyframe_frames` the keyframes' (the sweeps' rays are thinned, `CarveOptions.ray_stride`).
-    The keyframes' ground comes first: the slots' height errors (`opts.align_heights`) and the ground map."""
+    The keyframes' ground comes first: the slots' height errors (`opts.align_heights`) and the ground map;
+    the keyframes' points are then read once for both (a scene's keyframes: tens of MB)."""
     slots = time_slots([rec.timestamp for _, _, rec in frames])
+    key_rays: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     heights = ground = None
     if opts.align_heights or opts.ground_clearance > 0:
-        heights, ground = _slot_ground(frames[:keyframe_frames], slots[:keyframe_frames], opts.align_heights,
-                                       should_stop)
+        key_rays = {f: _off_ego_rays(frames[f][2]) for f in range(keyframe_frames)}
+        heights, ground = _slot_ground(key_rays, frames, slots, opts.align_heights, should_stop)
     grid = CarveGrid(lo, hi, opts, heights, ground)
     for slot in np.unique(slots):
         should_stop()
-        rays, sweep, t_us = [], False, None
-        for f in np.flatnonzero(slots == slot):
-            points, origin, off_ego = _frame_points(frames[f][2])
-            rays.append((origin, points[off_ego]))
-            sweep |= f >= keyframe_frames
-            t_us = frames[f][2].timestamp if t_us is None else t_us
-        grid.add_slot(int(slot), rays, thin=sweep, t_us=t_us)
+        members = np.flatnonzero(slots == slot)
+        rays = [key_rays.pop(f) if f in key_rays else _off_ego_rays(frames[f][2]) for f in members]
+        grid.add_slot(int(slot), rays, thin=bool(members.max() >= keyframe_frames),
+                      t_us=frames[members[0]][2].timestamp)
     return grid
 
 
-def _slot_ground(frames: list[tuple[int, int, LidarRecord]], slots: np.ndarray, align: bool,
+def _off_ego_rays(rec: LidarRecord) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's LiDAR origin `(3,)` and its points off the ego car `(N, 3)`, float64 in global."""
+    points, origin, off_ego = _frame_points(rec)
+    return origin, points[off_ego]
+
+
+def _slot_ground(key_rays: dict[int, tuple[np.ndarray, np.ndarray]], frames: list[tuple[int, int, LidarRecord]],
+                 slots: np.ndarray, align: bool,
                  should_stop: Callable[[], None]) -> tuple[HeightOffsets | None, GroundMap]:
     """The keyframe slots' height errors (`align`; else None) and the scene's ground map
-    (`occdata.labels.heights`) from their frames' ground columns, each slot at its first frame's time
-    and the origin of its first LiDAR."""
+    (`occdata.labels.heights`) from the ground columns of their frames `key_rays` (frame index ->
+    `_off_ego_rays`), each slot at its first frame's time and the origin of its first LiDAR. Slots are
+    numbered in time order (`time_slots`), so their times increase."""
     cells, origins, times = [], [], []
-    for slot in np.unique(slots):
+    for slot in np.unique(slots[list(key_rays)]):
         should_stop()
-        members = np.flatnonzero(slots == slot)
-        clouds = [_frame_points(frames[f][2]) for f in members]
-        origin = clouds[0][1]
-        cells.append(ground_cells(np.concatenate([p[off] for p, _, off in clouds]), origin))
+        members = [f for f in np.flatnonzero(slots == slot) if f in key_rays]
+        origin = key_rays[members[0]][0]
+        cells.append(ground_cells(np.concatenate([key_rays[f][1] for f in members]), origin))
         origins.append(origin)
         times.append(frames[members[0]][2].timestamp)
-    order = np.argsort(times, kind="stable")
-    cells = [cells[o] for o in order]
-    heights = height_offsets(cells, np.asarray(origins)[order], np.asarray(times)[order]) if align else None
+    heights = height_offsets(cells, np.asarray(origins), times) if align else None
     return heights, ground_map(cells, np.zeros(len(cells)) if heights is None else heights.dz)
 
 
