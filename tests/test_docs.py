@@ -193,8 +193,9 @@ def check_command(program: str, words: list[str]) -> list[str]:
 
 
 MD_LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
-# A repository path written bare (`docs/store.md`, scripts/demo.sh): from the repository root.
-BARE_PATH = re.compile(r"(?<![\w./-])((?:docs|scripts|benchmarks|tests|occdata|fastocc|cli)/[\w./-]*[\w/])")
+# A repository path written bare (`docs/store.md`, scripts/demo.sh): from the repository root. One inside
+# another project (`OpenOccupancy/docs/x.md`) or a commit (`git show abc123:docs/x.json`) is not ours.
+BARE_PATH = re.compile(r"(?<![\w./:-])((?:docs|scripts|benchmarks|tests|occdata|fastocc|cli)/[\w./-]*[\w/])")
 LICENSE_NAMES = ("LICENSE", "README.md", "pyproject.toml")
 
 
