@@ -8,6 +8,7 @@ under a second)."""
 
 from __future__ import annotations
 
+import functools
 import re
 import shlex
 from dataclasses import dataclass
@@ -206,7 +207,9 @@ def slug(heading: str) -> str:
     return text.replace(" ", "-")
 
 
+@functools.cache
 def anchors(page: Path) -> set[str]:
+    """The section anchors GitHub gives a page's headings (a repeated heading gets -1, -2, ...)."""
     seen: dict[str, int] = {}
     out = set()
     in_fence = False
