@@ -312,6 +312,12 @@ def test_user_page_word_cap(page: Path) -> None:
     assert n <= cap, f"{page.name} has {n} words (a user page has at most {cap}; measurements go to benchmarks-*.md)"
 
 
+def test_readme_keeps_its_two_commands_and_results_table() -> None:
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    assert "bash scripts/demo.sh" in text and "bash scripts/test.sh" in text
+    assert "\n## Results\n" in text
+
+
 def test_the_checker_finds_a_wrong_option_a_wrong_command_and_a_broken_link(tmp_path: Path) -> None:
     (tmp_path / "docs").mkdir()
     (tmp_path / "docs" / "there.md").write_text("# A section\n\ntext\n", encoding="utf-8")
