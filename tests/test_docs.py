@@ -54,8 +54,8 @@ class Problem:
 
 
 def code_lines(text: str) -> list[tuple[int, str]]:
-    """(line number, code) for every shell line of the fenced blocks (continuations joined; python blocks
-    left out) and every inline code span of the prose."""
+    """(line number, code) for every shell line of the fenced blocks (continuations joined; python, json,
+    toml, yaml and text blocks left out) and every inline code span of the prose."""
     out: list[tuple[int, str]] = []
     lines = text.splitlines()
     i = 0
@@ -186,8 +186,7 @@ def check_command(program: str, words: list[str]) -> list[str]:
         option = word.strip("[](),;").split("=", 1)[0]
         if not option.startswith("-") or option in ("-", "--") or NUMBER.match(option) or "…" in option:
             continue
-        if option.rstrip(".") != option:  # `--flag...` / `--flag.` in prose
-            option = option.rstrip(".")
+        option = option.rstrip(".")  # `--flag...` / `--flag.` in prose
         if option not in allowed:
             problems.append(f"`{program} {name}` has no option {option}")
     return problems
