@@ -11,6 +11,7 @@ import numpy as np
 
 from cli._common import DEFAULT_STORE, debug_option, exit_on_interrupt, friendly_errors, local_path, stop_on_sigterm
 from cli.options import (
+    JSON_UNITS,
     cluster_options,
     config_choice,
     grid_range_option,
@@ -23,6 +24,7 @@ from cli.options import (
     split_source_options,
     splits_option,
     store_option,
+    store_split,
 )
 from occdata.formats.gridspec import GRID_NAMES, GridSpec, grids_from_options
 
@@ -34,7 +36,7 @@ if TYPE_CHECKING:
 __all__ = ["main"]
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "show_default": True})
 @debug_option
 @click.version_option(package_name="fastocc")
 def main() -> None:
@@ -375,7 +377,7 @@ def visibility(store: str, recompute: bool, lidar_sweeps: int | None, root: str 
 @click.option("--sample", default=None, help="Sample token whose cameras to use (default: the first keyframe).")
 @click.option("--max-occluders", default=7, show_default=True, type=click.IntRange(min=0),
               help="Object voxels a camera ray may cross before a voxel stops being visible (0 = strict).")
-@json_option("Print the figures as JSON.")
+@json_option(f"Print the figures as JSON ({JSON_UNITS}).")
 @friendly_errors
 def visibility_check(label: str, root: str, version: str | None, sample: str | None, max_occluders: int,
                      as_json: bool) -> None:
@@ -391,10 +393,10 @@ def visibility_check(label: str, root: str, version: str | None, sample: str | N
                                 sample=sample, max_occluders=max_occluders))
     if as_json:
         click.echo(json.dumps({
-            "iou_all": r.iou_all, "iou_occupied": r.iou_occupied, "iou_free": r.iou_free,
-            "precision": r.precision, "recall": r.recall,
-            "visible_fraction": {CLASS_NAMES[k]: {"ours": a, "label": b, "voxels": n}
-                                 for k, (a, b, n) in r.visible_fraction.items()},
+            "unit": "percent", "iou_all": _percent(r.iou_all), "iou_occupied": _percent(r.iou_occupied),
+            "iou_free": _percent(r.iou_free), "precision": _percent(r.precision), "recall": _percent(r.recall),
+            "visible": {CLASS_NAMES[k]: {"ours": _percent(a), "label": _percent(b), "voxels": n}
+                        for k, (a, b, n) in r.visible_fraction.items()},
         }, indent=2))
         return
     click.echo(f"IoU with the label's mask_camera: all {r.iou_all:.4f}, occupied {r.iou_occupied:.4f}, "
@@ -496,27 +498,36 @@ def verify(store: str, progress: bool, images: bool) -> None:
 @click.option("--train-split", default="train", show_default=True, metavar="SPLIT",
               help="Dataset split whose labels are counted.")
 @split_option(help="Dataset split to score.")
-@json_option("Print the results as JSON (fractions).")
+@json_option(f"Print the results as JSON ({JSON_UNITS}).")
 @friendly_errors
-def baseline(store: str, train_split: str, split: str, as_json: bool) -> None:
+def baseline(store: str, train_split: str, split: str | None, as_json: bool) -> None:
     """Score the image-free baseline: every voxel's most frequent training label.
 
     The floor a camera model must beat (it knows the average street, not the scene). mIoU with the
     camera mask, as `occdata eval` reports it.
     """
-    import dataclasses
-
+    from occdata.constants import CLASS_NAMES
     from occdata.eval.baseline import image_free_baseline
     from occdata.store.reader import open_store
 
+    split = store_split(store, split)
     r = image_free_baseline(open_store(store), train_split, split)
     if as_json:  # NaN (class absent from truth and prediction) -> null
-        out = dataclasses.asdict(r)
-        out["per_class_iou_camera_mask"] = [None if np.isnan(x) else x for x in r.per_class_iou_camera_mask]
-        click.echo(json.dumps(out))
+        click.echo(json.dumps({
+            "unit": "percent", "train_split": train_split, "split": split, "train_samples": r.train_samples,
+            "samples": r.samples, "miou_camera_mask": _percent(r.miou_camera_mask),
+            "miou_no_mask": _percent(r.miou_no_mask),
+            "per_class_iou_camera_mask": {name: _percent(x) for name, x in
+                                          zip(CLASS_NAMES, r.per_class_iou_camera_mask, strict=False)},
+        }))
         return
-    click.echo(f"image-free baseline ({r.train_samples} {train_split} -> {r.val_samples} {split} samples): "
+    click.echo(f"image-free baseline ({r.train_samples} {train_split} -> {r.samples} {split} samples): "
                f"mIoU {100 * r.miou_camera_mask:.2f}% (camera mask), {100 * r.miou_no_mask:.2f}% (no mask)")
+
+
+def _percent(fraction: float) -> float | None:
+    """A fraction as JSON percent (4 decimals, as `occdata eval --json`); NaN (0/0) -> null."""
+    return None if np.isnan(fraction) else round(100.0 * float(fraction), 4)
 
 
 @main.command("eval")
@@ -532,10 +543,10 @@ def baseline(store: str, train_split: str, split: str, as_json: bool) -> None:
 @click.option("--mask", type=config_choice("occdata.eval.evaluate:MaskName"), default="camera", show_default=True,
               help="Visibility mask for mIoU (Occ3D uses camera). RayIoU uses no mask.")
 @click.option("--no-rayiou", is_flag=True, help="Skip RayIoU (mIoU only, much faster).")
-@json_option("Print the results as JSON (percent; null = class absent).")
+@json_option(f"Print the results as JSON ({JSON_UNITS}; null = class absent).")
 @progress_option()
 @friendly_errors
-def eval_cmd(pred: str, pred_classes: str, store: str, split: str, mask: str, no_rayiou: bool, as_json: bool,
+def eval_cmd(pred: str, pred_classes: str, store: str, split: str | None, mask: str, no_rayiou: bool, as_json: bool,
              progress: bool) -> None:
     """Score saved predictions: Occ3D mIoU (+ geometry IoU) and RayIoU@1/2/4 m, on the CPU; and
     OpenOcc v2's mAVE and OccScore when the store has flow and the predictions carry it.
@@ -555,6 +566,7 @@ def eval_cmd(pred: str, pred_classes: str, store: str, split: str, mask: str, no
         summary_line,
     )
 
+    split = store_split(store, split)
     report = evaluate_predictions(EvalConfig(pred=local_path(pred, "--pred"), store=store, split=split, mask=mask,  # type: ignore[arg-type]
                                              rayiou=not no_rayiou, progress=progress, pred_classes=pred_classes))
     if as_json:
@@ -575,7 +587,7 @@ def eval_cmd(pred: str, pred_classes: str, store: str, split: str, mask: str, no
 
 @main.command()
 @store_option()
-@click.option("--index", "-i", type=int, required=True, help="Sample index in the store.")
+@click.option("--index", "-i", type=int, default=0, help="Sample index in the store.")
 @click.option("--out", required=True, metavar="FILE", help="Output .npz file (a path or a file:// URL).")
 @friendly_errors
 def dump(store: str, index: int, out: str) -> None:
@@ -595,7 +607,7 @@ def dump(store: str, index: int, out: str) -> None:
 
 @main.command("check-projection")
 @store_option()
-@click.option("--index", "-i", type=int, default=0, show_default=True, help="Sample index in the store.")
+@click.option("--index", "-i", type=int, default=0, help="Sample index in the store.")
 @click.option("--out", required=True, metavar="FILE", help="Output .png file (a path or a file:// URL).")
 @friendly_errors
 def check_projection(store: str, index: int, out: str) -> None:
@@ -610,7 +622,7 @@ def check_projection(store: str, index: int, out: str) -> None:
 @store_option()
 @click.option("--pred", default=None, metavar="DIR", help="Prediction folder (as `occdata eval --pred`).")
 @click.option("--scene", default=None, help="Scene to show first (the one exported with --export).")
-@split_option(default=None, help="Only the scenes of this dataset split; default: all")
+@split_option(help="Only the scenes of this dataset split; default: all", auto=False)
 @click.option("--view", "view_name", type=config_choice("occdata.view.config:VIEWS"), default=None,
               help="Initial view (default: side with --pred, else label). speed: the labels coloured by "
                    "|flow| (stores with flow).")
