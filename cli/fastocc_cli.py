@@ -22,6 +22,7 @@ from cli.options import (
     store_option,
     store_split,
 )
+from occdata.text import plural
 
 __all__ = ["main"]
 
@@ -257,7 +258,8 @@ def train(config_file: Path | None, resume: bool, progress: bool, **options: obj
         which = "EMA" if result.best_is_ema else "raw"
         ranks = (f" ({len(result.steps_per_rank)} processes: {', '.join(map(str, result.steps_per_rank))} steps)"
                  if len(result.steps_per_rank) > 1 else "")
-        click.echo(f"done: {result.epochs_done} epochs, {result.opt_steps} steps{ranks}; best val mIoU ({which} "
+        click.echo(f"done: {plural(result.epochs_done, 'epoch')}, {plural(result.opt_steps, 'step')}{ranks}; best val "
+                   f"mIoU ({which} "
                    f"weights) {best}; {result.out}")
 
 
@@ -312,7 +314,7 @@ def predict(checkpoint: Path, store: str, split: str | None, out: Path, tta: boo
     summary = run_predict(PredictRun(checkpoint=checkpoint, out=out, predict=cfg, png=png, progress=progress))
     if os.environ.get("RANK", "0") != "0":  # under torchrun every rank holds the combined summary
         return
-    click.echo(f"wrote {summary.files} predictions to {summary.out} in {summary.seconds:.1f} s"
+    click.echo(f"wrote {plural(summary.files, 'prediction')} to {summary.out} in {summary.seconds:.1f} s"
                + (f"; {len(summary.pictures)} pictures in {summary.out / 'pictures'}" if summary.pictures else ""))
 
 

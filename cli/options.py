@@ -19,8 +19,8 @@ from occdata.constants import GRID
 from occdata.errors import OccDataError
 
 __all__ = ["JSON_UNITS", "ConfigChoice", "ShownDefault", "cluster_options", "config_choice", "device_option",
-           "grid_range_option", "json_option", "progress_option", "renamed_option", "rig_options", "root_options",
-           "split_option", "split_source_options", "splits_option", "store_option", "store_split"]
+           "grid_range_option", "json_option", "progress_option", "removed_option", "renamed_option", "rig_options",
+           "root_options", "split_option", "split_source_options", "splits_option", "store_option", "store_split"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -175,6 +175,17 @@ def renamed_option(old: str, new: str, param: str, **kwargs: Any) -> Callable[[F
         return click.option(old, dest, hidden=True, **kwargs)(wrapper)  # type: ignore[return-value]
 
     return decorate
+
+
+def removed_option(old: str, instead: str) -> Callable[[F], F]:
+    """A flag that is gone, hidden from --help: giving it is one error line that names what to type instead
+    (it meant something else than a name still in use, so it is not quietly mapped)."""
+
+    def refuse(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+        if value:
+            raise click.ClickException(f"{old} is gone: use {instead}")
+
+    return click.option(old, is_flag=True, hidden=True, expose_value=False, callback=refuse)
 
 
 def progress_option(help: str = "No progress bar.") -> Callable[[F], F]:

@@ -42,6 +42,7 @@ from occdata.fileio import write_atomic
 from occdata.store.layout import store_rig
 from occdata.store.reader import open_store
 from occdata.store.splits import store_default_split
+from occdata.text import plural
 
 __all__ = ["MetricsLog", "Run", "StepPace", "build_model", "check_writable", "estimate_step_seconds", "init_from",
            "loader_config", "loss_config", "make_run", "new_state", "pace_message", "prepare_out",
@@ -339,7 +340,7 @@ def say_start(run: Run) -> None:
     cfg, info = run.cfg, run.info
     run.say(f"fastocc train: preset {cfg.preset} head {cfg.head} input {run.model_cfg.input_hw} history "
             f"{run.model_cfg.num_history} on {info.world_size} x {info.device}; {run.samples_per_epoch} training "
-            f"samples/epoch, {cfg.epochs} epochs")
+            f"samples/epoch, {plural(cfg.epochs, 'epoch')}")
     run.say(f"learning rate: {cfg.lr:g} x {cfg.lr_scaling} scaling ({cfg.batch_size} global batch / "
             f"{cfg.lr_base_batch}) = {cfg.peak_lr():.3g} peak; warm-up {cfg.warmup_epochs:g} epochs, cosine to "
             f"{cfg.min_lr_ratio:g} x peak; {run.accum} accumulation step(s) of {run.micro} per process")
