@@ -6,6 +6,7 @@ import dataclasses
 import enum
 import functools
 import importlib
+import os
 import typing
 from collections.abc import Callable
 from pathlib import Path
@@ -144,7 +145,7 @@ def store_split(store: str, split: str | None) -> str:
     from occdata.store.splits import store_default_split
 
     chosen = store_default_split(store)
-    if chosen.note is not None:
+    if chosen.note is not None and os.environ.get("RANK", "0") == "0":  # once under torchrun
         click.echo(f"note: {chosen.note}", err=True)
     return chosen.split
 
