@@ -343,6 +343,6 @@ def say_start(run: Run) -> None:
             f"samples/epoch, {plural(cfg.epochs, 'epoch')}")
     run.say(f"learning rate: {cfg.lr:g} x {cfg.lr_scaling} scaling ({cfg.batch_size} global batch / "
             f"{cfg.lr_base_batch}) = {cfg.peak_lr():.3g} peak; warm-up {cfg.warmup_epochs:g} epochs, cosine to "
-            f"{cfg.min_lr_ratio:g} x peak; {run.accum} accumulation step(s) of {run.micro} per process")
+            f"{cfg.min_lr_ratio:g} x peak; {plural(run.accum, 'accumulation step')} of {run.micro} per process")
 
 
