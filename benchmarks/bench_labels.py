@@ -40,10 +40,10 @@ __all__ = ["VARIANTS", "figures", "generate", "score", "without_lidarseg"]
 VARIANTS = {  # name: (extra CLI options, drop lidarseg)
     "boxes-keyframes": ([], False),
     "boxes-sweeps": (["--all-sweeps"], False),
-    "control-sweeps": (["--all-sweeps", "--no-boxes"], False),
+    "control-sweeps": (["--all-sweeps", "--boxes", "none", "--no-carve"], False),
     "boxes-sweeps-noseg": (["--all-sweeps"], True),
     "boxes-sweeps-densify": (["--all-sweeps", "--densify"], False),
-    "control-sweeps-noseg": (["--all-sweeps", "--no-boxes"], True),
+    "control-sweeps-noseg": (["--all-sweeps", "--boxes", "none", "--no-carve"], True),
     # Every benchmark's grid from one aggregation (scored on the occ3d grid, which is the same)
     "boxes-sweeps-4grids": (["--all-sweeps", "--grid", "occ3d", "--grid", "openocc-v2", "--grid", "surroundocc",
                              "--grid", "openoccupancy"], False),

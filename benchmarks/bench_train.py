@@ -34,7 +34,7 @@ def baseline(store: str, train_split: str = "train", val_split: str = "val") -> 
     from occdata.eval.baseline import image_free_baseline
 
     r = image_free_baseline(open_store(store), train_split, val_split)
-    return {"store": str(store), "train_samples": r.train_samples, "val_samples": r.val_samples,
+    return {"store": str(store), "train_samples": r.train_samples, "val_samples": r.samples,
             "miou_camera_mask": r.miou_camera_mask, "miou_no_mask": r.miou_no_mask,
             "per_class_iou_camera_mask": [None if np.isnan(x) else x for x in r.per_class_iou_camera_mask]}
 

@@ -1,7 +1,7 @@
 """`occdata labels` without boxes (free-space carving, issue 39), measured three ways.
 
 - `synth`: a synthetic world with moving actors (`occdata synth`), labelled with its boxes (the
-  box-aware run), with them withheld (`--boxes none`, carving), naively (`--no-boxes --no-carve`:
+  box-aware run), with them withheld (`--boxes none`, carving), naively (`--boxes none --no-carve`:
   every point static) and with carving on top of the boxes (`--carve`), each with and without
   lidarseg. Scored against the world's exact truth: precision, static precision (voxels outside every
   box at that keyframe), surface recall, and the share of the moving actors' swept path (their boxes
@@ -45,11 +45,11 @@ __all__: list[str] = []
 SYNTH_VARIANTS = {  # name: (extra options, drop lidarseg)
     "boxes": ([], False),
     "carve": (["--boxes", "none"], False),
-    "naive": (["--no-boxes", "--no-carve"], False),
+    "naive": (["--boxes", "none", "--no-carve"], False),
     "boxes+carve": (["--carve"], False),
     "boxes-noseg": ([], True),
     "carve-noseg": (["--boxes", "none"], True),
-    "naive-noseg": (["--no-boxes", "--no-carve"], True),
+    "naive-noseg": (["--boxes", "none", "--no-carve"], True),
 }
 
 
@@ -148,7 +148,7 @@ def real_part(a: argparse.Namespace, work: Path) -> dict[str, object]:
     root = a.root or SHARED_DATA / "nuscenes-real-seq"
     n = len(load_nuscenes(root, None).samples)
     rows: dict[str, dict[str, float]] = {}
-    for name, extra in {"boxes": [], "carve": ["--boxes", "none"], "naive": ["--no-boxes", "--no-carve"],
+    for name, extra in {"boxes": [], "carve": ["--boxes", "none"], "naive": ["--boxes", "none", "--no-carve"],
                         "boxes+carve": ["--carve"]}.items():
         rows[name] = _run(root, work / f"gen_{name}", extra, n)
     for name in rows:

@@ -56,7 +56,7 @@ def main() -> None:
     class_of = {b.instance_token: box_class(b) for bs in ann.boxes_by_sample.values() for b in bs}
     work = Path(tempfile.mkdtemp(prefix="labels_real_"))
     result: dict[str, object] = {"machine": machine(), "root": str(a.root)}
-    for name, extra in {"ours": [], "control": ["--no-boxes"]}.items():
+    for name, extra in {"ours": [], "control": ["--boxes", "none", "--no-carve"]}.items():
         seconds = _generate(a.root, work / name, extra)
         for sc in ds.scenes:
             gens = [_load(work / name, sc.name, t)["semantics"] for t in sc.sample_tokens]

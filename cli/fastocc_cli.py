@@ -10,23 +10,36 @@ import click
 
 from cli._common import debug_option, exit_on_interrupt, friendly_errors, stop_on_sigterm
 from cli.options import (
+    JSON_UNITS,
     STORE_HELP,
+    ShownDefault,
     config_choice,
+    device_option,
     json_option,
     progress_option,
     renamed_option,
     split_option,
     store_option,
+    store_split,
 )
+from occdata.text import plural
 
 __all__ = ["main"]
 
 # Choices from the configs that define them (read when first used: these modules import torch).
 PRESET_SOURCE = "fastocc.model.config:PRESETS"
 HEAD_SOURCE = "fastocc.model.config:HeadKind"
+TRAIN = "fastocc.train.config:TrainConfig"  # the fields that `fastocc train`'s options override
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def _train_option(*decls: str, field: str | None = None, **kwargs: object):  # noqa: ANN202
+    """A `fastocc train` option that overrides the TrainConfig field `field` (default: its name): None when
+    not given, so a --config file's value stands; --help shows the field's default."""
+    name = field or decls[-1].lstrip("-").replace("-", "_").split("/")[0]
+    return click.option(*decls, default=None, cls=ShownDefault, config_field=f"{TRAIN}.{name}", **kwargs)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "show_default": True})
 @debug_option
 @click.version_option(package_name="fastocc")
 def main() -> None:
@@ -41,7 +54,7 @@ def main() -> None:
               help="Model preset (default nano); with --stage-split repeat it (default tiny, small and base).")
 @click.option("--head", type=config_choice(HEAD_SOURCE, "all"), default="fastocc",
               help="'all' compares the heads in one run.")
-@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu")
+@device_option()
 @click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True,
               help="Samples per forward pass (synthetic inputs).")
 @renamed_option("--batch", "--batch-size", "batch_size", type=click.IntRange(min=1))
@@ -55,7 +68,8 @@ def main() -> None:
               "for eager PyTorch, torch.compile and/or ONNX Runtime in one run; repeat or use 'all'.")
 @click.option("--stage-split", "stage_split", is_flag=True,
               help="The paper's Table III timing split: 2D / 2D-to-3D / 3D / total per preset, "
-              "eager PyTorch and ONNX Runtime (--runtime torch|onnx to keep one), ratios between presets.")
+              "eager PyTorch and ONNX Runtime (--runtime torch|onnx to keep one), ratios between presets; on the "
+              "CPU (--device auto means cpu here).")
 @click.option("--input-hw", "input_hw", type=(int, int), default=None,
               help="With --stage-split: network input H W for every preset (default: each preset's).")
 @renamed_option("--split", "--stage-split", "stage_split", is_flag=True)
@@ -79,12 +93,13 @@ def bench(
     With --runtime: end-to-end latency per frame of eager PyTorch / torch.compile / ONNX Runtime instead.
     """
     from fastocc.bench import BenchConfig, format_report, run_benchmark  # torch import only when used
+    from fastocc.dist import resolve_device
     from fastocc.model import HeadKind
 
     if stage_split:
         from fastocc.bench import SPLIT_RUNTIMES, SplitBenchConfig, format_split_report, run_split_benchmark
 
-        if head != "fastocc" or mode != "infer" or device != "cpu" or "compile" in runtimes:
+        if head != "fastocc" or mode != "infer" or device == "cuda" or "compile" in runtimes:
             raise click.UsageError("--stage-split measures the fastocc head in infer mode on the CPU, torch "
                                    "and/or onnx")
         chosen = SPLIT_RUNTIMES if not runtimes or "all" in runtimes else tuple(dict.fromkeys(runtimes))
@@ -95,6 +110,7 @@ def bench(
         return
     if len(preset_names) > 1:
         raise click.UsageError("several --preset values need --stage-split")
+    device = resolve_device(device)
     preset_name = preset_names[0] if preset_names else "nano"
     if runtimes:
         from fastocc.bench import RUNTIMES, RuntimeBenchConfig, format_runtime_report, run_runtime_benchmark
@@ -178,45 +194,41 @@ def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height
 
 
 @main.command()
-@store_option(default=None, help=f"{STORE_HELP} Default: data.zarr, or the config file's.")
+@_train_option("--store", metavar="STORE", help=STORE_HELP)
 @click.option("--config", "config_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="TOML file of TrainConfig fields (a [train] table or top level); options below override it.")
-@click.option("--preset", "preset_name", type=config_choice(PRESET_SOURCE), default=None,
-              help="Model preset (default nano).")
-@click.option("--head", type=config_choice(HEAD_SOURCE), default=None, help="3D-side head.")
-@click.option("--interp-features/--no-interp-features", "interp_features", default=None,
-              help="Ablation: --no-interp-features drops the interpolated image features from the FastOcc head "
-              "(the BEV branch alone feeds the classifier). Default: on.")
-@click.option("--view-transform", "view_transform", type=config_choice("fastocc.model.config:ViewTransformKind"),
-              default=None,
-              help="2D-to-3D view transform: lss (depth net + voxel pooling, default) or attention (spatial "
-              "cross-attention from voxel queries, the paper's SurroundOcc* row with --head deconv).")
-@click.option("--bev-height", "bev_height", type=config_choice("fastocc.model.config:BevHeight"),
-              default=None,
-              help="With --no-interp-features: repeat the BEV feature along z (default) or unfold its channels "
-              "into the 16 height bins (channel-to-height).")
-@click.option("--temporal-fusion", "temporal_fusion", type=config_choice("fastocc.model.config:TemporalFusionKind"),
-              default=None,
-              help="Models with history: concat (full maps in the queue, default), cached (each frame reduced "
-              "once, when current; warp + small fusion per frame) or recurrent (one state carried forward: warp + "
-              "a gated update per frame; temporal_channels and temporal_unroll in the config file).")
-@click.option("--epochs", type=click.IntRange(min=1), default=None, help="Epochs over the training split.")
-@click.option("--batch-size", type=click.IntRange(min=1), default=None,
-              help="GLOBAL batch size (all processes); each process gets batch-size / world size.")
-@click.option("--lr", type=float, default=None,
-              help="Learning rate at lr_base_batch (16); scaled to the global batch by lr_scaling (linear).")
-@click.option("--workers", type=click.IntRange(min=0), default=None, help="Loader worker processes per process.")
-@click.option("--pretrained", type=click.Path(dir_okay=False), default=None,
-              help="torchvision ResNet state dict for the backbone (e.g. resnet50.pth).")
-@click.option("--out", default=None, help="Run folder (default runs/fastocc).")
+@_train_option("--preset", "preset_name", field="preset", type=config_choice(PRESET_SOURCE), help="Model preset.")
+@_train_option("--head", type=config_choice(HEAD_SOURCE), help="3D-side head.")
+@_train_option("--interp-features/--no-interp-features", "interp_features", field="interp_features",
+               help="Ablation: --no-interp-features drops the interpolated image features from the FastOcc head "
+               "(the BEV branch alone feeds the classifier).")
+@_train_option("--view-transform", type=config_choice("fastocc.model.config:ViewTransformKind"),
+               help="2D-to-3D view transform: lss (depth net + voxel pooling) or attention (spatial "
+               "cross-attention from voxel queries, the paper's SurroundOcc* row with --head deconv).")
+@_train_option("--bev-height", type=config_choice("fastocc.model.config:BevHeight"),
+               help="With --no-interp-features: repeat the BEV feature along z or unfold its channels "
+               "into the 16 height bins (channel-to-height).")
+@_train_option("--temporal-fusion", type=config_choice("fastocc.model.config:TemporalFusionKind"),
+               help="Models with history: concat (full maps in the queue), cached (each frame reduced "
+               "once, when current; warp + small fusion per frame) or recurrent (one state carried forward: warp + "
+               "a gated update per frame; temporal_channels and temporal_unroll in the config file).")
+@_train_option("--epochs", type=click.IntRange(min=1), help="Epochs over the training split.")
+@_train_option("--batch-size", type=click.IntRange(min=1),
+               help="GLOBAL batch size (all processes); each process gets batch-size / world size.")
+@_train_option("--lr", type=float,
+               help="Learning rate at lr_base_batch (16); scaled to the global batch by lr_scaling (linear).")
+@_train_option("--workers", type=click.IntRange(min=0), help="Loader worker processes per process.")
+@_train_option("--pretrained", type=click.Path(dir_okay=False),
+               help="torchvision ResNet state dict for the backbone (e.g. resnet50.pth); default: none (random "
+               "initialisation).")
+@_train_option("--out", help="Run folder.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out exactly where it stopped (--epochs may grow).")
-@click.option("--init-from", "init_from", type=click.Path(dir_okay=False), default=None,
-              help="Start a NEW run from this checkpoint's weights (model, and EMA if present); not with --resume.")
-@click.option("--warn-signal", "warn_signal", type=config_choice("fastocc.train.config:WARN_SIGNALS"),
-              default=None,
-              help="Signal that, like SIGTERM, stops at the next step and saves last.pt (default USR1).")
-@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="Default: cuda if available.")
-@click.option("--val-every", type=click.IntRange(min=0), default=None, help="Validate every N epochs (0 = never).")
+@_train_option("--init-from", type=click.Path(dir_okay=False),
+               help="Start a NEW run from this checkpoint's weights (model, and EMA if present); not with --resume.")
+@_train_option("--warn-signal", type=config_choice("fastocc.train.config:WARN_SIGNALS"),
+               help="Signal that, like SIGTERM, stops at the next step and saves last.pt.")
+@device_option(config_field=f"{TRAIN}.device")
+@_train_option("--val-every", type=click.IntRange(min=0), help="Validate every N epochs (0 = never).")
 @progress_option()
 @friendly_errors
 def train(config_file: Path | None, resume: bool, progress: bool, **options: object) -> None:
@@ -246,7 +258,8 @@ def train(config_file: Path | None, resume: bool, progress: bool, **options: obj
         which = "EMA" if result.best_is_ema else "raw"
         ranks = (f" ({len(result.steps_per_rank)} processes: {', '.join(map(str, result.steps_per_rank))} steps)"
                  if len(result.steps_per_rank) > 1 else "")
-        click.echo(f"done: {result.epochs_done} epochs, {result.opt_steps} steps{ranks}; best val mIoU ({which} "
+        click.echo(f"done: {plural(result.epochs_done, 'epoch')}, {plural(result.opt_steps, 'step')}{ranks}; best val "
+                   f"mIoU ({which} "
                    f"weights) {best}; {result.out}")
 
 
@@ -256,15 +269,20 @@ _CKPT = click.option("--checkpoint", "checkpoint", required=True, type=click.Pat
 _SPLIT = split_option(help="Dataset split of the store to run on.")
 _TTA = click.option("--tta", is_flag=True, help="Average the class probabilities of the 4 BEV flips (x, y, both).")
 _BATCH = click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True)
-_DEVICE = click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
+_DEVICE = device_option()
 _WORKERS = click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
                         help="Data-loading worker processes.")
 
 
-def _predict_config(store: str, split: str, batch_size: int, workers: int, tta: bool, device: str):  # noqa: ANN202
+def _predict_config(checkpoint: Path, store: str, split: str | None, batch_size: int, workers: int, tta: bool,
+                    device: str):  # noqa: ANN202
+    """The PredictConfig of `fastocc predict` / `eval`. A missing checkpoint is said before anything about
+    the store (the split default reads the store)."""
+    from fastocc.checkpoint import check_checkpoint_file
     from fastocc.infer import PredictConfig
 
-    return PredictConfig(store=store, split=split, batch_size=batch_size,
+    check_checkpoint_file(checkpoint)
+    return PredictConfig(store=store, split=store_split(store, split), batch_size=batch_size,
                          workers=workers, tta=tta, device=device)
 
 
@@ -283,8 +301,8 @@ def _predict_config(store: str, split: str, batch_size: int, workers: int, tta: 
 @progress_option()
 @friendly_errors
 @stop_on_sigterm
-def predict(checkpoint: Path, store: str, split: str, out: Path, tta: bool, png: int, batch_size: int, device: str,
-            workers: int, progress: bool) -> None:
+def predict(checkpoint: Path, store: str, split: str | None, out: Path, tta: bool, png: int, batch_size: int,
+            device: str, workers: int, progress: bool) -> None:
     """Predict a store split with a checkpoint and write the Occ3D layout (score it with `occdata eval`).
 
     Samples run in scene order (the temporal queue of models with history is carried); each file is
@@ -292,11 +310,11 @@ def predict(checkpoint: Path, store: str, split: str, out: Path, tta: bool, png:
     """
     from fastocc.infer.write import PredictRun, run_predict
 
-    cfg = _predict_config(store, split, batch_size, workers, tta, device)
+    cfg = _predict_config(checkpoint, store, split, batch_size, workers, tta, device)
     summary = run_predict(PredictRun(checkpoint=checkpoint, out=out, predict=cfg, png=png, progress=progress))
     if os.environ.get("RANK", "0") != "0":  # under torchrun every rank holds the combined summary
         return
-    click.echo(f"wrote {summary.files} predictions to {summary.out} in {summary.seconds:.1f} s"
+    click.echo(f"wrote {plural(summary.files, 'prediction')} to {summary.out} in {summary.seconds:.1f} s"
                + (f"; {len(summary.pictures)} pictures in {summary.out / 'pictures'}" if summary.pictures else ""))
 
 
@@ -308,14 +326,14 @@ def predict(checkpoint: Path, store: str, split: str, out: Path, tta: bool, png:
 @click.option("--mask", type=config_choice("fastocc.infer.evaluate:MaskKind"), default="camera", show_default=True,
               help="Voxels scored by mIoU (camera = the official Occ3D protocol). RayIoU uses no mask.")
 @click.option("--no-rayiou", is_flag=True, help="Skip RayIoU (mIoU only).")
-@json_option()
+@json_option(f"Print the results as JSON ({JSON_UNITS}; null = class absent).")
 @_BATCH
 @_DEVICE
 @_WORKERS
 @progress_option()
 @friendly_errors
 @stop_on_sigterm
-def eval_cmd(checkpoint: Path, store: str, split: str, tta: bool, mask: str, no_rayiou: bool, as_json: bool,
+def eval_cmd(checkpoint: Path, store: str, split: str | None, tta: bool, mask: str, no_rayiou: bool, as_json: bool,
              batch_size: int, device: str, workers: int, progress: bool) -> None:
     """Score a checkpoint on a store split: Occ3D mIoU, RayIoU@1/2/4 m and inference frames/s.
 
@@ -324,7 +342,7 @@ def eval_cmd(checkpoint: Path, store: str, split: str, tta: bool, mask: str, no_
     """
     from fastocc.infer.evaluate import EvalRun, format_report, run_eval
 
-    cfg = _predict_config(store, split, batch_size, workers, tta, device)
+    cfg = _predict_config(checkpoint, store, split, batch_size, workers, tta, device)
     report = run_eval(EvalRun(checkpoint=checkpoint, predict=cfg, rayiou=not no_rayiou, mask=mask,  # type: ignore[arg-type]
                               progress=progress))
     if os.environ.get("RANK", "0") == "0":  # under torchrun every rank holds the combined report

@@ -11,11 +11,13 @@ import numpy as np
 
 from cli._common import DEFAULT_STORE, debug_option, exit_on_interrupt, friendly_errors, local_path, stop_on_sigterm
 from cli.options import (
+    JSON_UNITS,
     cluster_options,
     config_choice,
     grid_range_option,
     json_option,
     progress_option,
+    removed_option,
     renamed_option,
     rig_options,
     root_options,
@@ -23,8 +25,10 @@ from cli.options import (
     split_source_options,
     splits_option,
     store_option,
+    store_split,
 )
 from occdata.formats.gridspec import GRID_NAMES, GridSpec, grids_from_options
+from occdata.text import plural
 
 if TYPE_CHECKING:
     from occdata.nuscenes.rig import RigChoice
@@ -34,7 +38,7 @@ if TYPE_CHECKING:
 __all__ = ["main"]
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "show_default": True})
 @debug_option
 @click.version_option(package_name="fastocc")
 def main() -> None:
@@ -92,7 +96,7 @@ def synth(out: str, scenes: int, samples: int, seed: int, rig_name: str, width: 
                                   table_only_scenes=table_only_scenes, table_only_samples=table_only_samples,
                                   grids=specs, rig=rig_name))
     extra = f" (+ {table_only_scenes} table-only scenes)" if table_only_scenes else ""
-    click.echo(f"wrote {scenes} scenes x {samples} samples{extra} to {root}")
+    click.echo(f"wrote {plural(scenes, 'scene')} x {plural(samples, 'sample')}{extra} to {root}")
 
 
 @main.command()
@@ -121,12 +125,15 @@ def scan(root: str, version: str | None, check_files: bool, as_json: bool, rig: 
     if as_json:
         click.echo(json.dumps(summary, indent=2))
         return
-    click.echo(f"{summary['root']} [{summary['version']}]: {summary['scenes']} scenes, {summary['samples']} samples")
+    click.echo(f"{summary['root']} [{summary['version']}]: {plural(summary['scenes'], 'scene')}, "
+               f"{plural(summary['samples'], 'sample')}")
     click.echo(f"  rig: {describe_rig(summary['rig'])}")
     for line in summary["left_out"]:
         click.echo(f"  left out: {line}")
     for split, n in summary["samples_per_split"].items():
-        click.echo(f"  {split:>12}: {summary['scenes_per_split'][split]:5d} scenes {n:7d} samples")
+        n_scenes = summary["scenes_per_split"][split]
+        click.echo(f"  {split:>12}: {n_scenes:5d} {'scene ' if n_scenes == 1 else 'scenes'} {n:7d} "
+                   f"{'sample' if n == 1 else 'samples'}")
     sw = summary["sweeps"]
     files = f"; {sw['files_present']} of their files present" if "files_present" in sw else ""
     click.echo(f"  {summary['rig']['reference_lidar']} sweeps between keyframes: "
@@ -207,7 +214,8 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
     for line in report.rig.left_out:
         click.echo(f"left out: {line}")
     click.echo(
-        f"{report.store}: {report.n_done}/{report.n_samples} samples done, {report.n_errors} errors, "
+        f"{report.store}: {report.n_done}/{plural(report.n_samples, 'sample')} done, "
+        f"{plural(report.n_errors, 'error')}, "
         f"{report.n_labelled} labelled ({report.processed_now} processed in this run)"
         + ("; OpenOcc v2 labels: classes mapped to Occ3D ids, flow stored in labels/flow" if report.flow else "")
         + (f"; labels on grid {config.grid.name} {config.grid.shape}, in Occ3D ids (occdata info shows the grid)"
@@ -232,11 +240,11 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
                    "i.e. 'occupied, not an annotated object'). Recorded in labels.json.")
 @click.option("--knn-radius", type=click.FloatRange(0.01, 5.0), default=0.5, show_default=True,
               help="Metres within which a sweep point takes the class of the nearest labelled keyframe point.")
-@click.option("--no-boxes", is_flag=True,
-              help="The control: aggregate every point in the global frame, ignoring boxes (moving objects smear).")
 @click.option("--boxes", "boxes_mode", type=click.Choice(["auto", "none"]), default="auto", show_default=True,
-              help="none: withhold the boxes and split points into static and dynamic by the scene's own rays "
-                   "(free-space carving). auto: boxes where a scene has them, carving where it has none.")
+              help="auto: boxes where a scene has them, carving where it has none. none: withhold the boxes and "
+                   "split points into static and dynamic by the scene's own rays (free-space carving); with "
+                   "--no-carve, every point static in the global frame (the naive control: moving objects smear).")
+@removed_option("--no-boxes", "--boxes none --no-carve (the naive control; --boxes none alone carves)")
 @click.option("--carve/--no-carve", default=None,
               help="Carve on top of the boxes too (movers the annotators missed), or never carve. Default: carve "
                    "exactly the scenes without boxes (docs/labels.md, 'Without boxes').")
@@ -262,7 +270,7 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
 @progress_option()
 @friendly_errors
 def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], scenes: tuple[str, ...],
-           all_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, boxes_mode: str,
+           all_sweeps: bool, static_class: int, knn_radius: float, boxes_mode: str,
            carve: bool | None, dynamic_class: int, densify: bool,
            grids: tuple[str, ...],
            voxel_size: float | None, grid_range: tuple[float, ...] | None, rig: RigChoice,
@@ -285,9 +293,8 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
             root=local_path(root, "--root"), out=out_path, version=version, splits=splits or None,
             scenes=scenes or None, resume=resume, progress=progress,
             options=LabelOptions(lidar_sweeps=all_sweeps, static_class=static_class, knn_radius=knn_radius,
-                                 use_boxes=not no_boxes and boxes_mode == "auto", densify=densify,
-                                 carve=carve if carve is not None else (True if boxes_mode == "none" else
-                                                                        False if no_boxes else None),
+                                 use_boxes=boxes_mode == "auto", densify=densify,
+                                 carve=carve if carve is not None else (True if boxes_mode == "none" else None),
                                  dynamic_class=dynamic_class),
             cluster=cluster, grids=specs, rig=rig, scene_splits=scene_splits,
         ))
@@ -296,8 +303,8 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
     if carved and len(carved) < len(report.modes):
         click.echo(f"carved (no boxes, or --carve): {len(carved)} of {len(report.modes)} scenes: "
                    f"{', '.join(carved[:5])}{' ...' if len(carved) > 5 else ''}", err=True)
-    click.echo(f"{out_path}: {report.scenes_done} scene(s) labelled, {report.scenes_skipped} already done, "
-               f"{report.keyframes} keyframes ({seg}"
+    click.echo(f"{out_path}: {plural(report.scenes_done, 'scene')} labelled, {report.scenes_skipped} already done, "
+               f"{plural(report.keyframes, 'keyframe')} ({seg}"
                f"{'; moving objects by free-space carving' if carved else ''}); manifest {report.manifest}")
 
 
@@ -316,7 +323,7 @@ def bev_gt(store: str, progress: bool) -> None:
 
     open_store(store)  # validates the schema first
     n = compute_bev_gt(store, progress=progress)
-    click.echo(f"{store}: BEV GT written for {n} labelled samples")
+    click.echo(f"{store}: BEV GT written for {plural(n, 'labelled sample')}")
 
 
 @main.command()
@@ -344,7 +351,7 @@ def visibility(store: str, recompute: bool, lidar_sweeps: int | None, root: str 
 
     report = compute_visibility(store, recompute=recompute, progress=progress, lidar_sweeps=lidar_sweeps,
                                 root=local_path(root, "--root") if root is not None else None)
-    click.echo(f"{store}: visibility computed for {report.computed} samples "
+    click.echo(f"{store}: visibility computed for {plural(report.computed, 'sample')} "
                f"({report.seconds_per_sample:.2f} s/sample); {report.skipped_unlabelled} unlabelled skipped")
     if report.computed:
         click.echo(f"  LiDAR mask: {100 * report.free_observed:.2f}% of free voxels observed")
@@ -352,7 +359,7 @@ def visibility(store: str, recompute: bool, lidar_sweeps: int | None, root: str 
         from occdata.constants import CLASS_NAMES, FREE_LABEL
 
         occ = np.arange(len(CLASS_NAMES)) != FREE_LABEL
-        click.echo(f"agreement with the shipped masks over {report.compared} samples (IoU of visible sets; "
+        click.echo(f"agreement with the shipped masks over {plural(report.compared, 'sample')} (IoU of visible sets; "
                    "visible % of each class's voxels):")
         for name, c in (("mask_camera", report.camera), ("mask_lidar", report.lidar)):
             click.echo(f"  {name}: IoU all {c.iou():.4f}, occupied {c.iou(occ):.4f}, free {c.iou(~occ):.4f}")
@@ -375,7 +382,7 @@ def visibility(store: str, recompute: bool, lidar_sweeps: int | None, root: str 
 @click.option("--sample", default=None, help="Sample token whose cameras to use (default: the first keyframe).")
 @click.option("--max-occluders", default=7, show_default=True, type=click.IntRange(min=0),
               help="Object voxels a camera ray may cross before a voxel stops being visible (0 = strict).")
-@json_option("Print the figures as JSON.")
+@json_option(f"Print the figures as JSON ({JSON_UNITS}).")
 @friendly_errors
 def visibility_check(label: str, root: str, version: str | None, sample: str | None, max_occluders: int,
                      as_json: bool) -> None:
@@ -391,10 +398,10 @@ def visibility_check(label: str, root: str, version: str | None, sample: str | N
                                 sample=sample, max_occluders=max_occluders))
     if as_json:
         click.echo(json.dumps({
-            "iou_all": r.iou_all, "iou_occupied": r.iou_occupied, "iou_free": r.iou_free,
-            "precision": r.precision, "recall": r.recall,
-            "visible_fraction": {CLASS_NAMES[k]: {"ours": a, "label": b, "voxels": n}
-                                 for k, (a, b, n) in r.visible_fraction.items()},
+            "unit": "percent", "iou_all": _percent(r.iou_all), "iou_occupied": _percent(r.iou_occupied),
+            "iou_free": _percent(r.iou_free), "precision": _percent(r.precision), "recall": _percent(r.recall),
+            "visible": {CLASS_NAMES[k]: {"ours": _percent(a), "label": _percent(b), "voxels": n}
+                        for k, (a, b, n) in r.visible_fraction.items()},
         }, indent=2))
         return
     click.echo(f"IoU with the label's mask_camera: all {r.iou_all:.4f}, occupied {r.iou_occupied:.4f}, "
@@ -485,10 +492,10 @@ def verify(store: str, progress: bool, images: bool) -> None:
                    f"last: {int(pending[-1])}): the build was interrupted or is running; finish it with "
                    "`occdata build ... --resume`")
     if problems or len(pending):
-        what = [f"{len(problems)} problem(s)"] if problems else []
+        what = [plural(len(problems), "problem")] if problems else []
         what += [f"{len(pending)} pending sample(s)"] if len(pending) else []
         raise click.ClickException(f"{' and '.join(what)} in {store}")
-    click.echo(f"{store}: all {int((reader.state != 0).sum())} committed samples verified")
+    click.echo(f"{store}: all {plural(int((reader.state != 0).sum()), 'committed sample')} verified")
 
 
 @main.command()
@@ -496,27 +503,36 @@ def verify(store: str, progress: bool, images: bool) -> None:
 @click.option("--train-split", default="train", show_default=True, metavar="SPLIT",
               help="Dataset split whose labels are counted.")
 @split_option(help="Dataset split to score.")
-@json_option("Print the results as JSON (fractions).")
+@json_option(f"Print the results as JSON ({JSON_UNITS}).")
 @friendly_errors
-def baseline(store: str, train_split: str, split: str, as_json: bool) -> None:
+def baseline(store: str, train_split: str, split: str | None, as_json: bool) -> None:
     """Score the image-free baseline: every voxel's most frequent training label.
 
     The floor a camera model must beat (it knows the average street, not the scene). mIoU with the
     camera mask, as `occdata eval` reports it.
     """
-    import dataclasses
-
+    from occdata.constants import CLASS_NAMES
     from occdata.eval.baseline import image_free_baseline
     from occdata.store.reader import open_store
 
+    split = store_split(store, split)
     r = image_free_baseline(open_store(store), train_split, split)
     if as_json:  # NaN (class absent from truth and prediction) -> null
-        out = dataclasses.asdict(r)
-        out["per_class_iou_camera_mask"] = [None if np.isnan(x) else x for x in r.per_class_iou_camera_mask]
-        click.echo(json.dumps(out))
+        click.echo(json.dumps({
+            "unit": "percent", "train_split": train_split, "split": split, "train_samples": r.train_samples,
+            "samples": r.samples, "miou_camera_mask": _percent(r.miou_camera_mask),
+            "miou_no_mask": _percent(r.miou_no_mask),
+            "per_class_iou_camera_mask": {name: _percent(x) for name, x in
+                                          zip(CLASS_NAMES, r.per_class_iou_camera_mask, strict=False)},
+        }))
         return
-    click.echo(f"image-free baseline ({r.train_samples} {train_split} -> {r.val_samples} {split} samples): "
+    click.echo(f"image-free baseline ({r.train_samples} {train_split} -> {plural(r.samples, f'{split} sample')}): "
                f"mIoU {100 * r.miou_camera_mask:.2f}% (camera mask), {100 * r.miou_no_mask:.2f}% (no mask)")
+
+
+def _percent(fraction: float) -> float | None:
+    """A fraction as JSON percent (4 decimals, as `occdata eval --json`); NaN (0/0) -> null."""
+    return None if np.isnan(fraction) else round(100.0 * float(fraction), 4)
 
 
 @main.command("eval")
@@ -532,10 +548,10 @@ def baseline(store: str, train_split: str, split: str, as_json: bool) -> None:
 @click.option("--mask", type=config_choice("occdata.eval.evaluate:MaskName"), default="camera", show_default=True,
               help="Visibility mask for mIoU (Occ3D uses camera). RayIoU uses no mask.")
 @click.option("--no-rayiou", is_flag=True, help="Skip RayIoU (mIoU only, much faster).")
-@json_option("Print the results as JSON (percent; null = class absent).")
+@json_option(f"Print the results as JSON ({JSON_UNITS}; null = class absent).")
 @progress_option()
 @friendly_errors
-def eval_cmd(pred: str, pred_classes: str, store: str, split: str, mask: str, no_rayiou: bool, as_json: bool,
+def eval_cmd(pred: str, pred_classes: str, store: str, split: str | None, mask: str, no_rayiou: bool, as_json: bool,
              progress: bool) -> None:
     """Score saved predictions: Occ3D mIoU (+ geometry IoU) and RayIoU@1/2/4 m, on the CPU; and
     OpenOcc v2's mAVE and OccScore when the store has flow and the predictions carry it.
@@ -555,6 +571,7 @@ def eval_cmd(pred: str, pred_classes: str, store: str, split: str, mask: str, no
         summary_line,
     )
 
+    split = store_split(store, split)
     report = evaluate_predictions(EvalConfig(pred=local_path(pred, "--pred"), store=store, split=split, mask=mask,  # type: ignore[arg-type]
                                              rayiou=not no_rayiou, progress=progress, pred_classes=pred_classes))
     if as_json:
@@ -575,7 +592,7 @@ def eval_cmd(pred: str, pred_classes: str, store: str, split: str, mask: str, no
 
 @main.command()
 @store_option()
-@click.option("--index", "-i", type=int, required=True, help="Sample index in the store.")
+@click.option("--index", "-i", type=int, default=0, help="Sample index in the store.")
 @click.option("--out", required=True, metavar="FILE", help="Output .npz file (a path or a file:// URL).")
 @friendly_errors
 def dump(store: str, index: int, out: str) -> None:
@@ -595,7 +612,7 @@ def dump(store: str, index: int, out: str) -> None:
 
 @main.command("check-projection")
 @store_option()
-@click.option("--index", "-i", type=int, default=0, show_default=True, help="Sample index in the store.")
+@click.option("--index", "-i", type=int, default=0, help="Sample index in the store.")
 @click.option("--out", required=True, metavar="FILE", help="Output .png file (a path or a file:// URL).")
 @friendly_errors
 def check_projection(store: str, index: int, out: str) -> None:
@@ -610,7 +627,7 @@ def check_projection(store: str, index: int, out: str) -> None:
 @store_option()
 @click.option("--pred", default=None, metavar="DIR", help="Prediction folder (as `occdata eval --pred`).")
 @click.option("--scene", default=None, help="Scene to show first (the one exported with --export).")
-@split_option(default=None, help="Only the scenes of this dataset split; default: all")
+@split_option(help="Only the scenes of this dataset split; default: all", auto=False)
 @click.option("--view", "view_name", type=config_choice("occdata.view.config:VIEWS"), default=None,
               help="Initial view (default: side with --pred, else label). speed: the labels coloured by "
                    "|flow| (stores with flow).")

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import functools
 import importlib
+import os
 import typing
 from collections.abc import Callable
 from pathlib import Path
@@ -17,15 +19,17 @@ from cli._common import DEFAULT_STORE
 from occdata.constants import GRID
 from occdata.errors import OccDataError
 
-__all__ = ["ConfigChoice", "cluster_options", "config_choice", "grid_range_option", "json_option", "progress_option",
-           "renamed_option", "rig_options", "root_options", "split_option", "split_source_options", "splits_option",
-           "store_option"]
+__all__ = ["JSON_UNITS", "ConfigChoice", "ShownDefault", "cluster_options", "config_choice", "device_option",
+           "grid_range_option", "json_option", "progress_option", "removed_option", "renamed_option", "rig_options",
+           "root_options", "split_option", "split_source_options", "splits_option", "store_option", "store_split"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
 ROOT_HELP = "nuScenes-format dataset root (a folder or a file:// URL)."
 STORE_HELP = "An occdata zarr store: a folder or an fsspec URL (file://, s3://, ...)."
 SPLITS = "train, val, test, mini_train, mini_val, ..."
+AUTO_SPLIT = "val, or the store's only split"
+JSON_UNITS = "IoUs and other fractions in percent, 0-100, as its 'unit' key says"  # one unit in every --json
 
 
 class ConfigChoice(click.Choice):  # type: ignore[type-arg]
@@ -45,6 +49,48 @@ class ConfigChoice(click.Choice):  # type: ignore[type-arg]
         if self._choices is None:
             self._choices = (*_values(_resolve(self.source)), *self.extra)
         return self._choices
+
+
+class ShownDefault(click.Option):
+    """An option whose --help shows a default described in words (`default_text`) or read from a config
+    field (`config_field`, "module:Class.field", read on first use: that module may import torch, which
+    --help should not pay for). With `config_field` the option overrides that field: default None = not
+    given, so a --config file's value stands."""
+
+    def __init__(self, *args: Any, config_field: str | None = None, default_text: str | None = None,
+                 **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.config_field = config_field
+        self.default_text = default_text
+
+    def get_help_extra(self, ctx: click.Context) -> Any:
+        extra = super().get_help_extra(ctx)
+        if self.default_text is not None:
+            extra["default"] = self.default_text
+        elif self.config_field is not None and (value := _field_default(self.config_field)) is not None:
+            shown = ("on" if value else "off") if isinstance(value, bool) else f"{value:g}" if isinstance(
+                value, float) else str(value)
+            extra["default"] = f"{shown}, or the --config file's"
+        return extra
+
+
+def _field_default(source: str) -> Any:
+    """The default of the dataclass field `"module:Class.field"`."""
+    module_name, _, attr = source.partition(":")
+    name, _, field = attr.partition(".")
+    cls = getattr(importlib.import_module(module_name), name)
+    return next(f.default for f in dataclasses.fields(cls) if f.name == field)
+
+
+def device_option(config_field: str | None = None) -> Callable[[F], F]:
+    """`--device auto|cpu|cuda` (auto = cuda when available, else cpu), default auto; with `config_field`
+    the option overrides that config field (default: the field's, auto)."""
+    choice = click.Choice(["auto", "cpu", "cuda"])
+    help = "auto = cuda when a CUDA device is available, else cpu."
+    if config_field is not None:
+        return click.option("--device", type=choice, default=None, cls=ShownDefault, config_field=config_field,
+                            help=help)
+    return click.option("--device", type=choice, default="auto", show_default=True, help=help)
 
 
 def config_choice(source: str, *extra: str) -> ConfigChoice:
@@ -83,10 +129,25 @@ def store_option(default: str | None = DEFAULT_STORE, help: str = STORE_HELP) ->
     return click.option("--store", default=default, show_default=default is not None, metavar="STORE", help=help)
 
 
-def split_option(default: str | None = "val", help: str = "Dataset split to run on.") -> Callable[[F], F]:
-    """`--split SPLIT`: one dataset split (`--split` means a dataset split in every command)."""
-    return click.option("--split", default=default, show_default=default is not None, metavar="SPLIT",
-                        help=f"{help.rstrip('.')} ({SPLITS}).")
+def split_option(help: str = "Dataset split to run on.", auto: bool = True) -> Callable[[F], F]:
+    """`--split SPLIT`: one dataset split (`--split` means a dataset split in every command), None when not
+    given. `auto`: the command then runs on `store_split`'s choice (its help says so); else `help` says
+    what None means."""
+    return click.option("--split", default=None, cls=ShownDefault, default_text=AUTO_SPLIT if auto else None,
+                        metavar="SPLIT", help=f"{help.rstrip('.')} ({SPLITS}).")
+
+
+def store_split(store: str, split: str | None) -> str:
+    """`split` when given, else the store's `val` or its only split, with a `note:` line on stderr when it
+    is not `val` (stdout stays the command's result, e.g. its JSON)."""
+    if split is not None:
+        return split
+    from occdata.store.splits import store_default_split
+
+    chosen = store_default_split(store)
+    if chosen.note is not None and os.environ.get("RANK", "0") == "0":  # once under torchrun
+        click.echo(f"note: {chosen.note}", err=True)
+    return chosen.split
 
 
 def splits_option(help: str = "Only scenes of this split (repeatable)") -> Callable[[F], F]:
@@ -117,9 +178,20 @@ def renamed_option(old: str, new: str, param: str, **kwargs: Any) -> Callable[[F
     return decorate
 
 
+def removed_option(old: str, instead: str) -> Callable[[F], F]:
+    """A flag that is gone, hidden from --help: giving it is one error line that names what to type instead
+    (it meant something else than a name still in use, so it is not quietly mapped)."""
+
+    def refuse(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+        if value:
+            raise click.ClickException(f"{old} is gone: use {instead}")
+
+    return click.option(old, is_flag=True, hidden=True, expose_value=False, callback=refuse)
+
+
 def progress_option(help: str = "No progress bar.") -> Callable[[F], F]:
     """`--no-progress`, handed to the command as `progress` (True unless given)."""
-    return click.option("--no-progress", "progress", flag_value=False, default=True, help=help)
+    return click.option("--no-progress", "progress", flag_value=False, default=True, show_default=False, help=help)
 
 
 def grid_range_option(which: str = "The custom grid's") -> Callable[[F], F]:

@@ -43,6 +43,7 @@ __all__ = [
     "CHECKPOINT_FORMAT",
     "Checkpoint",
     "CheckpointError",
+    "check_checkpoint_file",
     "checkpoint_cameras",
     "first_mismatch",
     "load_checkpoint",
@@ -212,14 +213,23 @@ def _unreadable(path: Path, why: str) -> CheckpointError:
     return CheckpointError(f"{path}: {why}{hint}")
 
 
+def check_checkpoint_file(path: str | Path) -> Path:
+    """`path` when it is a file; else one `CheckpointError` line (checked before anything slower or
+    anything about the store, so that a mistyped path is the first thing said)."""
+    path = Path(path)
+    if path.is_dir():
+        raise CheckpointError(f"{path}: is a folder, not a checkpoint file (e.g. {path / 'best.pt'})")
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    return path
+
+
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> Checkpoint:
     """Read a checkpoint with `torch.load(weights_only=True)` (never unpickles code).
 
     A file that cannot be used is one `CheckpointError` line naming it: truncated, not a checkpoint or
     from another version, pointing to the newest `epoch_NNN.pt` beside it when there is one."""
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"{path}: no such checkpoint file")
+    path = check_checkpoint_file(path)
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception:  # a truncated file, a pickle with code, not a torch file at all

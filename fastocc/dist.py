@@ -20,7 +20,7 @@ import torch.distributed as dist
 from occdata.errors import OccDataError
 
 __all__ = ["CollectiveError", "DistInfo", "all_reduce_sum", "any_rank", "barrier", "broadcast_object",
-           "collective_errors", "setup", "teardown"]
+           "collective_errors", "resolve_device", "setup", "teardown"]
 
 
 class CollectiveError(OccDataError):
@@ -43,13 +43,19 @@ class DistInfo:
         return self.rank == 0
 
 
+def resolve_device(device: str) -> str:
+    """`--device auto` is "cuda" when a CUDA device is available, else "cpu"; any other name as given."""
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return device
+
+
 def setup(device: str, timeout_s: float = 1800.0) -> DistInfo:
     """Resolve the device ("auto" = cuda when available) and join the process group when under torchrun.
 
     `timeout_s`: how long a collective waits for the other processes before it fails (`collective_errors`
     turns that failure into one line)."""
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
+    device = resolve_device(device)
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     local = int(os.environ.get("LOCAL_RANK", "0"))

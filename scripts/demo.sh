@@ -30,7 +30,7 @@ miou, ray = ev["miou"], ev.get("rayiou")
 print(f"demo done in {total_s // 60} min {total_s % 60} s (training {train_s // 60} min {train_s % 60} s): nano, trained "
       f"from scratch on the synthetic world's 8 training scenes, scores val mIoU {miou:.1f}% (camera mask)"
       + (f", RayIoU {ray:.1f}%" if ray is not None else "")
-      + f" against {100 * base['miou_camera_mask']:.1f}% for the image-free baseline; checkpoint {out}/run/best.pt, "
+      + f" against {base['miou_camera_mask']:.1f}% for the image-free baseline; checkpoint {out}/run/best.pt, "
       f"pictures {out}/pred/pictures/")
 PY
 echo "look at it in 3D (labels beside predictions; needs pip install -e '.[view]'; Ctrl-C stops the server):"

@@ -40,9 +40,11 @@ def test_baseline_scores_as_occdata_eval_scores_the_same_prediction(synth_store,
                                "--no-progress"])
     assert ref.exit_code == 0, ref.output
     ref_json = json.loads(ref.output)
-    assert base["train_samples"] == len(train)
-    assert 0 < base["miou_camera_mask"] < 1
-    assert abs(100 * base["miou_camera_mask"] - ref_json["miou"]) < 1e-4  # eval prints percent to 4 decimals
+    assert base["train_samples"] == len(train) and base["samples"] == ref_json["n_samples"]
+    assert base["unit"] == ref_json["unit"] == "percent" and (base["train_split"], base["split"]) == ("train", "val")
+    assert 0 < base["miou_camera_mask"] < 100
+    assert abs(base["miou_camera_mask"] - ref_json["miou"]) < 2e-4  # both percent to 4 decimals
+    assert "val_samples" not in base
 
 
 def test_baseline_without_a_val_split_is_one_line(synth_store):

@@ -94,7 +94,7 @@ def test_split_file_and_lidar_choice(labelled: dict, tmp_path: Path) -> None:
     splits.write_text(json.dumps({"val": [scene]}))
     out = _labels(["--root", str(world), "--out", str(tmp_path / "val"), "--split-file", str(splits),
                    "--split", "val", "--scene", scene])
-    assert "1 scene(s) labelled" in out
+    assert "1 scene labelled" in out
     assert json.loads((tmp_path / "val" / "labels.json").read_text())["scene_splits"]["file"] == str(splits)
     res = CliRunner().invoke(main, ["labels", "--root", str(world), "--out", str(tmp_path / "bad"), "--lidars",
                                     "LIDAR_NOWHERE", "--no-progress"])

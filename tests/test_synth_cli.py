@@ -40,7 +40,7 @@ def test_cli_synth_writes_tree(tmp_path: Path) -> None:
     res = CliRunner().invoke(main, ["synth", "--out", str(out), "--scenes", "1", "--samples", "2", "--seed", "1",
                                     "--width", "80", "--height", "45", "--no-progress"])
     assert res.exit_code == 0, res.output
-    assert "wrote 1 scenes x 2 samples" in res.output
+    assert "wrote 1 scene x 2 samples" in res.output
     scene = json.loads((out / "v1.0-mini" / "scene.json").read_text())
     assert scene[0]["name"] == "synth-0000" and "split=train" in scene[0]["description"]  # N = 1: train
     assert len(list((out / "samples" / "CAM_FRONT").glob("*.jpg"))) == 2

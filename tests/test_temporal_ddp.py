@@ -76,7 +76,7 @@ def _torchrun_train(store: Path, tmp_path: Path, ranks: int, batch_size: int, va
     assert proc.returncode == 0, log
     assert "the loader gave" not in log, log  # each rank's loader yielded exactly the planned batches
     # Rank 0 prints one summary with every rank's optimizer step count (gathered at the end of the run).
-    found = re.findall(r"done: 1 epochs, \d+ steps \(\d+ processes: ([\d, ]+) steps\)", log)
+    found = re.findall(r"done: 1 epoch, \d+ steps \(\d+ processes: ([\d, ]+) steps\)", log)
     assert len(found) == 1, log
     return [int(n) for n in found[0].split(",")]
 

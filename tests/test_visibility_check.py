@@ -24,22 +24,23 @@ def test_real_label_agreement(real_occ3d_label: Path, real_nuscenes_root: Path) 
     r = _check(real_occ3d_label, real_nuscenes_root, "--json")
     assert r.returncode == 0, r.stderr
     got = json.loads(r.stdout)
-    assert got["iou_all"] == pytest.approx(0.8744, abs=1e-3)
-    assert got["iou_occupied"] == pytest.approx(0.7762, abs=1e-3)
-    assert got["iou_free"] == pytest.approx(1.0, abs=1e-6)
-    assert got["precision"] == pytest.approx(0.9243, abs=1e-3) and got["recall"] == pytest.approx(0.9419, abs=1e-3)
-    frac = got["visible_fraction"]
-    # The label's own fractions (DESIGN §5.3) come back beside ours.
-    assert frac["car"]["label"] == pytest.approx(0.906, abs=1e-3)
-    assert frac["free"]["label"] == pytest.approx(0.034, abs=1e-3)
+    assert got["unit"] == "percent"  # as every --json (cli.options.JSON_UNITS)
+    assert got["iou_all"] == pytest.approx(87.44, abs=0.1)
+    assert got["iou_occupied"] == pytest.approx(77.62, abs=0.1)
+    assert got["iou_free"] == pytest.approx(100.0, abs=1e-4)
+    assert got["precision"] == pytest.approx(92.43, abs=0.1) and got["recall"] == pytest.approx(94.19, abs=0.1)
+    pct = got["visible"]
+    # The label's own visible shares (DESIGN §5.3) come back beside ours.
+    assert pct["car"]["label"] == pytest.approx(90.6, abs=0.1)
+    assert pct["free"]["label"] == pytest.approx(3.4, abs=0.1)
     # Ground classes and free space: visible exactly where LiDAR-observed, as in the label.
     for name in ("driveable_surface", "sidewalk", "terrain", "free"):
-        assert frac[name]["ours"] == pytest.approx(frac[name]["label"], abs=1e-9)
-    for name, ours in (("car", 0.766), ("manmade", 0.596), ("vegetation", 0.472)):
-        assert frac[name]["ours"] == pytest.approx(ours, abs=2e-3)
+        assert pct[name]["ours"] == pytest.approx(pct[name]["label"], abs=1e-3)
+    for name, ours in (("car", 76.6), ("manmade", 59.6), ("vegetation", 47.2)):
+        assert pct[name]["ours"] == pytest.approx(ours, abs=0.2)
     # Strict occlusion (the paper's literal reading, one object voxel deep) finds far less.
     strict = json.loads(_check(real_occ3d_label, real_nuscenes_root, "--json", "--max-occluders", "0").stdout)
-    assert strict["iou_occupied"] == pytest.approx(0.4965, abs=1e-3) and strict["precision"] > 0.99
+    assert strict["iou_occupied"] == pytest.approx(49.65, abs=0.1) and strict["precision"] > 99
 
 
 def test_text_output_and_bad_input(real_occ3d_label: Path, real_nuscenes_root: Path, tmp_path: Path) -> None:

@@ -21,7 +21,10 @@ def split_indices(store: str | Path | StoreReader, split: str | None) -> np.ndar
 
 
 def check_device(device: str) -> None:
-    """One clear error for a device that is not there (instead of a CUDA traceback mid-run)."""
+    """One clear error for a device that is not there (instead of a CUDA traceback mid-run); "auto" (cuda
+    when available, else cpu) is always there."""
+    if device == "auto":
+        return
     kind = torch.device(device).type
     if kind == "cuda" and not torch.cuda.is_available():
         raise OccDataError(f"device {device!r} asked for, but no CUDA device is available (use --device cpu)")

@@ -19,7 +19,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from fastocc.checkpoint import load_model
+from fastocc.checkpoint import check_checkpoint_file, load_model
 from fastocc.infer.common import check_device, split_indices
 from fastocc.infer.predict import PredictConfig, predict_split
 from fastocc.model.config import ModelConfig
@@ -131,12 +131,15 @@ def run_predict(run: PredictRun) -> PredictSummary:
     byte for byte. Every rank returns the combined summary (all files, all pictures)."""
     from fastocc import dist as D
 
+    check_checkpoint_file(run.checkpoint)  # a mistyped checkpoint is said first
     check_device(run.predict.device)
     split_indices(run.predict.store, run.predict.split)  # unknown split / bad store before loading weights
     joined = not (torch.distributed.is_available() and torch.distributed.is_initialized())
     info = D.setup(run.predict.device)
     try:
-        cfg = replace(run.predict, device=str(info.device)) if info.enabled else run.predict  # cuda:LOCAL_RANK
+        # cuda:LOCAL_RANK under torchrun; "auto" as resolved
+        chosen = info.enabled or run.predict.device == "auto"
+        cfg = replace(run.predict, device=str(info.device)) if chosen else run.predict
         model, ckpt = load_model(run.checkpoint, device=cfg.device, prefer_ema=run.prefer_ema)
         check_store_rig(cfg.store, ckpt.cameras, ckpt.model_config.num_cams, str(run.checkpoint), "predict")
         summary = write_predictions(model, ckpt.model_config, run.out, cfg, png=run.png,

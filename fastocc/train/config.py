@@ -80,7 +80,7 @@ class TrainConfig:
     # data
     store: str = "data.zarr"
     train_split: str = "train"
-    val_split: str = "val"
+    val_split: str | None = None  # None: "val" when the store has it, else the store's only split
     workers: int = 2
     limit_train_samples: int = 0  # > 0: only the first N training samples (smoke runs, tests)
     augment: bool = True  # image (resize/crop/flip/rotate) + BEV (flip) augmentation
@@ -230,7 +230,7 @@ class TrainConfig:
 # `epochs` may grow (the cosine is stretched to the new end, see `lr_at`); `init_from` only acts on a new run.
 RESUME_MAY_CHANGE = frozenset({"store", "workers", "device", "out", "threads", "val_every", "val_rayiou",
                                "keep_epochs", "save_every_steps", "max_nonfinite", "log_every", "pretrained",
-                               "init_from", "warn_signal", "dist_timeout", "epochs"})
+                               "init_from", "warn_signal", "dist_timeout", "epochs", "val_split"})
 
 
 def _coerce(field: dataclasses.Field, value: Any) -> Any:

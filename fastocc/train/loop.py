@@ -49,6 +49,7 @@ from fastocc.train.setup import (
     prepare_out,
     say_start,
     take_store_rig,
+    take_val_split,
 )
 from fastocc.train.state import Progress, TrainState, get_rng_state
 from occdata.errors import OccDataError
@@ -431,6 +432,8 @@ def _train(cfg: TrainConfig, info: D.DistInfo, resume: bool, progress: bool, sto
     if cfg.deterministic:
         torch.use_deterministic_algorithms(True)
     run = make_run(cfg, info, progress, stop)
+    split_note = take_val_split(run)
+    cfg = run.cfg  # the resolved validation split is the one recorded
     payload = prepare_out(run, resume)
     take_store_rig(run, payload)
     if info.is_main:
@@ -444,6 +447,8 @@ def _train(cfg: TrainConfig, info: D.DistInfo, resume: bool, progress: bool, sto
     if run.samples_per_epoch == 0:
         raise OccDataError(f"no built samples in the {cfg.train_split!r} split of {cfg.store}")
     say_start(run)
+    if split_note:
+        run.say(split_note)
     if payload is not None:
         state.load_state_dict(payload, info.rank, run.out / "last.pt")
         p = state.progress

@@ -41,10 +41,12 @@ from occdata.errors import OccDataError
 from occdata.fileio import write_atomic
 from occdata.store.layout import store_rig
 from occdata.store.reader import open_store
+from occdata.store.splits import store_default_split
+from occdata.text import plural
 
 __all__ = ["MetricsLog", "Run", "StepPace", "build_model", "check_writable", "estimate_step_seconds", "init_from",
            "loader_config", "loss_config", "make_run", "new_state", "pace_message", "prepare_out",
-           "say_start", "take_store_rig"]
+           "say_start", "take_store_rig", "take_val_split"]
 
 
 @dataclass
@@ -159,6 +161,16 @@ def take_store_rig(run: Run, payload: dict[str, Any] | None) -> None:
     if payload is not None:
         saved = model_config_from_dict(json.loads(payload["model_config"])).num_cams
         check_store_rig(reader, checkpoint_cameras(payload, saved), saved, f"--resume {run.out / 'last.pt'}", "train")
+
+
+def take_val_split(run: Run) -> str | None:
+    """`val_split` unset: the store's `val`, else its only split (a one-scene world has only `train`), put
+    into `run.cfg`; returns the line that says so when it is not `val`. Nothing to choose without validation."""
+    if run.cfg.val_split is not None or run.cfg.val_every == 0:
+        return None
+    chosen = store_default_split(run.cfg.store, "val_split in a --config TOML")
+    run.cfg = dataclasses.replace(run.cfg, val_split=chosen.split)
+    return None if chosen.note is None else f"validation: {chosen.note}"
 
 
 def build_model(run: Run) -> nn.Module:
@@ -328,9 +340,9 @@ def say_start(run: Run) -> None:
     cfg, info = run.cfg, run.info
     run.say(f"fastocc train: preset {cfg.preset} head {cfg.head} input {run.model_cfg.input_hw} history "
             f"{run.model_cfg.num_history} on {info.world_size} x {info.device}; {run.samples_per_epoch} training "
-            f"samples/epoch, {cfg.epochs} epochs")
+            f"samples/epoch, {plural(cfg.epochs, 'epoch')}")
     run.say(f"learning rate: {cfg.lr:g} x {cfg.lr_scaling} scaling ({cfg.batch_size} global batch / "
             f"{cfg.lr_base_batch}) = {cfg.peak_lr():.3g} peak; warm-up {cfg.warmup_epochs:g} epochs, cosine to "
-            f"{cfg.min_lr_ratio:g} x peak; {run.accum} accumulation step(s) of {run.micro} per process")
+            f"{cfg.min_lr_ratio:g} x peak; {plural(run.accum, 'accumulation step')} of {run.micro} per process")
 
 

@@ -19,22 +19,23 @@ __all__ = ["BaselineResult", "image_free_baseline"]
 
 @dataclass(frozen=True)
 class BaselineResult:
-    """mIoU of the per-voxel most frequent training label (fractions; camera mask and no mask)."""
+    """mIoU of the per-voxel most frequent training label (fractions; camera mask and no mask) over the
+    `samples` labelled samples of the scored split."""
 
     train_samples: int
-    val_samples: int
+    samples: int
     miou_camera_mask: float
     miou_no_mask: float
     per_class_iou_camera_mask: tuple[float, ...]
 
 
-def image_free_baseline(reader, train_split: str = "train", val_split: str = "val") -> BaselineResult:  # noqa: ANN001
-    """Predict, for every val sample, the per-voxel most frequent label of the training split (ties: the
-    lower label) and score it with Occ3D mIoU. `reader`: an open `StoreReader`."""
-    train, val = reader.split_indices(train_split, labelled=True), reader.split_indices(val_split, labelled=True)
+def image_free_baseline(reader, train_split: str = "train", split: str = "val") -> BaselineResult:  # noqa: ANN001
+    """Predict, for every labelled sample of `split`, the per-voxel most frequent label of the training
+    split (ties: the lower label) and score it with Occ3D mIoU. `reader`: an open `StoreReader`."""
+    train, val = reader.split_indices(train_split, labelled=True), reader.split_indices(split, labelled=True)
     if not len(train) or not len(val):
         raise OccDataError(f"the baseline needs labelled samples in both {train_split!r} ({len(train)}) and "
-                           f"{val_split!r} ({len(val)})")
+                           f"{split!r} ({len(val)})")
     sem, cam = reader.array("labels/semantics"), reader.array("labels/mask_camera")
     shape = tuple(sem.shape[1:])
     counts = np.zeros((int(np.prod(shape)), NUM_CLASSES), dtype=np.int32)
@@ -49,5 +50,5 @@ def image_free_baseline(reader, train_split: str = "train", val_split: str = "va
         unmasked.update(gt, pred, None)
     m, u = masked.result(), unmasked.result()
     per_class = tuple(float(x) for x in m.per_class_iou)
-    return BaselineResult(train_samples=len(train), val_samples=len(val), miou_camera_mask=float(m.miou),
+    return BaselineResult(train_samples=len(train), samples=len(val), miou_camera_mask=float(m.miou),
                           miou_no_mask=float(u.miou), per_class_iou_camera_mask=per_class)

@@ -29,6 +29,7 @@ from occdata.eval.flow import MOVING_CLASSES, RayFlowAccumulator
 from occdata.eval.metrics import MIoUAccumulator, MIoUResult, RayIoUAccumulator, RayIoUResult
 from occdata.eval.rays import store_ray_origins
 from occdata.formats.occ3d import LABEL_FILE, label_keys, list_label_files, read_prediction_flow
+from occdata.text import plural
 
 __all__ = [
     "EvalConfig",
@@ -325,7 +326,7 @@ def format_table(miou: MIoUResult, rayiou: RayIoUResult | None) -> str:
 
 def summary_line(report: EvalReport) -> str:
     on = "" if report.grid is None else f" on grid {report.grid}"
-    s = (f"{report.split}{on}: {report.n_samples} samples, mIoU {100 * report.miou.miou:.2f} "
+    s = (f"{report.split}{on}: {plural(report.n_samples, 'sample')}, mIoU {100 * report.miou.miou:.2f} "
          f"(mask {report.mask}), geometry IoU {100 * report.miou.geo_iou:.2f}")
     if report.rayiou is not None:
         at = ", ".join(f"@{t:g} {100 * v:.2f}" for t, v in report.rayiou.rayiou_at.items())

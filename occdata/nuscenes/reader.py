@@ -30,6 +30,7 @@ from occdata.nuscenes.tables import TokenSet, load_table, usable_as_file_name
 __all__ = [
     "SPLIT_TAG",
     "TableIndex",
+    "check_root",
     "confined_path",
     "dataset_root",
     "find_version",
@@ -45,11 +46,20 @@ SPLIT_TAG = re.compile(r"\bsplit=([A-Za-z0-9_]+)")
 _NEEDED_TABLES = ("scene", "sample", "sample_data", "calibrated_sensor", "ego_pose", "sensor")
 
 
+def check_root(root: Path | str) -> Path:
+    """`root` as a Path when it is a folder; else one `OccDataError` line: not found, or a file."""
+    root = Path(root)
+    if root.is_dir():
+        return root
+    if root.exists():
+        raise OccDataError(f"dataset root {root} is a file, not a folder: --root names the folder that holds the "
+                           "version folder (v1.0-trainval/, ...), samples/ and sweeps/")
+    raise OccDataError(f"dataset root not found: {root}")
+
+
 def find_version(root: Path, version: str | None) -> str:
     """The version folder to read: `version` if given, else the only `v*` folder holding scene.json."""
-    root = Path(root)
-    if not root.is_dir():
-        raise OccDataError(f"dataset root not found: {root}")
+    root = check_root(root)
     found = sorted(p.name for p in root.iterdir() if p.is_dir() and (p / "scene.json").is_file())
     if version is not None:
         if not (root / version).is_dir():
@@ -57,10 +67,14 @@ def find_version(root: Path, version: str | None) -> str:
                 f"version folder not found: {root / version} (present: {', '.join(found) or 'none'})"
             )
         return version
+    if not found and (root / "scene.json").is_file():
+        raise OccDataError(f"--root {root} is a version folder itself (it holds scene.json): give its parent, "
+                           f"{root.parent}")
+    if not found:
+        raise OccDataError(f"{root} holds no nuScenes tables: no folder in it has a scene.json (expected e.g. "
+                           f"{root / 'v1.0-trainval' / 'scene.json'})")
     if len(found) != 1:
-        raise OccDataError(
-            f"cannot choose a version folder under {root}: found {found or 'none'}; pass --version"
-        )
+        raise OccDataError(f"cannot choose a version folder under {root}: found {found}; pass --version")
     return found[0]
 
 

@@ -3,18 +3,22 @@
 from __future__ import annotations
 
 import enum
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 from occdata.errors import OccDataError
 from occdata.formats.gridspec import GridSpec
+from occdata.nuscenes.reader import check_root
 from occdata.nuscenes.rig import RigChoice
 from occdata.nuscenes.splits import SplitChoice
 from occdata.runtime.cluster import ClusterConfig
+from occdata.runtime.storage import is_remote
+from occdata.store.reader import store_location
 from occdata.store.sample import SampleOptions
 
-__all__ = ["ROOT_GTS", "BuildConfig", "GtsDefault", "LabelsSource"]
+__all__ = ["ROOT_GTS", "BuildConfig", "GtsDefault", "LabelsSource", "check_out"]
 
 
 class GtsDefault(enum.Enum):
@@ -80,9 +84,15 @@ class BuildConfig:
         if not 1 <= self.options.jpeg_quality <= 100:
             raise OccDataError(f"--jpeg-quality must be in [1, 100], got {self.options.jpeg_quality}")
 
+    def check_paths(self) -> None:
+        """One line for a --root that is no folder or a local --out that cannot be a store."""
+        check_root(self.root)
+        check_out(store_location(self.out))
+
     def labels(self) -> LabelsSource:
         """Where this build's labels come from (resolves `ROOT_GTS`; `build_store` checks that a named
-        folder exists, after the tables)."""
+        folder exists, after the tables). A --root or --out that cannot work is said first (`check_paths`)."""
+        self.check_paths()
         if isinstance(self.gts, GtsDefault):
             found = self.root / "gts"
             if found.is_dir():
@@ -92,3 +102,18 @@ class BuildConfig:
         if self.gts is None:
             return LabelsSource(None, False, "labels: none: the store will be unlabelled")
         return LabelsSource(self.gts, self.labels_required, f"labels: {self.gts} (--gts)")
+
+
+def check_out(out: str) -> None:
+    """One line, before anything is read or written, for a local `out` that cannot be a store: a file,
+    or a folder that holds something else. An empty folder is fine: the new store takes its place."""
+    if is_remote(out) or not os.path.lexists(out):
+        return
+    path = Path(out)
+    if not path.is_dir():
+        raise OccDataError(f"--out {out} is a file, not a store folder: choose another --out (or remove the file)")
+    entries = sorted(p.name for p in path.iterdir())
+    if entries and "zarr.json" not in entries:
+        shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
+        raise OccDataError(f"--out {out} is a folder that holds no zarr store ({len(entries)} entries: {shown}): "
+                           "choose another --out, or an empty or new folder")

@@ -174,10 +174,10 @@ def resume_state(root: zarr.Group) -> np.ndarray:
 
 
 def store_exists(out: str) -> bool:
-    """A store is there once its layout is complete (locally: the folder, published by rename;
-    on an object store: a root `zarr.json` not marked as still being created)."""
+    """A store is there once its layout is complete (locally: the folder, published by rename, unless
+    empty; on an object store: a root `zarr.json` not marked as still being created)."""
     if not is_remote(out):
-        return os.path.lexists(out)
+        return os.path.lexists(out) and not (os.path.isdir(out) and not os.listdir(out))
     raw = read_bytes(join(out, "zarr.json"))
     if raw is None:
         return False

@@ -18,8 +18,9 @@ from occdata.formats.occ3d import LABEL_FILE, OPENOCC_V2, label_keys, label_relp
 from occdata.nuscenes import LidarRecord, NuScenesDataset, load_nuscenes
 from occdata.nuscenes.reader import confined_path
 from occdata.store.blocks import SampleInput
-from occdata.store.config import BuildConfig
+from occdata.store.config import BuildConfig, check_out
 from occdata.store.labelgrid import is_default_grid
+from occdata.store.reader import store_location
 from occdata.store.sample import static_arrays, temporal_indices
 
 __all__ = ["BuildInputs", "check_sweep_files", "find_grid_label_files", "find_label_files", "label_format",
@@ -60,7 +61,9 @@ class BuildInputs:
 
 
 def read_inputs(config: BuildConfig) -> BuildInputs:
-    """The tables, sweeps and labels files of `config`, checked before anything is written."""
+    """The tables, sweeps and labels files of `config`, checked before anything is written (and `--out`
+    before the tables are read)."""
+    check_out(store_location(config.out))
     n_sweeps = config.options.lidar_sweeps
     ds = load_nuscenes(config.root, config.version, sweeps=n_sweeps > 0, rig=config.rig,
                        splits=config.scene_splits).select(config.splits or None)
