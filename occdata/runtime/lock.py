@@ -225,7 +225,8 @@ def store_lock(store: str | Path, command: str) -> Iterator[StoreLock]:
             def revoke() -> None:
                 _write_record(fd, {**info, "nonce": uuid.uuid4().hex})
 
-            yield StoreLock(Fence(str(path), str(store), info["nonce"]), revoke)
+            # absolute: a task's worker may run in another folder (a --scheduler worker)
+            yield StoreLock(Fence(os.path.abspath(path), str(store), info["nonce"]), revoke)
     finally:
         with suppress(OSError):
             if _same_file(fd, path):
