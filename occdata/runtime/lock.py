@@ -46,7 +46,7 @@ import threading
 import time
 import uuid
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
@@ -86,12 +86,17 @@ class Fence:
     nonce: str
 
     def check(self) -> None:
-        if _read_nonce(self.where) != self.nonce:
+        try:
+            nonce = _read_nonce(self.where)
+        except OSError as exc:  # unreadable: writing on could overwrite another writer's chunks
+            raise _lost(self.where, self.store, f"cannot read it: {type(exc).__name__}: {exc}") from None
+        if nonce != self.nonce:
             raise _lost(self.where, self.store, "the run that held it ended or was stopped, or another writer "
                         "holds it now")
 
 
 def _read_nonce(where: str) -> str | None:
+    """The nonce of the lock record at `where`; None when there is none (removed, or being rewritten)."""
     try:
         if "://" in where:
             import fsspec
@@ -101,7 +106,7 @@ def _read_nonce(where: str) -> str | None:
         else:
             raw = Path(where).read_bytes()
         return str(json.loads(raw)["nonce"])
-    except (OSError, ValueError, KeyError, TypeError):  # gone, or being rewritten: not this run's
+    except (FileNotFoundError, ValueError, KeyError, TypeError):
         return None
 
 
@@ -111,7 +116,7 @@ class StoreLock:
     the run's tasks check before each write; `revoke()` makes every such fence fail while this
     writer still holds the store (a run stopping before its last metadata write)."""
 
-    def __init__(self, fence: Fence, revoke: Any, lease: _Lease | None = None) -> None:
+    def __init__(self, fence: Fence, revoke: Callable[[], None], lease: _Lease | None = None) -> None:
         self.fence, self._revoke, self._lease = fence, revoke, lease
 
     def check(self) -> None:
