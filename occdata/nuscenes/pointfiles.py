@@ -12,7 +12,9 @@ the field or point.
 
 from __future__ import annotations
 
+import os
 import re
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +27,8 @@ __all__ = ["PCD_SUFFIX", "PcdPoints", "is_pcd", "pcd_point_count", "read_pcd"]
 PCD_SUFFIX = ".pcd"  # nuScenes' `.pcd.bin` is not a PCD file (raw float32 x 5), despite its name
 _IDENTITY_VIEWPOINT = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 _HEADER_LINES = 11  # VERSION FIELDS SIZE TYPE COUNT WIDTH HEIGHT VIEWPOINT POINTS DATA (+ slack)
+_HEADER_MAX_BYTES = 64 * 1024  # a header is a few hundred bytes; comments may add some
+_LZF_MAX_RATIO = 128  # LZF writes at most 264 bytes from a 3-byte back-reference (88x): a larger ratio is a lie
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,34 +52,80 @@ def is_pcd(path: Path | str) -> bool:
     return str(path).lower().endswith(PCD_SUFFIX)
 
 
-def _header(path: Path):  # -> pypcd4.MetaData
-    """The parsed header; one line when it is unreadable or invalid."""
-    import pypcd4
-
-    lines: list[str] = []
+def _header_lines(path: Path) -> tuple[list[str], int]:
+    """The header's lines (comments and blanks dropped) up to DATA, and the data's byte offset; read
+    from the first `_HEADER_MAX_BYTES` only (a file without newlines is not read whole)."""
     try:
         with open(path, "rb") as fp:
-            for raw in fp:
-                line = raw.decode("utf-8", errors="replace").strip()
-                if line and not line.startswith("#"):
-                    lines.append(line)
-                if line.upper().startswith("DATA") or len(lines) >= _HEADER_LINES:
-                    break
+            head = fp.read(_HEADER_MAX_BYTES)
     except FileNotFoundError:
         raise OccDataError(f"missing sensor file: {path}") from None
     except OSError as exc:
         raise OccDataError(f"cannot read sensor file {path}: {exc.strerror or exc}") from None
-    if not lines or not lines[-1].upper().startswith("DATA"):
-        raise OccDataError(f"corrupt LiDAR file {path}: no PCD header (no DATA line)")
+    lines: list[str] = []
+    pos = 0
+    while len(lines) < _HEADER_LINES and (end := head.find(b"\n", pos)) >= 0:
+        line = head[pos:end].decode("utf-8", errors="replace").strip()
+        pos = end + 1
+        if line and not line.startswith("#"):
+            lines.append(line)
+            if line.upper().startswith("DATA"):
+                return lines, pos
+    where = f" in its first {_HEADER_MAX_BYTES // 1024} KiB" if len(head) == _HEADER_MAX_BYTES else ""
+    raise OccDataError(f"corrupt LiDAR file {path}: no PCD header (no DATA line{where})")
+
+
+def _header(path: Path):  # -> pypcd4.MetaData
+    """The parsed header, checked against the file's size before anything is allocated from it: POINTS
+    must be WIDTH x HEIGHT, and the data the header announces must fit in the file (binary: exactly
+    its bytes; binary_compressed: its two sizes, the compressed one in the file and the other one the
+    points' bytes; ascii: at least two characters a value). One line naming the file otherwise."""
+    import pypcd4
+
+    lines, offset = _header_lines(path)
     try:
-        return pypcd4.MetaData.parse_header(lines)
+        meta = pypcd4.MetaData.parse_header(lines)
     except Exception as exc:  # pydantic's ValidationError spans lines: keep the first problem
         first = re.sub(r"\s+", " ", str(exc)).strip()[:200]
         raise OccDataError(f"corrupt LiDAR file {path}: invalid PCD header ({first})") from None
+    if meta.points != meta.width * meta.height:
+        raise OccDataError(f"corrupt LiDAR file {path}: PCD header says POINTS {meta.points}, but WIDTH x HEIGHT "
+                           f"is {meta.width} x {meta.height}")
+    _check_data_size(path, meta, os.stat(path).st_size - offset, offset)
+    return meta
+
+
+def _check_data_size(path: Path, meta, data_bytes: int, offset: int) -> None:
+    """Raise unless the data `meta` announces can be in the file's `data_bytes` after the header."""
+    values = sum(meta.count)
+    point_bytes = sum(size * count for size, count in zip(meta.size, meta.count, strict=True))
+    need = meta.points * point_bytes
+    encoding = str(getattr(meta.data, "value", meta.data))
+    if encoding == "ascii":
+        if meta.points * (2 * values) > data_bytes + 1:  # a digit and a separator a value, at the least
+            raise OccDataError(f"corrupt LiDAR file {path}: PCD header says {meta.points} points of {values} values, "
+                               f"more than its {data_bytes} bytes of ascii data can hold")
+        return
+    if encoding == "binary":
+        if need > data_bytes:
+            raise OccDataError(f"corrupt LiDAR file {path}: PCD header says {meta.points} points ({need} bytes), "
+                               f"the file holds {data_bytes} bytes of data")
+        return
+    with open(path, "rb") as fp:
+        fp.seek(offset)
+        sizes = fp.read(8)
+    if len(sizes) < 8:
+        raise OccDataError(f"corrupt LiDAR file {path}: binary_compressed data without its two sizes")
+    compressed, uncompressed = struct.unpack("<II", sizes)
+    if uncompressed != need or compressed > data_bytes - 8 or uncompressed > _LZF_MAX_RATIO * compressed:
+        raise OccDataError(f"corrupt LiDAR file {path}: binary_compressed sizes {compressed} -> {uncompressed} bytes "
+                           f"do not fit the header ({meta.points} points of {point_bytes} bytes = {need}) and the "
+                           f"file ({data_bytes - 8} bytes of data)")
 
 
 def pcd_point_count(path: Path | str) -> int:
-    """The POINTS count of a PCD file's header (the build's planner: no data is read)."""
+    """The POINTS count of a PCD file's header, checked against its size (the build's planner: no
+    point is read)."""
     return int(_header(Path(path)).points)
 
 

@@ -376,6 +376,17 @@ def _scene_samples(idx: TableIndex, sc_tok: str, sc: dict[str, Any], name: str) 
     return chain
 
 
+def _rig_hint(rig: Rig, present: dict[str, str]) -> str:
+    """What to pass when samples carry different sensors: the rig option(s) naming this sample's ones."""
+    parts = []
+    for option, wanted in (("--cameras", rig.cameras), ("--lidars", rig.lidars)):
+        if any(c not in present for c in wanted):
+            have = [c for c in wanted if c in present]
+            parts.append(f"{option} {','.join(have)}" if have else f"{option} naming sensors every sample has")
+    return (": the samples do not all carry the same sensors; select a rig they share with "
+            f"{' and '.join(parts)} (or fewer)")
+
+
 def _sample_record(
     idx: TableIndex, s_tok: str, scene_name: str, index: int, prev_keys: dict[str, str], check_files: bool
 ) -> SampleRecord:
@@ -384,7 +395,8 @@ def _sample_record(
     sds = idx.keyframes.get(s_tok, {})
     missing = [c for c in idx.rig.channels if c not in sds]
     if missing:
-        raise OccDataError(f"sample {s_tok!r} has no keyframe sample_data for {', '.join(missing)}")
+        raise OccDataError(f"sample {s_tok!r} has no keyframe sample_data for {', '.join(missing)}"
+                           f"{_rig_hint(idx.rig, sds)}")
     chains = [
         _sweep_chain(idx, c, sds[c], prev_keys.get(c, ""), row["scene_token"], scene_name) if idx.sweeps else []
         for c in idx.rig.lidars

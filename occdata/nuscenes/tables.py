@@ -36,11 +36,18 @@ TABLE_NAMES: tuple[str, ...] = (
 )
 
 _CHUNK = 1 << 20
+_MAX_ROW = 64 << 20  # characters: nuScenes rows are under a kilobyte; a longer one is a broken file
+_CUT = 16  # a decoding error this close to the window's end may be a value cut by it (`true`, `1e5`, `\u00e9`)
 _WS = " \t\r\n"
 
 
 class _Scanner:
-    """A bounded window `buf[pos:]` over a text file, refilled in `_CHUNK`s; offsets for errors."""
+    """A bounded window `buf[pos:]` over a text file, refilled in `_CHUNK`s; offsets for errors.
+
+    A row cut by the window's end is completed by refills that double the window (linear in the row's
+    length); a decoding error inside the window is a malformed row at once, never a reason to read on:
+    each retry re-decodes the row, so refilling a chunk at a time read the whole rest of the file
+    and copied it once per chunk (quadratic) before a bad row's error."""
 
     def __init__(self, fh: Any, path: Path) -> None:
         self.fh, self.path = fh, path
@@ -50,11 +57,13 @@ class _Scanner:
         self.consumed = 0  # characters dropped from the front of buf
 
     def fill(self) -> bool:
-        """Append the next chunk (dropping what was consumed); False at the end of the file."""
+        """Append at least a chunk, at most as much as is left unconsumed (dropping what was consumed);
+        False at the end of the file."""
         if self.eof:
             return False
-        more = self.fh.read(_CHUNK)
-        self.eof = len(more) < _CHUNK
+        want = max(_CHUNK, len(self.buf) - self.pos)
+        more = self.fh.read(want)
+        self.eof = len(more) < want
         self.consumed += self.pos
         self.buf = self.buf[self.pos:] + more
         self.pos = 0
@@ -74,6 +83,12 @@ class _Scanner:
             try:
                 return decoder.raw_decode(self.buf, self.pos)
             except json.JSONDecodeError as exc:
+                cut = exc.pos >= len(self.buf) - _CUT or exc.msg.startswith("Unterminated string")
+                if not cut:
+                    self.pos = exc.pos
+                    raise self.fail(exc.msg) from None
+                if len(self.buf) - self.pos > _MAX_ROW:
+                    raise self.fail(f"a row longer than {_MAX_ROW >> 20} M characters") from None
                 if not self.fill():
                     raise self.fail(exc.msg) from None
 

@@ -29,6 +29,7 @@ import logging
 import os
 import signal
 import threading
+import time
 import traceback
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -47,6 +48,7 @@ if TYPE_CHECKING:  # distributed is imported lazily: `occdata` commands that do 
 __all__ = ["SCHEDULER_ENV", "ClusterConfig", "Interrupted", "cluster_client", "dask_setup", "run_tasks"]
 
 SCHEDULER_ENV = "DASK_SCHEDULER_ADDRESS"
+DRAIN_S = 60.0  # how long a stopped run waits for the tasks its workers still run (fenced: they stop at a write)
 T = TypeVar("T", bound=Task[Any])
 
 
@@ -196,7 +198,7 @@ class _StopSignals:
 def run_tasks(client: Client | None, tasks: Sequence[T], *, desc: str, unit: str = "task",
               progress: bool = True, on_result: Callable[[T, Any], Sequence[T] | None] | None = None,
               keep: Callable[[T], bool] | None = None, window: int | None = None,
-              check: Callable[[], None] | None = None) -> None:
+              check: Callable[[], None] | None = None, revoke: Callable[[], None] | None = None) -> None:
     """Run every task (`client` None: here, one after the other, each given the stop check).
 
     `on_result(task, result)` runs in this process as each task finishes (in any order) and may
@@ -207,6 +209,10 @@ def run_tasks(client: Client | None, tasks: Sequence[T], *, desc: str, unit: str
     `Interrupted` on Ctrl-C/SIGTERM (queued tasks are cancelled), a task's own exception (the rest
     is cancelled first), or `OccDataError` for anything else on the cluster side: a lost scheduler,
     or an error that is not the connection's, named as what it is (`_not_lost`).
+
+    A run that ends early first calls `revoke()` (the store lock's: the tasks' fence fails from then
+    on), cancels the tasks and waits, up to `DRAIN_S`, until no worker still runs one: a task cannot
+    be interrupted, so what the caller writes after this returns never races a task's last write.
     """
     bar = tqdm(total=sum(t.units for t in tasks), desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)
     queue = _Queue(list(tasks), keep)
@@ -215,7 +221,7 @@ def run_tasks(client: Client | None, tasks: Sequence[T], *, desc: str, unit: str
             if client is None:
                 _run_here(queue, stop, bar, on_result)
             else:
-                _run_on(client, queue, stop, bar, on_result, window, desc)
+                _run_on(client, queue, stop, bar, on_result, window, desc, revoke)
     finally:
         bar.close()
 
@@ -256,7 +262,7 @@ def _run_here(queue: _Queue, stop: _StopSignals, bar: tqdm, on_result: Any) -> N
 
 
 def _run_on(client: Client, queue: _Queue, stop: _StopSignals, bar: tqdm, on_result: Any,
-            window: int | None, desc: str) -> None:
+            window: int | None, desc: str, revoke: Callable[[], None] | None = None) -> None:
     addr = _address(client)  # kept: a closed connection no longer knows it
     if window is None:
         window = max(2, 2 * sum(_nthreads(client, addr).values()))
@@ -277,6 +283,8 @@ def _run_on(client: Client, queue: _Queue, stop: _StopSignals, bar: tqdm, on_res
             stop.check()
     finally:
         if running:
+            if revoke is not None:
+                revoke()
             _cancel(client, list(running))
 
 
@@ -384,7 +392,24 @@ def _result(f: Future, addr: str, what: str = "a task") -> Any:
 
 
 def _cancel(client: Client, futures: list[Future]) -> None:
+    """Cancel `futures`, then wait (up to `DRAIN_S`; a second Ctrl-C ends it) until no worker runs
+    one of them any more: Dask marks a running task cancelled at once, but its thread goes on."""
     try:
         client.cancel(futures, force=True)
     except Exception:  # noqa: BLE001, S110 - the scheduler may be gone; closing follows anyway
-        pass
+        return
+    keys = {f.key for f in futures}
+    deadline = time.monotonic() + DRAIN_S
+    while time.monotonic() < deadline:
+        try:
+            busy = client.run(_active_keys)
+        except Exception:  # noqa: BLE001 - no answer: the workers are gone or unreachable, nothing to wait for
+            return
+        if not keys & {k for ks in busy.values() for k in ks}:
+            return
+        time.sleep(0.1)
+
+
+def _active_keys(dask_worker: Any) -> list[Any]:
+    """The keys a worker is executing now (run on the worker by `Client.run`)."""
+    return list(dask_worker.active_keys)

@@ -28,6 +28,7 @@ import zarr
 from occdata.errors import OccDataError
 from occdata.formats.gridspec import GridSpec
 from occdata.nuscenes import LidarRecord, SampleRecord
+from occdata.runtime.lock import Fence
 from occdata.runtime.tasks import StopCheck, no_stop
 from occdata.store.layout import (
     FLAT_ARRAYS,
@@ -72,7 +73,9 @@ class SampleInput:
 class ConvertJob:
     """The task for samples `i0..i1-1` (block `block`), one `SampleInput` each; `regions`: the block's
     [start, end) rows in each flat array (FLAT_ARRAYS order, chunk-aligned starts); `on_error`: under
-    "fail" the samples from the block's first failed one on stay pending. Returns a `BlockSummary`."""
+    "fail" the samples from the block's first failed one on stay pending; `fence`: the run's, checked
+    before each array write (a task left running once the run stopped or lost its lease writes nothing
+    more). Returns a `BlockSummary`."""
 
     store: str
     block: int
@@ -81,6 +84,7 @@ class ConvertJob:
     samples: tuple[SampleInput, ...]
     regions: tuple[tuple[int, int], ...]
     on_error: str = "skip"
+    fence: Fence | None = None
 
     def __post_init__(self) -> None:
         if len(self.samples) != self.i1 - self.i0:
@@ -127,9 +131,16 @@ def open_for_task(store: str) -> zarr.Group:
             return zarr.open_group(store, mode="r+")
 
 
-def _write_rows(writes: list[tuple[zarr.Array, int, int, np.ndarray]]) -> None:
-    """`array[i0:i1] = data` for each, concurrently (on an object store each is a PUT round trip)."""
+def _fenced(fence: Fence | None) -> None:
+    if fence is not None:
+        fence.check()
+
+
+def _write_rows(writes: list[tuple[zarr.Array, int, int, np.ndarray]], fence: Fence | None) -> None:
+    """`array[i0:i1] = data` for each, concurrently (on an object store each is a PUT round trip),
+    each after checking `fence`."""
     def one(w: tuple[zarr.Array, int, int, np.ndarray]) -> None:
+        _fenced(fence)
         w[0][w[1] : w[2]] = w[3]
 
     with ThreadPoolExecutor(max_workers=8) as pool:
@@ -143,7 +154,7 @@ def convert_block(job: ConvertJob) -> BlockSummary:
     root = open_for_task(job.store)
     flow, n_cams = has_flow(root.attrs), camera_count(root.attrs)
     rows = _fixed_rows(root, results, per_sample(flow, grid_shape(root.attrs), n_cams))
-    _write_rows([(root[n], job.i0, job.i1, a) for n, a in rows.items()])
+    _write_rows([(root[n], job.i0, job.i1, a) for n, a in rows.items()], job.fence)
     payload = _payload(results, n_cams)
     errors = tuple((r.index, r.token, r.error) for r in results if r.error)
     needs = tuple(int(payload[f"{n}/rows"].sum()) for n in FLAT_ARRAYS)
@@ -162,6 +173,7 @@ def convert_block(job: ConvertJob) -> BlockSummary:
         if len(data):  # whole chunks from the region's start: no read-modify-write, no chunk shared
             padded = np.zeros((-(-len(data) // chunk) * chunk, *row_shape), dtype=dtype)
             padded[: len(data)] = data
+            _fenced(job.fence)
             # write_empty_chunks: skips zarr's all-fill scan of every chunk (payload is never all zeros)
             root[name].with_config({"write_empty_chunks": True})[start : start + len(padded)] = padded
         ends = start + np.cumsum(counts.reshape(-1)).reshape(counts.shape)
@@ -170,7 +182,8 @@ def convert_block(job: ConvertJob) -> BlockSummary:
         sums[:, names.index(_OFFSETS_OF_FLAT[name])] = [zlib.crc32(np.ascontiguousarray(o).tobytes())
                                                         for o in offsets]
     writes.append((root["status/checksum"], job.i0, job.i1, sums))
-    _write_rows(writes)  # offsets and checksums before the state flags
+    _write_rows(writes, job.fence)  # offsets and checksums before the state flags
+    _fenced(job.fence)
     root["status/state"].with_config({"write_empty_chunks": True})[job.i0 : job.i1] = _flags(job, errors)
     return BlockSummary(job.block, errors, needs)
 

@@ -13,7 +13,6 @@ resume must match), `create` (the store's layout), `plan` (the client side of a 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,7 +23,7 @@ import zarr
 from occdata.errors import OccDataError
 from occdata.nuscenes.rig import NUSCENES_RIG, Rig
 from occdata.runtime.cluster import cluster_client, run_tasks
-from occdata.runtime.lock import LeaseLostError, store_lock
+from occdata.runtime.lock import Fence, LeaseLostError, StoreLock, store_lock
 from occdata.runtime.storage import is_remote
 from occdata.store.blocks import BlockSummary, ConvertJob, sample_checksums
 from occdata.store.config import ROOT_GTS, BuildConfig, GtsDefault, LabelsSource
@@ -71,7 +70,7 @@ def build_store(config: BuildConfig, client: Any = None) -> BuildReport:
     with store_lock(config.out, "build") as lock:
         try:
             with contextlib.nullcontext(client) if client is not None else cluster_client(config.cluster) as run_on:
-                return _build_locked(config, run_on, inputs, lock.check)
+                return _build_locked(config, run_on, inputs, lock)
         except OSError as exc:  # a full disk, a read-only folder: committed samples are kept
             where = f" ({exc.filename})" if exc.filename else ""
             raise OccDataError(
@@ -80,9 +79,10 @@ def build_store(config: BuildConfig, client: Any = None) -> BuildReport:
             ) from None
 
 
-def _build_locked(config: BuildConfig, client: Any, inputs: BuildInputs, check: Callable[[], None]) -> BuildReport:
-    """The build under the store's lock; `check()` raises once the lock is lost (an S3 lease that lapsed):
-    polled while tasks run and before the final commit."""
+def _build_locked(config: BuildConfig, client: Any, inputs: BuildInputs, lock: StoreLock) -> BuildReport:
+    """The build under the store's lock; `lock.check()` raises once the lock is lost (an S3 lease that
+    lapsed): polled while tasks run and before the final commit. Tasks carry `lock.fence`; a run that
+    stops early revokes it and waits for its tasks (`run_tasks`) before writing any metadata."""
     resumed = store_exists(store_location(config.out))
     spans = block_spans(len(inputs.ds.samples), config.block_samples)
 
@@ -100,11 +100,12 @@ def _build_locked(config: BuildConfig, client: Any, inputs: BuildInputs, check: 
     consolidate(out)  # what every task reads first: current before any task runs
     coord = Coordinator(config.on_error)
     try:
-        converted = _run_waves(config, client, inputs, root, out, state, todo, regions, coord, check)
-        check()
+        converted = _run_waves(config, client, inputs, root, out, state, todo, regions, coord, lock)
+        lock.check()
     except LeaseLostError:
         raise  # another writer may hold the store now: nothing more is written
     except BaseException:  # Ctrl-C, a lost scheduler, --on-error fail, a bug: keep the reasons found so far
+        lock.revoke()  # run_tasks did so before its wait; here also for a stop between waves or in-process
         if coord.errors:
             with contextlib.suppress(Exception):  # e.g. the disk that just filled up: the first error counts
                 root.attrs["errors"] = coord.recorded()
@@ -115,7 +116,7 @@ def _build_locked(config: BuildConfig, client: Any, inputs: BuildInputs, check: 
 
 def _run_waves(config: BuildConfig, client: Any, inputs: BuildInputs, root: zarr.Group, out: str,
                state: np.ndarray, todo: set[int], regions: np.ndarray, coord: Coordinator,
-               check: Callable[[], None]) -> int:
+               lock: StoreLock) -> int:
     """The tasks, in at most two waves (the second: blocks that outgrew their region); returns the
     samples converted. No metadata is written while tasks run (see `Coordinator`)."""
     spans = block_spans(len(inputs.ds.samples), config.block_samples)
@@ -129,9 +130,9 @@ def _run_waves(config: BuildConfig, client: Any, inputs: BuildInputs, root: zarr
     tok_width = int(root["sample/token"].shape[-1])
     wave = sorted(todo)
     for attempt in range(2):  # the second wave: blocks that outgrew their region, in their new one
-        jobs = [_convert_job(config, inputs, out, spans[b], regions, tok_width) for b in wave]
+        jobs = [_convert_job(config, inputs, out, spans[b], regions, tok_width, lock.fence) for b in wave]
         run_tasks(client, jobs, desc="build", unit="sample", progress=config.progress, on_result=on_result,
-                  keep=coord.keep, check=check)
+                  keep=coord.keep, check=lock.check, revoke=lock.revoke)
         if not coord.outgrown:
             break
         if attempt:
@@ -152,10 +153,10 @@ def _run_waves(config: BuildConfig, client: Any, inputs: BuildInputs, root: zarr
 
 
 def _convert_job(config: BuildConfig, inputs: BuildInputs, out: str, span: Span, regions: np.ndarray,
-                 tok_width: int) -> ConvertJob:
+                 tok_width: int, fence: Fence) -> ConvertJob:
     b, i0, i1 = span
     return ConvertJob(out, b, i0, i1, tuple(inputs.sample_input(i, config, tok_width) for i in range(i0, i1)),
-                      tuple((int(a), int(e)) for a, e in regions[b]), config.on_error)
+                      tuple((int(a), int(e)) for a, e in regions[b]), config.on_error, fence)
 
 
 def _finish(config: BuildConfig, root: zarr.Group, out: str, inputs: BuildInputs, coord: Coordinator,
