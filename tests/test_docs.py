@@ -356,7 +356,7 @@ def test_the_checker_passes_what_is_right() -> None:
         "```python\n"
         "import occdata\nfrom occdata.labels import scene  # occdata labels --bogus is python here\n"
         "```\n"
-        "Inline `occdata labels --all-sweeps --no-boxes` and `occdata/labels/carve.py` and `occdata ...`.\n"
+        "Inline `occdata labels --all-sweeps --boxes none` and `occdata/labels/carve.py` and `occdata ...`.\n"
     )
     assert check_text(REPO / "docs" / "x.md", text) == []
 
