@@ -47,7 +47,7 @@ def _assert_one_clear_line(code: int, output: str, *needles: str) -> None:
 def test_clone_is_valid(tree) -> None:
     code, out = _scan(tree)
     assert code == 0, out
-    assert "1 scenes, 1 samples" in out
+    assert "1 scene, 1 sample" in out
 
 
 def test_missing_table(tree) -> None:
