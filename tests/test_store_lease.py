@@ -24,13 +24,40 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import zarr
-from test_store_s3 import BUCKET, _args, _cli, s3  # noqa: F401 - s3: the module's moto fixture
+from test_store_s3 import _args, _cli, _free_port
 
 import occdata.runtime.lock as lock_mod
 from occdata.errors import OccDataError, OccDataWarning
 from occdata.runtime.lock import Fence, LeaseLostError, StoreLockedError, lock_path, store_lock
 
 REPO = Path(__file__).resolve().parents[1]
+BUCKET = "occ-lease"  # moto keeps its buckets process-wide: not test_store_s3's
+
+
+@pytest.fixture(scope="module")
+def s3():
+    """A local S3 server on 127.0.0.1 with this module's bucket; the environment points fsspec at it."""
+    pytest.importorskip("s3fs")
+    moto_server = pytest.importorskip("moto.server")
+    import fsspec
+
+    port = _free_port()
+    server = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    server.start()
+    env = {"AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}", "AWS_ACCESS_KEY_ID": "test",
+           "AWS_SECRET_ACCESS_KEY": "test", "AWS_DEFAULT_REGION": "us-east-1"}
+    mp = pytest.MonkeyPatch()
+    for k, v in env.items():
+        mp.setenv(k, v)
+    fsspec.filesystem("s3").clear_instance_cache()
+    fs = fsspec.filesystem("s3", skip_instance_cache=True)
+    if not fs.exists(BUCKET):
+        fs.mkdir(BUCKET)
+    try:
+        yield fs
+    finally:
+        mp.undo()
+        server.stop()
 
 
 # --- the local lock file ----------------------------------------------------------------------------
@@ -116,7 +143,7 @@ def _holder(fs, key: str) -> dict:
     return json.loads(fs.cat(key))
 
 
-def test_a_clock_70_s_ahead_cannot_take_a_live_lease(s3, monkeypatch) -> None:  # noqa: F811
+def test_a_clock_70_s_ahead_cannot_take_a_live_lease(s3, monkeypatch) -> None:
     """Was: age = this host's time.time() - the holder's beat. The holder renewed 21 s ago by its clock
     (just written, by the store's); a taker whose clock runs 70 s ahead saw 91 s > 90 and took it."""
     real = time.time
@@ -130,7 +157,7 @@ def test_a_clock_70_s_ahead_cannot_take_a_live_lease(s3, monkeypatch) -> None:  
     s3.rm(key)
 
 
-def test_a_lease_stale_by_the_store_clock_is_taken_whatever_its_beat_says(s3, monkeypatch) -> None:  # noqa: F811
+def test_a_lease_stale_by_the_store_clock_is_taken_whatever_its_beat_says(s3, monkeypatch) -> None:
     """A holder whose clock runs an hour ahead wrote a beat in the future: by its own numbers never stale.
     The store's LastModified decides: unrenewed for LEASE_STALE_S, it is taken over."""
     monkeypatch.setattr(lock_mod, "LEASE_STALE_S", 2.0)
@@ -142,7 +169,7 @@ def test_a_lease_stale_by_the_store_clock_is_taken_whatever_its_beat_says(s3, mo
     assert not s3.exists(key)
 
 
-def test_two_processes_of_one_host_name_keep_apart(s3) -> None:  # noqa: F811
+def test_two_processes_of_one_host_name_keep_apart(s3) -> None:
     """Was: a lease of this host name whose local lock was free counted as this host's dead writer and
     was taken over: two containers sharing a host name took each other's lease. Now only a writer of
     this machine and pid namespace whose pid is gone is taken over."""
@@ -168,7 +195,7 @@ def test_two_processes_of_one_host_name_keep_apart(s3) -> None:  # noqa: F811
     assert not s3.exists(key)
 
 
-def test_a_store_ignoring_conditional_writes_is_found_at_start(s3, monkeypatch) -> None:  # noqa: F811
+def test_a_store_ignoring_conditional_writes_is_found_at_start(s3, monkeypatch) -> None:
     """A store (or a botocore too old: s3fs drops arguments it does not know) that ignores If-Match and
     If-None-Match: one warning line at start, and a live lease is still refused (checked first)."""
     real_call = lock_mod._S3Object._call
@@ -193,7 +220,7 @@ def test_a_store_ignoring_conditional_writes_is_found_at_start(s3, monkeypatch) 
     s3.rm(key)
 
 
-def test_release_waits_for_a_renewal_in_flight(s3, monkeypatch) -> None:  # noqa: F811
+def test_release_waits_for_a_renewal_in_flight(s3, monkeypatch) -> None:
     """The body ends while a renewal is on the wire: the release joins the heartbeat and deletes with
     the tag that renewal wrote (was: a 5 s wait, then a delete with a tag the thread might change)."""
     monkeypatch.setattr(lock_mod, "LEASE_RENEW_S", 0.05)
@@ -212,7 +239,7 @@ def test_release_waits_for_a_renewal_in_flight(s3, monkeypatch) -> None:  # noqa
     assert not s3.exists(key)
 
 
-def test_a_fence_fails_once_another_writer_holds_the_lease(s3) -> None:  # noqa: F811
+def test_a_fence_fails_once_another_writer_holds_the_lease(s3) -> None:
     url, key = f"s3://{BUCKET}/fence.zarr", f"{BUCKET}/fence.zarr.lock"
     with pytest.raises(LeaseLostError), store_lock(url, "build") as lock:
         lock.fence.check()
@@ -222,7 +249,7 @@ def test_a_fence_fails_once_another_writer_holds_the_lease(s3) -> None:  # noqa:
     s3.rm(key)
 
 
-def test_a_task_whose_lease_was_taken_mid_task_writes_no_chunk(s3, synth_root: Path, monkeypatch) -> None:  # noqa: F811
+def test_a_task_whose_lease_was_taken_mid_task_writes_no_chunk(s3, synth_root: Path, monkeypatch) -> None:
     """Was: on a lost lease, a task already converting went on writing its chunks. Another host takes
     the lease while block 1 converts: from then on, no object of the store is written or rewritten."""
     import occdata.store.blocks as blocks
