@@ -207,7 +207,8 @@ def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height
               help="Learning rate at lr_base_batch (16); scaled to the global batch by lr_scaling (linear).")
 @click.option("--workers", type=click.IntRange(min=0), default=None, help="Loader worker processes per process.")
 @click.option("--pretrained", type=click.Path(dir_okay=False), default=None,
-              help="torchvision ResNet state dict for the backbone (e.g. resnet50.pth).")
+              help="Backbone weights: a torchvision ResNet state dict (e.g. resnet50-0676ba61.pth) or an mmdet/mmdet3d "
+              "checkpoint's ResNet (e.g. FCOS3D's); see docs/nuscenes.md.")
 @click.option("--out", default=None, help="Run folder (default runs/fastocc).")
 @click.option("--resume", is_flag=True, help="Continue the run in --out exactly where it stopped (--epochs may grow).")
 @click.option("--init-from", "init_from", type=click.Path(dir_okay=False), default=None,
