@@ -8,10 +8,19 @@ from pathlib import Path
 
 import pytest
 import torch
+import torch.nn.functional as F
 
-from fastocc.model.pretrained import abbreviate, backbone_state, load_backbone, match_backbone, read_weights
+from fastocc.model.pretrained import (
+    abbreviate,
+    backbone_state,
+    is_caffe_style,
+    load_backbone,
+    match_backbone,
+    read_weights,
+)
 from fastocc.model.resnet import ResNet, resnet
 from occdata.errors import OccDataError, OccDataWarning
+from occdata.sensors.image_ops import IMAGENET_MEAN, IMAGENET_STD
 
 
 def _small(depth: int = 50) -> ResNet:
@@ -158,3 +167,37 @@ def test_unsafe_or_foreign_files_are_one_line(tmp_path: Path) -> None:
     torch.save([1, 2], tmp_path / "list.pth")
     with pytest.raises(OccDataError, match="holds no state dict of tensors"):
         read_weights(tmp_path / "list.pth")
+
+
+def test_caffe_style_stem_is_converted_exactly(tmp_path: Path) -> None:
+    """FCOS3D's ResNet (mmdet `style='caffe'`) saw BGR pixels minus the mean (std 1); ours sees RGB
+    (pixels - mean) / std. After loading, our conv1 on our input equals the checkpoint's conv1 on its own
+    input, computed here from the raw pixels."""
+    net = _small()
+    state = _random_state(net, 9)
+    ckpt = _mmdet(state, "backbone.")
+    ckpt["meta"]["config"] = "model = dict(backbone=dict(type='ResNet', depth=101, style='caffe'))"
+    torch.save(ckpt, tmp_path / "caffe.pth")
+    line = load_backbone(net, tmp_path / "caffe.pth")
+    assert "caffe-style: conv1 converted" in line
+    pixels = torch.rand(1, 3, 40, 56, generator=torch.Generator().manual_seed(0)) * 255  # RGB 0..255
+    mean, std = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+    x_ours = (pixels - mean) / std
+    x_caffe = (pixels - mean).flip(1)  # BGR, minus the mean, unit std
+    w_caffe = state["conv1.weight"]
+    expected = F.conv2d(x_caffe, w_caffe, stride=2, padding=3)
+    got = net.conv1(x_ours)
+    assert torch.allclose(got, expected, rtol=1e-4, atol=1e-3 * expected.abs().max().item())
+    _assert_loaded(net, {k: v for k, v in state.items() if k != "conv1.weight"})
+
+
+def test_pytorch_style_checkpoint_is_not_converted(tmp_path: Path) -> None:
+    state = _random_state(_small(), 10)
+    ckpt = _mmdet(state, "backbone.")
+    ckpt["meta"]["config"] = "backbone=dict(type='ResNet', style='pytorch')"
+    torch.save(ckpt, tmp_path / "pt.pth")
+    net = _small()
+    assert "caffe" not in load_backbone(net, tmp_path / "pt.pth")
+    assert torch.equal(net.conv1.weight, state["conv1.weight"])
+    assert is_caffe_style('style = "caffe"') and not is_caffe_style("style='pytorch'  # not caffe")
+    assert read_weights(tmp_path / "pt.pth")[1] == ckpt["meta"]["config"]

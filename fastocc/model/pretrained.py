@@ -5,6 +5,12 @@ Both use the same ResNet parameter names below a prefix: torchvision none (`conv
 inside the checkpoint's `state_dict` (a DDP run adds `module.`). The prefix is found from where
 `layer1.0.conv1.weight` sits, so any of these loads without renaming rules per source.
 
+mmdet's caffe-style ResNets (FCOS3D's: `style='caffe'` in the checkpoint's own config) were trained on BGR
+pixels minus the mean, unit std; our loader gives RGB ImageNet-normalised images. The first conv is linear
+and the two conventions share the mean, so its weight is converted exactly: channels reversed and scaled by
+our std (zero padding is the mean pixel in both). The caffe style's stride on the 1x1 conv of a bottleneck
+(ours: on the 3x3) cannot be converted: those weights load into torchvision's layout as an initialisation.
+
 Keys that need no counterpart: `fc.*` (ImageNet classifier, unused in forward; mmdet has none) and
 `num_batches_tracked` (old torchvision files predate it). The deformable convs (DCNv2) of FCOS3D's ResNet-101
 keep their 3x3 weight under `conv2.weight`, which loads; their offset branches `conv2.conv_offset.*` have no
@@ -15,6 +21,7 @@ shape mismatch, is one error line naming them.
 from __future__ import annotations
 
 import pickle
+import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,8 +30,10 @@ import torch
 from torch import Tensor, nn
 
 from occdata.errors import OccDataError, OccDataWarning
+from occdata.sensors.image_ops import IMAGENET_STD
 
-__all__ = ["BackboneMatch", "abbreviate", "backbone_state", "load_backbone", "match_backbone", "read_weights"]
+__all__ = ["BackboneMatch", "abbreviate", "backbone_state", "caffe_stem_to_rgb", "is_caffe_style", "load_backbone",
+           "match_backbone", "read_weights"]
 
 _ANCHOR = "layer1.0.conv1.weight"  # present in every ResNet of torchvision's and mmdet's layout
 _DCN_OFFSET = ".conv_offset."
@@ -48,14 +57,17 @@ def abbreviate(keys: tuple[str, ...] | list[str], first: int = 4) -> str:
     return f"{len(keys)}: {shown}{', ...' if len(keys) > first else ''}"
 
 
-def read_weights(path: str | Path) -> dict[str, Tensor]:
-    """The tensors of a weights file: a bare state dict, or the `state_dict` (mmdet) / `model` entry of a
-    checkpoint dict. Read with `weights_only=True`; anything else is one error line."""
+def read_weights(path: str | Path) -> tuple[dict[str, Tensor], str]:
+    """The tensors of a weights file and the config text it carries (mmdet's `meta.config` / `meta.cfg`; ""
+    if none): a bare state dict, or the `state_dict` (mmdet) / `model` entry of a checkpoint dict. Read with
+    `weights_only=True`; anything else is one error line."""
     path = Path(path)
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - a foreign file fails anywhere in the unpickler: one line
         raise OccDataError(f"--pretrained {path}: {_load_failure(exc)}") from None
+    meta = obj.get("meta") if isinstance(obj, dict) else None
+    config = next((meta[k] for k in ("config", "cfg") if isinstance(meta, dict) and isinstance(meta.get(k), str)), "")
     if isinstance(obj, dict):
         for name in _CONTAINERS:
             inner = obj.get(name)
@@ -64,7 +76,18 @@ def read_weights(path: str | Path) -> dict[str, Tensor]:
                 break
     if not isinstance(obj, dict) or not any(isinstance(v, Tensor) for v in obj.values()):
         raise OccDataError(f"--pretrained {path}: holds no state dict of tensors (found {type(obj).__name__})")
-    return {str(k): v for k, v in obj.items() if isinstance(v, Tensor)}
+    return {str(k): v for k, v in obj.items() if isinstance(v, Tensor)}, config
+
+
+def is_caffe_style(config: str) -> bool:
+    """Whether an mmdet config text builds its ResNet caffe-style (`style='caffe'` / `style="caffe"`)."""
+    return re.search(r"""style\s*=\s*['"]caffe['"]""", config) is not None
+
+
+def caffe_stem_to_rgb(weight: Tensor, std_rgb: tuple[float, ...] = IMAGENET_STD) -> Tensor:
+    """The first conv `(C, 3, k, k)` of a net fed BGR pixels minus the mean, for RGB (pixels - mean) / std:
+    x_bgr[k] = std[2 - k] x_rgb[2 - k], so W_rgb[:, c] = W_bgr[:, 2 - c] std[c]."""
+    return weight.flip(1) * torch.tensor(std_rgb, dtype=weight.dtype).view(1, 3, 1, 1)
 
 
 def _load_failure(exc: Exception) -> str:
@@ -120,7 +143,11 @@ def load_backbone(backbone: nn.Module, path: str | Path) -> str:
     Missing, extra or mis-shaped keys: one `OccDataError` line naming them (nothing is copied). DCN offset
     branches: one `OccDataWarning` line, the rest loads."""
     path = Path(path)
-    prefix, source = backbone_state(read_weights(path), f"--pretrained {path}")
+    tensors, config = read_weights(path)
+    prefix, source = backbone_state(tensors, f"--pretrained {path}")
+    caffe = is_caffe_style(config) and "conv1.weight" in source
+    if caffe:
+        source["conv1.weight"] = caffe_stem_to_rgb(source["conv1.weight"])
     match = match_backbone(backbone.state_dict(), source)
     problems = [f"{what} {abbreviate(list(keys))}" for what, keys in
                 (("missing", match.missing), ("extra", match.extra), ("wrong shape", match.mismatched)) if keys]
@@ -135,4 +162,5 @@ def load_backbone(backbone: nn.Module, path: str | Path) -> str:
                       f"({abbreviate(list(match.dcn_offsets), 2)}); their conv weights load", OccDataWarning,
                       stacklevel=2)
     backbone.load_state_dict(match.loaded, strict=False)
-    return f"backbone: {len(match.loaded)} tensors from {path.name} (keys under {prefix or 'no prefix'!r})"
+    note = "; caffe-style: conv1 converted from BGR minus mean to RGB ImageNet-normalised input" if caffe else ""
+    return f"backbone: {len(match.loaded)} tensors from {path.name} (keys under {prefix or 'no prefix'!r}){note}"
