@@ -23,15 +23,19 @@ def test_tree_bytes_counts_files_not_links(tmp_path: Path) -> None:
 
 
 def test_linear_fit_recovers_fixed_and_per_sample_cost() -> None:
-    def size(n: int, fixed: float, per: float) -> dict:
-        wall = fixed + per * n
-        return {"samples": n, "build": {"wall_s": wall}, "verify": {"wall_s": 2 * wall},
-                "first_batch": {"open_to_first_batch_s": 3.0 + 0.001 * n}}
+    def size(n: int) -> dict:
+        wall = 10.0 + 0.02 * n
+        return {"samples": n, "build": {"wall_s": wall, "cpu_s": 2 + 0.05 * n},
+                "verify": {"wall_s": 2 * wall, "cpu_s": 0.03 * n},
+                "first_batch": {"wall_s": 3.0 + 0.001 * n, "cpu_s": 1.0 + 0.0003 * n}}
 
-    fit = linear_fit([size(300, 10.0, 0.02), size(1200, 10.0, 0.02)])
-    assert fit["build"] == pytest.approx({"fixed_s": 10.0, "per_sample_s": 0.02})
-    assert fit["verify"] == pytest.approx({"fixed_s": 20.0, "per_sample_s": 0.04})
-    assert fit["open_to_first_batch"] == pytest.approx({"fixed_s": 3.0, "per_sample_s": 0.001})
+    fit = linear_fit([size(300), size(1200)])
+    assert fit["build_wall"] == pytest.approx({"fixed_s": 10.0, "per_sample_s": 0.02})
+    assert fit["build_cpu"] == pytest.approx({"fixed_s": 2.0, "per_sample_s": 0.05})
+    assert fit["verify_wall"] == pytest.approx({"fixed_s": 20.0, "per_sample_s": 0.04})
+    assert fit["verify_cpu"] == pytest.approx({"fixed_s": 0.0, "per_sample_s": 0.03}, abs=1e-9)
+    assert fit["first_batch_wall"] == pytest.approx({"fixed_s": 3.0, "per_sample_s": 0.001})
+    assert fit["first_batch_cpu"] == pytest.approx({"fixed_s": 1.0, "per_sample_s": 0.0003})
 
 
 def test_run_command_reports_cpu_rss_and_output() -> None:
@@ -53,5 +57,5 @@ def test_small_walkthrough_on_the_replayed_keyframe(tmp_path: Path) -> None:
     # the store keeps the original JPEG bytes and the projected points: below the input, above the JPEGs alone
     assert 0.3 < a["store_bytes_per_sample"]["apparent"] / result["input_bytes_per_sample"] < 1.2
     assert b["build"]["samples_per_s"] > 0 and b["verify"]["samples_per_s"] > 0
-    assert b["first_batch"]["open_to_first_batch_s"] > 0 and set(result["fit"]) == {"build", "verify",
-                                                                                      "open_to_first_batch"}
+    assert b["first_batch"]["wall_s"] > 0 and b["first_batch"]["cpu_s"] > 0
+    assert set(result["fit"]) == {f"{s}_{k}" for s in ("build", "verify", "first_batch") for k in ("wall", "cpu")}
