@@ -13,10 +13,11 @@ not stop the others, and the run stops starting sections when its time budget is
   against the step rate of `train_amp` (loader/step > 1: the loader keeps up).
 - `dist`: a one-process torch.distributed group (nccl on CUDA, gloo on the dry path), the trainer's DDP
   wrapping, one forward/backward/AdamW step and an all-reduce.
-- `latency`: the fixed-rig network (`StaticFastOcc`, what `fastocc export` traces) per preset, eager and
-  `torch.compile`d, fp32 and fp16 / bf16 autocast; median ms per frame (batch 1).
 - `onnx`: the exported graph (`export_model`, parity-checked on the CPU) in ONNX Runtime with the CUDA and
   TensorRT execution providers where installed (CPU on the dry path); median ms and the provider that ran.
+- `latency`: the fixed-rig network (`StaticFastOcc`, what `fastocc export` traces) per preset, eager and
+  `torch.compile`d, fp32 and fp16 / bf16 autocast; median ms per frame (batch 1). Compiles come last and
+  start only while `budget_s - compile_reserve_s` has not passed (each takes a minute or more on CUDA).
 
 The dry path (`--dry-run`: CPU, nano at 96 x 256, gloo, CPU provider, a few steps, compile with the
 "eager" backend so no C++ toolchain is needed) checks that every section runs; its figures mean nothing.
@@ -81,8 +82,8 @@ GPU_PLAN = CheckPlan(
     compile_dtypes=("fp32", "bf16"), compile_backend="inductor",
     providers=("CUDAExecutionProvider", "TensorrtExecutionProvider"), onnx_preset="tiny", train_preset="tiny",
     train_steps=50, batch=2, train_workers=6, loader_workers=(2, 6), loader_batches=30, dist_backend="nccl",
-    repeats=10, warmup=3, synth={"scenes": 6, "samples": 12, "width": 1600, "height": 900}, budget_s=400.0,
-    compile_reserve_s=90.0)
+    repeats=10, warmup=3, synth={"scenes": 6, "samples": 12, "width": 800, "height": 450}, budget_s=380.0,
+    compile_reserve_s=100.0)
 
 DRY_PLAN = CheckPlan(
     device="cpu", presets=("nano",), input_hw=(96, 256), dtypes=("fp32", "bf16"), compile_dtypes=("fp32",),
@@ -112,7 +113,7 @@ def check_env(ctx: _Context) -> dict[str, Any]:
     if torch.cuda.is_available():
         out |= {"device_name": torch.cuda.get_device_name(0), "capability": list(torch.cuda.get_device_capability(0)),
                 "bf16_supported": torch.cuda.is_bf16_supported(), "cuda": torch.version.cuda,
-                "nccl": ".".join(map(str, torch.cuda.nccl.version())),
+                "nccl": _nccl_version(),
                 "memory_gib": torch.cuda.get_device_properties(0).total_memory / 2**30}
     elif ctx.plan.device == "cuda":
         raise RuntimeError("no CUDA device (torch.cuda.is_available() is False); use --dry-run on a CPU machine")
@@ -123,6 +124,13 @@ def check_env(ctx: _Context) -> dict[str, Any]:
     except ImportError:
         out["onnxruntime"] = None
     return out
+
+
+def _nccl_version() -> str:
+    import torch
+
+    v = torch.cuda.nccl.version()  # a tuple in recent torch, an int in older
+    return ".".join(map(str, v)) if isinstance(v, tuple) else str(v)
 
 
 def check_store(ctx: _Context) -> dict[str, Any]:
@@ -306,6 +314,35 @@ def _static(preset_name: str, plan: CheckPlan, device: Any) -> tuple[Any, tuple[
     return static.to(device), inputs
 
 
+def _measure(rows: dict[str, Any], key: str, fn: Callable[[], float]) -> None:
+    """rows[key] = fn(), or the one-line error: one failing dtype or compile leaves the other figures."""
+    try:
+        rows[key] = fn()
+    except Exception as exc:  # noqa: BLE001 - a finding, reported in its cell
+        rows[key] = f"error: {_one_line(exc)}"
+
+
+def _compiled_ms(static: Any, inputs: tuple[Any, ...], dtype: str, rows: dict[str, Any], p: CheckPlan,
+                 device: Any) -> float:
+    """Compile (first call, timed into rows) and the median ms of the compiled module under `dtype`."""
+    import torch
+
+    torch._dynamo.reset()
+    compiled = torch.compile(static, backend=p.compile_backend, dynamic=False)
+    with _autocast(device.type, dtype):
+        t0 = time.perf_counter()
+        compiled(*inputs)
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        rows[f"compile_{dtype}_s"] = time.perf_counter() - t0
+        return _median_ms(lambda: compiled(*inputs), p.warmup, p.repeats, device)
+
+
+def _eager_ms(static: Any, inputs: tuple[Any, ...], dtype: str, p: CheckPlan, device: Any) -> float:
+    with _autocast(device.type, dtype):
+        return _median_ms(lambda: static(*inputs), p.warmup, p.repeats, device)
+
+
 def _latency_rows(name: str, ctx: _Context, device: Any) -> dict[str, Any]:
     """One preset: eager ms per dtype, then compile seconds and compiled ms per dtype (budget allowing)."""
     import torch
@@ -315,21 +352,13 @@ def _latency_rows(name: str, ctx: _Context, device: Any) -> dict[str, Any]:
     rows: dict[str, Any] = {"input_hw": list(static.cfg.input_hw), "num_history": static.cfg.num_history}
     with torch.no_grad():
         for dtype in p.dtypes:
-            with _autocast(device.type, dtype):
-                rows[f"eager_{dtype}_ms"] = _median_ms(lambda: static(*inputs), p.warmup, p.repeats, device)
+            _measure(rows, f"eager_{dtype}_ms", lambda d=dtype: _eager_ms(static, inputs, d, p, device))
         for dtype in p.compile_dtypes:
             if time.perf_counter() - ctx.t0 > p.budget_s - p.compile_reserve_s:
                 rows[f"compiled_{dtype}_ms"] = "skipped: time budget spent"
                 continue
-            torch._dynamo.reset()
-            compiled = torch.compile(static, backend=p.compile_backend, dynamic=False)
-            with _autocast(device.type, dtype):
-                t0 = time.perf_counter()
-                compiled(*inputs)
-                if device.type == "cuda":
-                    torch.cuda.synchronize()
-                rows[f"compile_{dtype}_s"] = time.perf_counter() - t0
-                rows[f"compiled_{dtype}_ms"] = _median_ms(lambda c=compiled: c(*inputs), p.warmup, p.repeats, device)
+            _measure(rows, f"compiled_{dtype}_ms",
+                     lambda d=dtype: _compiled_ms(static, inputs, d, rows, p, device))
     if device.type == "cuda":
         rows["peak_gpu_mib"] = torch.cuda.max_memory_allocated() / 2**20
         torch.cuda.reset_peak_memory_stats()
@@ -389,7 +418,7 @@ def check_onnx(ctx: _Context) -> dict[str, Any]:
 
 SECTIONS: dict[str, Callable[[_Context], dict[str, Any]]] = {
     "env": check_env, "store": check_store, "train_amp": check_train_amp, "loader": check_loader,
-    "dist": check_dist, "latency": check_latency, "onnx": check_onnx,
+    "dist": check_dist, "onnx": check_onnx, "latency": check_latency,
 }
 
 

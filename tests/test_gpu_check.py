@@ -30,7 +30,7 @@ def test_plans_cover_the_issue_list() -> None:
     assert GPU_PLAN.budget_s < 8 * 60
     assert DRY_PLAN.device == "cpu" and DRY_PLAN.dist_backend == "gloo"
     assert DRY_PLAN.providers == ("CPUExecutionProvider",) and DRY_PLAN.compile_backend == "eager"
-    assert list(SECTIONS) == ["env", "store", "train_amp", "loader", "dist", "latency", "onnx"]
+    assert list(SECTIONS) == ["env", "store", "train_amp", "loader", "dist", "onnx", "latency"]
     with pytest.raises(ValueError, match="dtypes"):
         dataclasses.replace(DRY_PLAN, dtypes=("fp8",))
 
@@ -100,3 +100,10 @@ def test_dry_run_every_section_reports(tmp_path: Path) -> None:
     nano = sections["latency"]["presets"]["nano"]
     assert all(nano[f"eager_{d}_ms"] > 0 for d in DRY_PLAN.dtypes) and nano["compiled_fp32_ms"] > 0
     assert sections["onnx"]["providers"]["CPUExecutionProvider"]["active"] == "CPUExecutionProvider"
+
+
+def test_one_failing_measurement_keeps_the_others() -> None:
+    rows: dict = {}
+    gpu_check._measure(rows, "eager_fp16_ms", lambda: 1 / 0)
+    gpu_check._measure(rows, "eager_fp32_ms", lambda: 12.5)
+    assert rows == {"eager_fp16_ms": "error: ZeroDivisionError: division by zero", "eager_fp32_ms": 12.5}
