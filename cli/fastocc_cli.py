@@ -219,7 +219,8 @@ def show_batch(store: str, out: Path, index: int, train: bool, seed: int, height
                help="Learning rate at lr_base_batch (16); scaled to the global batch by lr_scaling (linear).")
 @_train_option("--workers", type=click.IntRange(min=0), help="Loader worker processes per process.")
 @_train_option("--pretrained", type=click.Path(dir_okay=False),
-               help="torchvision ResNet state dict for the backbone (e.g. resnet50.pth); default: none (random "
+               help="Backbone weights: a torchvision ResNet state dict (e.g. resnet50-0676ba61.pth) or an "
+               "mmdet/mmdet3d checkpoint's ResNet (e.g. FCOS3D's; docs/nuscenes.md); default: none (random "
                "initialisation).")
 @_train_option("--out", help="Run folder.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out exactly where it stopped (--epochs may grow).")

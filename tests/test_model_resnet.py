@@ -9,6 +9,7 @@ import torch
 
 from fastocc.model import FastOcc, preset
 from fastocc.model.resnet import resnet
+from occdata.errors import OccDataError
 
 # torchvision's published parameter counts (fc included)
 TORCHVISION_PARAMS = {18: 11_689_512, 50: 25_557_032, 101: 44_549_160}
@@ -57,7 +58,8 @@ def test_pretrained_state_dict_file_loads_without_renaming(tmp_path: Path) -> No
     net.load_pretrained_backbone(path)
     for key, value in src.state_dict().items():
         assert torch.equal(net.backbone.state_dict()[key], value), key
-    bad = {("backbone." + k): v for k, v in src.state_dict().items()}
+    # mmdet's prefix loads too; a planted extra key is one error line (key mapping: tests/test_pretrained.py)
+    bad = {("backbone." + k): v for k, v in src.state_dict().items()} | {"backbone.layer9.0.conv1.weight": value}
     torch.save(bad, path)
-    with pytest.raises(RuntimeError, match="Missing key"):
+    with pytest.raises(OccDataError, match="extra 1: layer9.0.conv1.weight"):
         net.load_pretrained_backbone(path)

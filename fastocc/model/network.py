@@ -12,8 +12,9 @@ from .config import HeadKind, ModelConfig, TemporalFusionKind, ViewTransformKind
 from .heads import BEVMultiHotHead, build_head
 from .inputs import ModelOutputs, SceneInputs
 from .neck import FPNNeck
+from .pretrained import load_backbone
 from .recurrent import RecurrentFusion
-from .resnet import load_pretrained, resnet
+from .resnet import resnet
 from .temporal import TemporalFusion
 from .view_transform import DepthNet, LSSPooling
 
@@ -63,9 +64,10 @@ class FastOcc(nn.Module):
             BEVMultiHotHead(cfg.bev_channels, cfg.num_classes, cfg.fine_grid.shape[:2]) if use_bev_head else None
         )
 
-    def load_pretrained_backbone(self, path: str | Path) -> None:
-        """Load a torchvision ResNet state dict file into the backbone (keys match as-is)."""
-        load_pretrained(self.backbone, path)
+    def load_pretrained_backbone(self, path: str | Path) -> str:
+        """Load a torchvision ResNet state dict or an mmdet/mmdet3d checkpoint's ResNet into the backbone;
+        returns one line saying what was loaded (`pretrained.load_backbone`)."""
+        return load_backbone(self.backbone, path)
 
     def clear_caches(self) -> None:
         """Forget cached geometry (LSS indices, sampling weights) and the temporal queue."""

@@ -1,13 +1,11 @@
-"""ResNet-18/34/50/101 with torchvision's parameter names, so torchvision state dicts load as-is."""
+"""ResNet-18/34/50/101 with torchvision's parameter names, so torchvision state dicts load as-is (mmdet's
+ResNet uses the same names below a prefix: see `pretrained.py`)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
-import torch
 from torch import Tensor, nn
 
-__all__ = ["BasicBlock", "Bottleneck", "ResNet", "load_pretrained", "resnet"]
+__all__ = ["BasicBlock", "Bottleneck", "ResNet", "resnet"]
 
 
 def _conv3x3(c_in: int, c_out: int, stride: int = 1) -> nn.Conv2d:
@@ -115,8 +113,3 @@ def resnet(depth: int, base_width: int = 64) -> ResNet:
     block, layers = _LAYOUTS[depth]
     return ResNet(block, layers, base_width)
 
-
-def load_pretrained(model: ResNet, path: str | Path) -> None:
-    """Load a torchvision ResNet state dict file (e.g. `resnet50-0676ba61.pth`) without renaming keys."""
-    state = torch.load(Path(path), map_location="cpu", weights_only=True)
-    model.load_state_dict(state, strict=True)

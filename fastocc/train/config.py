@@ -100,7 +100,7 @@ class TrainConfig:
     temporal_grad_history: bool = False  # cached only: train the reduction through the queued frames too
     zero_history_fusion: bool = False  # ablation: the temporal fusion layer without history (num_history 0)
     scene_sequential: bool = False  # walk scenes in order also for single-frame models (history ablation)
-    pretrained: str | None = None  # torchvision ResNet state dict for the backbone
+    pretrained: str | None = None  # backbone weights: torchvision state dict or mmdet/mmdet3d checkpoint
     checkpoint_backbone: bool = False  # activation checkpointing of the image backbone (saves memory)
     # optimisation
     epochs: int = 24

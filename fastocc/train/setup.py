@@ -180,7 +180,7 @@ def build_model(run: Run) -> nn.Module:
     if cfg.pretrained:
         if not Path(cfg.pretrained).is_file():
             raise OccDataError(f"--pretrained {cfg.pretrained}: no such file")
-        model.load_pretrained_backbone(cfg.pretrained)
+        run.say(model.load_pretrained_backbone(cfg.pretrained))
     if cfg.checkpoint_backbone:
         inner = model.backbone.forward
         # Recompute the backbone's activations in backward instead of storing them (memory).
