@@ -17,12 +17,12 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 # Modules any stage of the package may import (the package itself: `from occdata import fileio` names fileio).
-SHARED: dict[str, set[str]] = {"occdata": {"constants", "errors", "geometry", "fileio"}, "fastocc": set()}
+SHARED: dict[str, set[str]] = {"occdata": {"constants", "errors", "geometry", "fileio", "text"}, "fastocc": set()}
 # What each stage may import besides the shared modules and itself.
 ALLOWED: dict[str, dict[str, set[str]]] = {
     "occdata": {
         "__init__": set(),
-        "constants": set(), "errors": set(), "geometry": set(), "fileio": set(),
+        "constants": set(), "errors": set(), "geometry": set(), "fileio": set(), "text": set(),
         "formats": set(),
         "nuscenes": set(),
         "sensors": set(),
