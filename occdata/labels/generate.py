@@ -40,8 +40,8 @@ from occdata.runtime.tasks import StopCheck, no_stop
 __all__ = ["ALGORITHM_VERSION", "LabelsConfig", "LabelsReport", "SceneJob", "generate_labels", "load_inputs",
            "run_scene", "scene_modes", "scene_record_path"]
 
-# Bumped whenever the labels a given input produces change.
-ALGORITHM_VERSION = 1
+# Bumped whenever the labels a given input produces change (2: carving's counts exact, slots by sweep).
+ALGORITHM_VERSION = 2
 _RECORDS = ".scenes"
 
 
@@ -171,7 +171,9 @@ def _carving_words(o: LabelOptions, with_seg: bool, carved: list[str]) -> dict[s
            "that moved' (a car, a cyclist, a pedestrian alike); the tree has no lidarseg to say which")
     return {
         "scenes": carved,
-        "rule": (f"a point outside every box is dynamic when at least {c.min_frames} other time slots' LiDAR rays "
+        "rule": ("a time slot is one sweep of the rig (a keyframe's LiDARs together, the n-th sweep before it of each "
+                 f"LiDAR together); a point outside every box is dynamic when at least {c.min_frames} other time "
+                 "slots' LiDAR rays "
                  f"crossed its {c.voxel_size} m voxel (global frame), and at least {c.ratio:g} times as many slots "
                  f"as had a return there ({c.ratio_seg:g} times for points with a lidarseg class); a ray's last "
                  f"clamp({c.graze_height} m / |sin elevation|, {c.margin}, {c.graze_max}) m before its return and "
