@@ -136,6 +136,8 @@ def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool,
     carved = sorted(name for name, mode in (modes or {}).items() if "carve" in mode)
     if not carved:
         opts = {k: v for k, v in opts.items() if k not in _CARVE_KEYS}
+    if not opts["deskew"]:  # recorded when on only: the manifests from before it keep their bytes
+        del opts["deskew"]
     static = (f"{opts['static_class']} ({CLASS_NAMES[opts['static_class']]}): every point outside a box; the "
               "tree has no lidarseg, so this class says 'occupied, not an annotated object', not what it is")
     header = {
