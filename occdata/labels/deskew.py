@@ -51,7 +51,8 @@ def _exp_so3(w: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True, eq=False)
 class PoseTrack:
     """A scene's ego poses over time: `t_us (P,) int64` strictly increasing, `T_global_from_ego (P, 4, 4)
-    float64`; `at(t)` interpolates between them and holds the first / last pose outside."""
+    float64`; `at(t)` interpolates between them, and beyond the first / last pose carries on the motion
+    of the first / last two (a scene's first sweep began before any pose of it)."""
 
     t_us: np.ndarray
     T_global_from_ego: np.ndarray
@@ -76,7 +77,7 @@ class PoseTrack:
             return np.broadcast_to(self.T_global_from_ego[0], (len(t), 4, 4)).copy()
         j = np.clip(np.searchsorted(self.t_us, t, side="right") - 1, 0, len(self.t_us) - 2)
         t0, t1 = self.t_us[j].astype(np.float64), self.t_us[j + 1].astype(np.float64)
-        alpha = np.clip((t - t0) / (t1 - t0), 0.0, 1.0)
+        alpha = (t - t0) / (t1 - t0)  # < 0 or > 1 outside the track: extrapolated
         R0, R1 = self.T_global_from_ego[j, :3, :3], self.T_global_from_ego[j + 1, :3, :3]
         w = _log_so3(np.transpose(R0, (0, 2, 1)) @ R1)
         out = np.zeros((len(t), 4, 4))
