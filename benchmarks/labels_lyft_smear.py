@@ -29,6 +29,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -95,8 +96,9 @@ def _column_ground(points: np.ndarray) -> np.ndarray:
     return ground
 
 
-def open_road_band(ret: KeyframeReturns) -> np.ndarray:
-    """`(X, Y, Z) bool`: the keyframe's open-road band (module docstring) on Occ3D's grid."""
+def open_road_band(ret: KeyframeReturns) -> tuple[np.ndarray, np.ndarray]:
+    """The keyframe's open-road band (module docstring) on Occ3D's grid, `(X, Y, Z) bool`, and each
+    voxel centre's height over its column's ground, `(X, Y, Z) float64` (m; NaN: no ground in reach)."""
     ground = _column_ground(ret.points)
     X, Y, Z = GRID.shape
     idx = GRID.index_of(ret.points)
@@ -112,7 +114,7 @@ def open_road_band(ret: KeyframeReturns) -> np.ndarray:
     centres_z = GRID.lower[2] + GRID.voxel_size * (np.arange(Z) + 0.5)
     height = centres_z[None, None, :] - ground[:, :, None]
     band = open_road[:, :, None] & (height >= BAND_BOTTOM_M) & (height <= BAND_TOP_M)
-    return band & _seen_empty(ret)
+    return band & _seen_empty(ret), height
 
 
 def _seen_empty(ret: KeyframeReturns) -> np.ndarray:
@@ -141,18 +143,23 @@ def _labels(out: Path, sample: SampleRecord) -> np.ndarray:
         return z["semantics"]
 
 
-def smear_figures(samples: list[SampleRecord], runs: dict[str, Path]) -> dict[str, dict[str, object]]:
+def smear_figures(samples: list[SampleRecord], runs: dict[str, Path]) -> dict[str, dict[str, Any]]:
     """Per run (name -> its output tree): smear per keyframe and in all, hit recall; each keyframe's
     returns and band are computed once."""
-    rows: dict[str, dict[str, object]] = {n: {"smear": [], "hits": 0, "returns": 0} for n in runs}
+    rows: dict[str, dict[str, Any]] = {n: {"smear": [], "hits": 0, "returns": 0} for n in runs}
     band_sizes = []
     for s in samples:
         ret = keyframe_returns(s)
-        band = open_road_band(ret)
+        band, height = open_road_band(ret)
         band_sizes.append(int(band.sum()))
         for name, out in runs.items():
+            smear = band & (_labels(out, s) != FREE_LABEL)
+            rows[name]["smear"].append(int(smear.sum()))
+            by_height = rows[name].setdefault("smear_by_height_m", {})
+            for lo in np.arange(BAND_BOTTOM_M, BAND_TOP_M, 0.5):
+                key = f"{lo:.1f}-{lo + 0.5:.1f}"
+                by_height[key] = by_height.get(key, 0) + int((smear & (height >= lo) & (height < lo + 0.5)).sum())
             sem = _labels(out, s)
-            rows[name]["smear"].append(int((band & (sem != FREE_LABEL)).sum()))
             h, n = hit_recall(ret, sem)
             rows[name]["hits"] += h
             rows[name]["returns"] += n
@@ -180,7 +187,7 @@ def main() -> None:
     a = ap.parse_args()
     work = a.keep or Path(tempfile.mkdtemp(prefix="labels_lyft_smear_"))
     work.mkdir(parents=True, exist_ok=True)
-    variants = {"naive": LabelOptions(carve=False), "carve": LabelOptions()}
+    variants = {"naive": LabelOptions(carve=False), "carve": LabelOptions()}  # no boxes here: carved by default
     for spec in a.carve_options:
         variants[f"carve {spec}"] = LabelOptions(carve_options=CarveOptions(**json.loads(spec)))
     runs, cpu = {}, {}
