@@ -34,7 +34,9 @@ class LabelOptions:
     carve: split the points outside boxes into static and dynamic by free-space carving (None: in
     the scenes without boxes only; True: also on top of boxes; False: never). With carve True and
     use_boxes False the boxes are withheld altogether (`--boxes none`). dynamic_class: the Occ3D class
-    of dynamic points without lidarseg; carve_options: the evidence rules (`occdata.labels.carve`)."""
+    of dynamic points without lidarseg; carve_options: the evidence rules (`occdata.labels.carve`).
+    deskew: place each point of a file with per-point times by the ego pose of its own time
+    (`occdata.labels.deskew`; for clouds not motion-compensated already)."""
 
     all_sweeps: bool = False
     knn_radius: float = 0.5
@@ -47,6 +49,7 @@ class LabelOptions:
     carve: bool | None = None
     dynamic_class: int = 4
     carve_options: CarveOptions = CarveOptions()
+    deskew: bool = False
 
     def __post_init__(self) -> None:
         if not 0 < self.knn_radius <= 5:
