@@ -179,7 +179,10 @@ def _carving_words(o: LabelOptions, with_seg: bool, carved: list[str]) -> dict[s
                  f"crossed its {c.voxel_size} m voxel (global frame), and at least {c.ratio:g} times as many slots "
                  f"as had a return there ({c.ratio_seg:g} times for points with a lidarseg class); a ray's last "
                  f"clamp({c.graze_height} m / |sin elevation|, {c.margin}, {c.graze_max}) m before its return and "
-                 f"the voxels within {c.near} voxel(s) of a return of the same slot are no evidence"
+                 f"the voxels within {c.near} voxel(s) of a return of the same slot"
+                 + (f" (above a return within {c.ground_clearance} m of the scene's ground: {c.near_above_ground} "
+                    "voxel(s) up)" if c.near_above_ground < c.near and c.ground_clearance > 0 else "")
+                 + " are no evidence"
                  + ("; each slot's heights are first corrected by its height error, fitted to the ground the "
                     "keyframes share" if c.align_heights else "")
                  + (f"; a point within {c.ground_clearance} m of the scene's ground (the lowest surface any keyframe "

@@ -4,6 +4,8 @@ not stepped with a DDA."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from reference.segments import segment_hits_boxes
@@ -19,12 +21,14 @@ def _voxel(points: np.ndarray, lower: np.ndarray, voxel_size: float,
 
 def carve_reference(slots: list[list[tuple[np.ndarray, np.ndarray]]], lower: np.ndarray, voxel_size: float,
                     shape: np.ndarray, margin: float, graze_max: float, graze_height: float,
-                    near: int) -> tuple[np.ndarray, np.ndarray]:
+                    near: int, up_of: Callable[[np.ndarray], np.ndarray] | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Numpy twin of `CarveGrid.add_slot` (heights not aligned) over time slots `slots[s]` = [(origin (3,),
     points (N, 3)), ...]: `(hits, crossed)` `(X, Y, Z) int64` (not saturated): per voxel, the slots with a
     return in it, and the slots one of whose rays, cut `clamp(graze_height / |sin elevation|, margin,
     graze_max)` short of its return, meets the voxel's closed box, the return's own voxel and every voxel
-    within `near` voxels (per axis) of the slot's hit voxels left out."""
+    within `near` voxels in x and y, and from `near` below to `up_of(points) (N,)` above in z (None:
+    `near`), of the slot's hit voxels left out."""
     shape = np.asarray(shape, np.int64)
     cells = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1).reshape(-1, 3)
     lo = lower + cells * voxel_size
@@ -33,11 +37,12 @@ def carve_reference(slots: list[list[tuple[np.ndarray, np.ndarray]]], lower: np.
     flat = np.ravel_multi_index(cells.T, tuple(shape))
     for frames in slots:
         hit = np.zeros(len(cells), bool)
-        every = []  # every return's voxel, inside the grid or not: one just outside still blocks its neighbours
+        every, ups = [], []  # every return's voxel, inside the grid or not: one just outside still blocks
         for _, pts in frames:
             idx, ok = _voxel(pts, lower, voxel_size, shape)
             hit[np.ravel_multi_index(idx[ok].T, tuple(shape))] = True
             every.append(idx)
+            ups.append(np.full(len(idx), near) if up_of is None else up_of(np.asarray(pts, np.float64).reshape(-1, 3)))
         cross = np.zeros(len(cells), bool)
         for origin, pts in frames:
             for e in np.asarray(pts, np.float64).reshape(-1, 3):
@@ -55,7 +60,9 @@ def carve_reference(slots: list[list[tuple[np.ndarray, np.ndarray]]], lower: np.
                 meets &= ~(cells == end).all(axis=1)
                 cross |= meets
         hit_cells = np.concatenate(every) if every else np.zeros((0, 3), np.int64)
-        blocked = (np.abs(cells[:, None, :] - hit_cells[None, :, :]) <= near).all(axis=2).any(axis=1)
+        up = np.concatenate(ups) if ups else np.zeros(0, np.int64)
+        d = cells[:, None, :] - hit_cells[None, :, :]
+        blocked = ((np.abs(d[..., :2]) <= near).all(axis=2) & (d[..., 2] >= -near) & (d[..., 2] <= up)).any(axis=1)
         hits += hit[flat]
         crossed += (cross & ~blocked)[flat]
     return hits.reshape(tuple(shape)), crossed.reshape(tuple(shape))
