@@ -69,9 +69,9 @@ class StoreDataset(IterableDataset):
         super().__init__()
         self.config = config
         self.epoch = 0
-        self._samples: StoreSamples | None = None
-        reader = open_store(config.store)  # fail fast in the main process on a bad path
-        self.indices = self._select(reader)
+        # Opened and read here, once: workers get the small arrays in shared memory (StoreSamples).
+        self._samples: StoreSamples = StoreSamples(open_store(config.store, packed=True))
+        self.indices = self._select(self._samples.reader)
         if config.drop_last and 0 < len(self.indices) < config.batch_size:
             # An epoch of zero batches is never what was meant: refuse rather than train on nothing.
             raise OccDataError(f"drop_last with {len(self.indices)} samples and batch_size {config.batch_size} "
@@ -81,11 +81,6 @@ class StoreDataset(IterableDataset):
         # Built samples only (pending / failed ones are never yielded), the first `limit_samples` if set.
         indices = reader.split_indices(self.config.splits or None)
         return indices[: self.config.limit_samples] if self.config.limit_samples else indices
-
-    def __getstate__(self) -> dict:
-        state = dict(self.__dict__)
-        state["_samples"] = None  # each worker opens its own store handle
-        return state
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
@@ -109,8 +104,7 @@ class StoreDataset(IterableDataset):
         return max(0, -(-(self.config.skip_batches - slot.worker) // slot.num_workers))
 
     def samples(self) -> StoreSamples:
-        if self._samples is None:  # opened lazily: once per worker process
-            self._samples = StoreSamples(open_store(self.config.store))
+        self._samples = self._samples.for_this_process()  # a forked worker: its own store handle
         return self._samples
 
     def __len__(self) -> int:
@@ -235,7 +229,7 @@ def loader_batches(loader: torch.utils.data.DataLoader) -> int:
 
 def load_batch(store: str | Path, indices: list[int], sample: SampleConfig, seed: int = 0, epoch: int = 0) -> Batch:
     """A Batch of the given store indices (random access; the same augmentation as the loader draws)."""
-    samples = StoreSamples(open_store(store))
+    samples = StoreSamples(open_store(store, packed=True))
     make = SampleMaker(samples, sample)
     out = []
     for i in indices:

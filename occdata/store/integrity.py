@@ -71,7 +71,8 @@ class StoreIntegrity:
 
     def __init__(self, group: zarr.Group, attrs: dict[str, Any] | None = None,
                  packed: Callable[[str], np.ndarray | None] | None = None) -> None:
-        """`packed(name)`: a small array's checked packed copy, or None (then its chunks are read)."""
+        """`packed(name)`: a small array the reader holds or reads in one request (its checked packed copy),
+        or None: then its chunks are read."""
         self.group = group
         self._packed = packed
         self.attrs = dict(group.attrs) if attrs is None else attrs
@@ -119,7 +120,7 @@ class StoreIntegrity:
     def token(self, i: int) -> str:
         try:
             if self._tokens is None:
-                self._tokens = self.group["sample/token"][:]
+                self._tokens = self._read("sample/token")
             return token_str(self._tokens[i])
         except Exception:  # noqa: BLE001 - the token array itself may be the damaged one
             return "?"

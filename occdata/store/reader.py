@@ -61,12 +61,14 @@ class StoreReader:
     Opening costs a bounded number of requests, whatever the sample count: the root `zarr.json` with
     the consolidated metadata (every array's metadata), with `check_metadata` each array's own
     `zarr.json` fetched concurrently and compared with it (an edited or damaged one is seen, and the
-    store is then opened array by array, which names it), and one request per small array read
-    (`small`: the packed copies, occdata.store.pack). Stores without consolidated metadata or packed
-    copies (older versions, an interrupted build) open array by array and read the block chunks.
+    store is then opened array by array, which names it), and with `packed` one request per small array
+    read (`small`: the copies the build's final commit packed, occdata.store.pack). Without `packed`
+    (checks, verify, tools) `small` reads the block chunks, where damage shows. Stores without
+    consolidated metadata or packed copies (older versions, an interrupted build) open array by array
+    and read the block chunks.
     """
 
-    def __init__(self, root: str | Path, check_metadata: bool = True) -> None:
+    def __init__(self, root: str | Path, check_metadata: bool = True, packed: bool = False) -> None:
         self.path = store_location(root)
         self.group, self.consolidated = _open_group(self.path)
         if self.consolidated and check_metadata and not _array_files_agree(self.group):
@@ -89,9 +91,9 @@ class StoreReader:
                                f"range and voxel size make {list(self.grid.shape)}; the metadata was edited")
         self.n_samples: int = self._check_layout()
         self._cache: dict[str, np.ndarray] = {}
-        pack = attrs.get(PACK_ATTR)
+        pack = attrs.get(PACK_ATTR) if packed else None
         self.pack_generation: str | None = pack.get("generation") if isinstance(pack, dict) else None
-        self.integrity = StoreIntegrity(self.group, attrs, packed=self._packed)
+        self.integrity = StoreIntegrity(self.group, attrs, packed=self._known)
 
     def _check_layout(self) -> int:
         """Every array exists with the schema's shape and dtype, and agrees on the sample count.
@@ -160,12 +162,18 @@ class StoreReader:
                 self._cache[name] = data
         return self._cache[name]
 
+    def preload(self, arrays: dict[str, np.ndarray]) -> None:
+        """Take small arrays another process already read (a loader worker: shared memory), unread."""
+        self._cache.update(arrays)
+
+    def _known(self, name: str) -> np.ndarray | None:
+        """A small array without reading its chunks: cached, or its current packed copy; else None."""
+        return self._cache.get(name) if name in self._cache else self._packed(name)
+
     def _packed(self, name: str) -> np.ndarray | None:
         """The packed copy of small array `name` if it is current and intact, else None (read the chunks)."""
         if self.pack_generation is None or name not in pack_names(self.attrs):
             return None
-        if name in self._cache:
-            return self._cache[name]
         try:
             arr = self.group[f"{PACK_GROUP}/{name}"]
             if arr.attrs.get("generation") != self.pack_generation:
@@ -335,10 +343,11 @@ def _array_files_agree(group: zarr.Group) -> bool:
         return False
 
 
-def open_store(path: str | Path, check_metadata: bool = True) -> StoreReader:
+def open_store(path: str | Path, check_metadata: bool = True, packed: bool = False) -> StoreReader:
     """Open a store for reading: a local path or an fsspec URL (`file:///x.zarr`, `s3://...`).
-    `check_metadata=False` trusts the consolidated metadata (a loader worker, after its parent checked)."""
+    `check_metadata=False` trusts the consolidated metadata (a loader worker, after its parent checked);
+    `packed` reads small arrays from their packed copies (the loader; see `StoreReader`)."""
     path = store_location(path)
     if "://" not in path and not Path(path).exists():
         raise OccDataError(f"store not found: {path}")
-    return StoreReader(path, check_metadata)
+    return StoreReader(path, check_metadata, packed)
