@@ -6,7 +6,8 @@ store of exactly one block of B samples (e.g. `tests/replicated_tree.py` built w
 writes them (chunks of B rows), with unique sample tokens, scenes of 40 keyframes (the last 15% in
 `val`), and the temporal indices and checksums of that layout. The payload is not copied: every
 block's label shards and the flat arrays' chunks are hard links to the source's files, and the
-offsets of sample i are those of sample `i % B`. So a 34,000-sample store costs ~100 MB of small
+offsets of sample i are those of sample `i % B`. The small arrays are packed as the build's final
+commit packs them (occdata.store.pack). So a 34,000-sample store costs ~100 MB of small
 arrays and no image bytes, and the loader reads it exactly as a built one (`occdata verify` passes).
 """
 
@@ -24,6 +25,7 @@ import zarr
 from occdata.store.create import consolidate, create_arrays
 from occdata.store.integrity import crc_rows
 from occdata.store.layout import FLAT_ARRAYS, checksummed_names, per_sample
+from occdata.store.pack import write_pack
 from occdata.store.sample import temporal_indices
 
 __all__ = ["make_tiled_store"]
@@ -106,6 +108,7 @@ def make_tiled_store(src_path: Path, out: Path, n: int) -> Path:
         if spec.sharded and chunks.is_dir():
             for b in range(n_blocks):
                 _link_tree(chunks / "0", out / spec.name / "c" / str(b))
+    write_pack(root)  # as the build's final commit does
     consolidate(str(out))
     return out
 

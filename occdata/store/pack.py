@@ -3,7 +3,8 @@
 The build writes each small array (poses, calibration, offsets, state, checksums...) in chunks of one
 block, so that every task owns its chunks: 1,063 chunks per array at 34,000 samples. A reader wants
 them whole. At the build's final commit the client copies each small array into `pack/<name>`, ONE
-chunk, and stamps the copies and the root attribute `pack` with the same fresh generation. A reader
+chunk, and stamps the copies and the root attribute `pack` with the same generation (a digest of
+their content). A reader
 uses the copy only when both generations agree (they come with the consolidated metadata, so checking
 costs no request) and the copy's crc32 matches its attribute; otherwise it reads the block chunks.
 
@@ -15,7 +16,7 @@ per sample before compression) and, at the commit, one read of every small chunk
 
 from __future__ import annotations
 
-import uuid
+import hashlib
 import zlib
 from typing import Any
 
@@ -53,11 +54,20 @@ def write_pack(root: zarr.Group) -> None:
     The root attribute is written last: a run killed half-way leaves readers on the chunks. The caller
     rewrites the consolidated metadata afterwards (the build's final commit does)."""
     drop_pack(root)
-    generation = uuid.uuid4().hex
-    for name in pack_names(root.attrs):
-        data = np.asarray(root[name][:])
-        arr = root.create_array(f"{PACK_GROUP}/{name}", shape=data.shape, dtype=data.dtype,
-                                chunks=data.shape if data.size else None, compressors=ZstdCodec(level=3),
-                                overwrite=True, attributes={"generation": generation, "crc32": packed_crc(data)})
-        arr[...] = data
+    data = {name: np.asarray(root[name][:]) for name in pack_names(root.attrs)}
+    generation = _generation(data)
+    for name, values in data.items():
+        arr = root.create_array(f"{PACK_GROUP}/{name}", shape=values.shape, dtype=values.dtype,
+                                chunks=values.shape if values.size else None, compressors=ZstdCodec(level=3),
+                                overwrite=True, attributes={"generation": generation, "crc32": packed_crc(values)})
+        arr[...] = values
     root.attrs[PACK_ATTR] = {"generation": generation}
+
+
+def _generation(data: dict[str, np.ndarray]) -> str:
+    """A digest of the packed content: equal stores get equal attributes (a resumed build's store is
+    identical to an uninterrupted one), and copies from another commit carry another generation."""
+    h = hashlib.sha256()
+    for name, values in sorted(data.items()):
+        h.update(f"{name} {values.dtype.str} {values.shape} {packed_crc(values)};".encode())
+    return h.hexdigest()[:32]

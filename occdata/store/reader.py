@@ -302,16 +302,21 @@ class StoreReader:
 
 def _open_group(path: str, consolidated: bool = True) -> tuple[zarr.Group, bool]:
     """The store's root group (read-only), and whether its array metadata came consolidated."""
+    # s3fs sends a HEAD before each whole-object GET, to split objects over its block size (50 MB) into
+    # concurrent ranges; a store's objects are smaller, so with one stream per object each read is one request.
+    options = {"max_concurrency": 1} if path.startswith(("s3://", "s3a://")) else None
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # zarr: consolidated metadata is not (yet) in the v3 spec
             if consolidated:
                 try:
-                    group = zarr.open_group(path, mode="r", use_consolidated=True, zarr_format=3)
+                    group = zarr.open_group(path, mode="r", use_consolidated=True, zarr_format=3,
+                                            storage_options=options)
                     return group, True
                 except ValueError:  # no consolidated metadata (a store from before it, or after an attrs edit)
                     pass
-            return zarr.open_group(path, mode="r", use_consolidated=False, zarr_format=3), False
+            return zarr.open_group(path, mode="r", use_consolidated=False, zarr_format=3,
+                                   storage_options=options), False
     except Exception as exc:  # noqa: BLE001 - every failure to open reads the same to a user
         raise OccDataError(f"not a readable occdata store: {path} ({type(exc).__name__})") from None
 
