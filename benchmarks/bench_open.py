@@ -6,7 +6,8 @@ code tree (`--trees`: `before=/work/main after=.` by default) a fresh Python pro
 PYTHONPATH imports torch, zarr and fastocc (not timed), then times `make_loader(LoaderConfig(store,
 batch_size=1))` ("open": the dataset's construction, where the small arrays are read) and the first
 batch (`next(iter(loader))`, num_workers=0: the shuffle buffer's first blocks read and one sample
-decoded). Each figure is the fastest of `--rounds`.
+decoded), wall and CPU seconds (this process: user + kernel, all threads). Each figure is the
+fastest of `--rounds`.
 
 - local: the store on this disk (page cache warm after the first round);
 - s3 (`--latency-ms`): the store uploaded to a local S3 server (moto, its own process on 127.0.0.1)
@@ -47,13 +48,13 @@ warnings.simplefilter("ignore")
 import torch, zarr, cv2
 from fastocc.data.dataset import LoaderConfig, make_loader
 store = sys.argv[1]
-t0 = time.perf_counter()
+c0, t0 = time.process_time(), time.perf_counter()
 loader = make_loader(LoaderConfig(store=store, batch_size=1), num_workers=0)
-t1 = time.perf_counter()
+c1, t1 = time.process_time(), time.perf_counter()
 batch = next(iter(loader))
-t2 = time.perf_counter()
-print(json.dumps({"open_s": t1 - t0, "first_batch_s": t2 - t1, "total_s": t2 - t0,
-                  "sample": int(batch.sample_index[0])}))
+c2, t2 = time.process_time(), time.perf_counter()
+print(json.dumps({"open_s": t1 - t0, "first_batch_s": t2 - t1, "total_s": t2 - t0, "open_cpu_s": c1 - c0,
+                  "first_batch_cpu_s": c2 - c1, "sample": int(batch.sample_index[0])}))
 """
 
 
@@ -179,7 +180,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--s3-samples", type=int, nargs="*", default=None, help="sizes also read over S3 (default: all)")
     ap.add_argument("--trees", nargs="+", default=["before=/work/main", "after=."], metavar="NAME=PATH")
     ap.add_argument("--latency-ms", type=float, default=20.0)
-    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--rounds", type=int, default=2, help="timed runs per local figure (the fastest is kept)")
+    ap.add_argument("--s3-rounds", type=int, default=1, help="timed runs per S3 figure")
+    ap.add_argument("--no-local", action="store_true", help="S3 figures only")
     ap.add_argument("--keep", action="store_true", help="keep the made stores")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
@@ -201,6 +204,8 @@ def main(argv: list[str] | None = None) -> None:
     stores = {}
     for n in args.samples:
         stores[n] = make_tiled_store(args.src, args.work / f"tiled_{n}.zarr", n)
+        if args.no_local:
+            continue
         res["local"][str(n)] = {name: best([time_start(tree, str(stores[n])) for _ in range(args.rounds)])
                                 for name, tree in trees.items()}
         print(n, "local", json.dumps(res["local"][str(n)]), flush=True)
@@ -213,7 +218,7 @@ def main(argv: list[str] | None = None) -> None:
                 out = {}
                 for name, tree in trees.items():
                     runs = []
-                    for _ in range(args.rounds):
+                    for _ in range(args.s3_rounds):
                         before = proxy.requests
                         run = time_start(tree, url, proxied)
                         runs.append({**run, "requests": proxy.requests - before,
