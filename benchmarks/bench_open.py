@@ -168,10 +168,6 @@ def best(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return {**min(runs, key=lambda r: r["total_s"]), "rounds": [round(r["total_s"], 3) for r in runs]}
 
 
-def machine() -> dict[str, Any]:
-    return {"cpus": os.cpu_count(), "loadavg": os.getloadavg(), "python": sys.version.split()[0]}
-
-
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--src", type=Path, required=True, help="a built store of exactly one block (tiled_store.py)")
@@ -187,12 +183,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
 
+    from benchmarks.provenance import finish, machine
     from benchmarks.tiled_store import make_tiled_store
 
     trees = {name: Path(path).resolve() for name, path in (t.split("=", 1) for t in args.trees)}
     s3_sizes = args.samples if args.s3_samples is None else args.s3_samples
-    res: dict[str, Any] = {"command": " ".join(["python -m benchmarks.bench_open", *(argv or sys.argv[1:])]),
-                           "machine_start": machine(), "latency_ms": args.latency_ms,
+    res: dict[str, Any] = {"machine": machine(), "latency_ms": args.latency_ms,
                            "trees": {k: str(v) for k, v in trees.items()}, "local": {}, "s3": {}}
 
     def save() -> None:
@@ -227,7 +223,7 @@ def main(argv: list[str] | None = None) -> None:
                 res["s3"][str(n)] = out
                 print(n, "s3", json.dumps(out), flush=True)
                 save()
-    res["machine_end"] = machine()
+    finish(res["machine"])
     save()
     if not args.keep:
         for path in stores.values():

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import pickle
 import shutil
+import threading
 import warnings
 from collections import Counter
 from multiprocessing.reduction import ForkingPickler
@@ -158,3 +159,37 @@ def test_pickled_samples_travel_in_shared_memory_and_reread_nothing(tiled, count
         assert np.array_equal(getattr(child, name), getattr(parent, name)), name
         assert not getattr(child, name).flags.writeable
     assert ForkingPickler.dumps(parent) is not None and parent._shared is not None  # copied once, kept
+
+
+@pytest.mark.slow
+def test_s3_requests_to_the_first_sample_do_not_grow(tiled, monkeypatch) -> None:
+    """The same over HTTP: a local S3 server behind the benchmark's counting proxy (no added latency).
+    Was: ~2 requests (a HEAD, then the GET) per small chunk, plus listings, per block."""
+    pytest.importorskip("s3fs")
+    moto_server = pytest.importorskip("moto.server")
+    from benchmarks.bench_open import LatencyProxy, _free_port, upload
+
+    port = _free_port()
+    server = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    server.start()
+    proxy = LatencyProxy(port, 0.0)
+    thread = threading.Thread(target=proxy.serve_forever, daemon=True)
+    thread.start()
+    creds = {"AWS_ACCESS_KEY_ID": "test", "AWS_SECRET_ACCESS_KEY": "test", "AWS_DEFAULT_REGION": "us-east-1"}
+    try:
+        counts = {}
+        for n, local in tiled.items():
+            upload(local, f"s3://open-test/t{n}.zarr", {**creds, "AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}"})
+        for k, v in {**creds, "AWS_ENDPOINT_URL": f"http://127.0.0.1:{proxy.server_address[1]}"}.items():
+            monkeypatch.setenv(k, v)
+        import fsspec
+
+        fsspec.filesystem("s3").clear_instance_cache()
+        for n in tiled:
+            before = proxy.requests
+            _first_sample(f"s3://open-test/t{n}.zarr")
+            counts[n] = proxy.requests - before
+    finally:
+        proxy.shutdown()
+        server.stop()
+    assert counts[240] == counts[24] and counts[240] <= 80, counts
