@@ -138,8 +138,8 @@ def s3_with_proxy(latency_ms: float) -> Iterator[tuple[dict[str, str], dict[str,
 
 def upload(local: Path, url: str, env: dict[str, str]) -> None:
     """Copy a local store to S3 (directly, not through the proxy)."""
-    code = ("import sys, fsspec; fs = fsspec.filesystem('s3'); fs.mkdir(sys.argv[2].split('/')[2], exist_ok=True); "
-            "fs.put(sys.argv[1], sys.argv[2], recursive=True)")
+    code = ("import sys, fsspec; fs = fsspec.filesystem('s3'); bucket = sys.argv[2].split('/')[2]\n"
+            "if not fs.exists(bucket): fs.mkdir(bucket)\nfs.put(sys.argv[1], sys.argv[2], recursive=True)")
     subprocess.run([sys.executable, "-c", code, str(local), url], env={**os.environ, **env}, check=True)
 
 
@@ -179,6 +179,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--rounds", type=int, default=2, help="timed runs per local figure (the fastest is kept)")
     ap.add_argument("--s3-rounds", type=int, default=1, help="timed runs per S3 figure")
     ap.add_argument("--no-local", action="store_true", help="S3 figures only")
+    ap.add_argument("--zero-latency-trees", nargs="*", default=["after"], metavar="NAME",
+                    help="trees also timed over S3 with no added latency (what the latency itself costs)")
     ap.add_argument("--keep", action="store_true", help="keep the made stores")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
@@ -212,7 +214,10 @@ def main(argv: list[str] | None = None) -> None:
                 url = f"s3://bench/tiled_{n}.zarr"
                 upload(stores[n], url, direct)
                 out = {}
-                for name, tree in trees.items():
+                runs_at = [(name, tree, args.latency_ms) for name, tree in trees.items()]
+                runs_at += [(f"{name}@0ms", trees[name], 0.0) for name in args.zero_latency_trees]
+                for name, tree, latency in runs_at:
+                    proxy.latency_s = latency / 1000
                     runs = []
                     for _ in range(args.s3_rounds):
                         before = proxy.requests
@@ -220,6 +225,7 @@ def main(argv: list[str] | None = None) -> None:
                         runs.append({**run, "requests": proxy.requests - before,
                                      "by_kind": request_kinds(proxy.log[before:])})
                     out[name] = best(runs)
+                proxy.latency_s = args.latency_ms / 1000
                 res["s3"][str(n)] = out
                 print(n, "s3", json.dumps(out), flush=True)
                 save()

@@ -41,6 +41,10 @@ __all__ = [
 
 _REDUCE_FLAG = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
                 8: cv2.IMREAD_REDUCED_COLOR_8}
+# The small arrays the loader holds (state, flags, calibration, poses, history, sizes, ids, offsets, checksums).
+_SMALL = ("status/state", "labels/present", "status/checksum", "calib/K", "calib/T_keyego_from_cam",
+          "pose/T_global_from_keyego", "temporal/prev_index", "temporal/prev_valid", "cam/image_size",
+          "sample/scene_index", "sample/split", "images/offsets", "depth/offsets")
 _LABELS = ("labels/semantics", "labels/mask_camera", "labels/mask_lidar", "labels/bev")
 
 
@@ -76,6 +80,7 @@ class StoreSamples:
         self._pid = os.getpid()
         self._shared: dict[str, SharedArray] | None = None
         r = reader
+        r.small_many(_SMALL)  # one round trip for the packed copies
         self.n_cams = r.n_cams  # C: the store's cameras (attrs camera_order), each with its own image size
         self.state = r.small("status/state")
         self.present = r.small("labels/present")

@@ -162,6 +162,20 @@ class StoreReader:
                 self._cache[name] = data
         return self._cache[name]
 
+    def small_many(self, names: Sequence[str]) -> dict[str, np.ndarray]:
+        """`small(name)` for each name; current packed copies are fetched concurrently (one round trip)."""
+        arrays = {n: self._pack_array(n) for n in names if n not in self._cache}
+        todo = {n: a for n, a in arrays.items() if a is not None}
+        if todo:
+            async def fetch() -> list:  # runs on zarr's loop: no sync zarr call in here
+                return await asyncio.gather(*(a._async_array.getitem(...) for a in todo.values()),
+                                            return_exceptions=True)
+
+            for name, data in zip(todo, sync(fetch()), strict=True):
+                if not isinstance(data, BaseException) and self._pack_intact(name, np.asarray(data)):
+                    self._cache[name] = np.asarray(data)
+        return {n: self.small(n) for n in names}
+
     def preload(self, arrays: dict[str, np.ndarray]) -> None:
         """Take small arrays another process already read (a loader worker: shared memory), unread."""
         self._cache.update(arrays)
@@ -172,23 +186,34 @@ class StoreReader:
 
     def _packed(self, name: str) -> np.ndarray | None:
         """The packed copy of small array `name` if it is current and intact, else None (read the chunks)."""
+        arr = self._pack_array(name)
+        if arr is None:
+            return None
+        try:
+            data = np.asarray(arr[...])
+        except Exception:  # noqa: BLE001 - an unreadable copy: the chunks are the truth
+            return None
+        return data if self._pack_intact(name, data) else None
+
+    def _pack_array(self, name: str) -> zarr.Array | None:
+        """`pack/<name>` when it is the current generation with the array's shape and dtype, else None."""
         if self.pack_generation is None or name not in pack_names(self.attrs):
             return None
         try:
             arr = self.group[f"{PACK_GROUP}/{name}"]
-            if arr.attrs.get("generation") != self.pack_generation:
-                return None
             want = self.group[name]
-            if arr.shape != want.shape or arr.dtype != want.dtype:
-                return None
-            data = np.asarray(arr[...])
-        except Exception:  # noqa: BLE001 - a missing or unreadable copy: the chunks are the truth
+        except Exception:  # noqa: BLE001 - a missing copy: the chunks are the truth
             return None
-        if packed_crc(data) != arr.attrs.get("crc32"):
-            warnings.warn(f"store {self.path}: the packed copy of {name} is damaged (crc32); reading its chunks",
-                          RuntimeWarning, stacklevel=3)
+        if arr.attrs.get("generation") != self.pack_generation or arr.shape != want.shape or arr.dtype != want.dtype:
             return None
-        return data
+        return arr
+
+    def _pack_intact(self, name: str, data: np.ndarray) -> bool:
+        if packed_crc(data) == self.group[f"{PACK_GROUP}/{name}"].attrs.get("crc32"):
+            return True
+        warnings.warn(f"store {self.path}: the packed copy of {name} is damaged (crc32); reading its chunks",
+                      RuntimeWarning, stacklevel=4)
+        return False
 
     @property
     def state(self) -> np.ndarray:
