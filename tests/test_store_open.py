@@ -193,3 +193,24 @@ def test_s3_requests_to_the_first_sample_do_not_grow(tiled, monkeypatch) -> None
         proxy.shutdown()
         server.stop()
     assert counts[240] == counts[24] and counts[240] <= 80, counts
+
+
+def test_the_first_batch_reads_one_block(tiled, monkeypatch) -> None:
+    """Was: the shuffle buffer (64) filled with whole blocks before the first draw: 11 block reads here
+    (blocks of 6). The order is planned on indices; a block is read when its first sample is drawn."""
+    reads = []
+    original = StoreSamples.read_run
+
+    def counted(self, lo, hi, wanted=None):
+        reads.append((lo, hi))
+        return original(self, lo, hi, wanted)
+
+    monkeypatch.setattr(StoreSamples, "read_run", counted)
+    ds = StoreDataset(LoaderConfig(store=tiled[240], batch_size=2, sample=SMALL))
+    it = iter(ds)
+    first = next(it)
+    assert len(reads) <= 2  # the two samples' blocks
+    assert {int(i) // 6 for i in first.sample_index} == {lo // 6 for lo, _ in reads}
+    monkeypatch.setattr(StoreSamples, "read_run", original)
+    whole = [int(i) for b in [first, *it] for i in b.sample_index]
+    assert sorted(whole) == list(range(240))  # every sample once: the lazy reads lose none

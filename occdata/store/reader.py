@@ -93,6 +93,10 @@ class StoreReader:
         self._cache: dict[str, np.ndarray] = {}
         pack = attrs.get(PACK_ATTR) if packed else None
         self.pack_generation: str | None = pack.get("generation") if isinstance(pack, dict) else None
+        if packed and self.pack_generation is None and attrs.get("complete"):
+            warnings.warn(f"store {self.path} has no packed small arrays (built before occdata packed them, or "
+                          "changed since): the loader reads them block by block, one request per block and array; "
+                          "`occdata build ... --resume` with this version packs them", UserWarning, stacklevel=3)
         self.integrity = StoreIntegrity(self.group, attrs, packed=self._known)
 
     def _check_layout(self) -> int:
