@@ -106,9 +106,17 @@ class StoreSamples:
     def __getstate__(self) -> dict:
         if self._shared is None:  # copied into shared memory once; later pickles pass descriptors only
             self._shared = {k: to_shared(v) for k, v in self._arrays().items()}
+            self._use_shared()  # this process too: the private copies are freed, one copy in all
         plain = {k: v for k, v in self.__dict__.items()
                  if k not in ("reader", "_shared") and not isinstance(v, np.ndarray)}
         return {"plain": plain, "shared": self._shared, "store": self.reader.path}
+
+    def _use_shared(self) -> None:
+        for k, v in (self._shared or {}).items():
+            if k.startswith("reader:"):
+                self.reader._cache[k.removeprefix("reader:")] = from_shared(v)
+            else:
+                setattr(self, k, from_shared(v))
 
     def __setstate__(self, state: dict) -> None:
         arrays = {k: from_shared(v) for k, v in state["shared"].items()}
