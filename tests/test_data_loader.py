@@ -14,7 +14,8 @@ from replicated_tree import make_replicated_tree
 from fastocc.data import Batch, BevAugConfig, ImageAugConfig, LoaderConfig, SampleConfig, StoreDataset, make_loader
 from occdata.errors import OccDataError
 from occdata.store.bev import unpack_bev
-from occdata.store.build import BuildConfig, build_store
+from occdata.store.build import BuildConfig, build_store, consolidate
+from occdata.store.pack import write_pack
 from occdata.store.reader import open_store
 
 TEST = SampleConfig(image=ImageAugConfig(train=False), bev=BevAugConfig(train=False))
@@ -28,7 +29,10 @@ def store(real_nuscenes_root, real_occ3d_label, tmp_path_factory) -> Path:
     shutil.rmtree(tree / "gts" / "replay-0001")
     out = tmp_path_factory.mktemp("store") / "rep.zarr"
     build_store(BuildConfig(root=tree, out=out, gts=tree / "gts", block_samples=4, progress=False))
-    zarr.open_group(str(out), mode="r+")["status/state"][4] = 2
+    root = zarr.open_group(str(out), mode="r+")
+    root["status/state"][4] = 2
+    write_pack(root)  # as a build that recorded the failure commits it (the loader reads the packed copies)
+    consolidate(str(out))
     return out
 
 

@@ -20,6 +20,7 @@ from cli.occdata_cli import main
 from occdata.errors import OccDataError
 from occdata.store.integrity import CorruptStoreError
 from occdata.store.layout import FLAT_ARRAYS, PER_SAMPLE
+from occdata.store.pack import drop_pack
 from occdata.store.reader import open_store
 
 
@@ -78,6 +79,10 @@ def test_deleted_state_chunk_is_reported(store: Path, tmp_path: Path) -> None:
         code, text = _cli(args[0], "--store", str(store), *args[1:])
         assert code == 1, (args, text)
         assert "samples 0..5" in _one_error_line(text) and "missing" in text
+    # The loader reads the copies the build's final commit packed (occdata.store.pack): they still hold
+    # the committed flags. Without them it reads the chunks and refuses.
+    assert sorted(_load_all(store)) == list(range(6))
+    drop_pack(zarr.open_group(str(store), mode="r+"))
     with pytest.raises(CorruptStoreError, match="commit flags"):
         _load_all(store)
 
@@ -102,6 +107,7 @@ def test_every_array_missing_chunk_found_by_verify(store: Path, name: str) -> No
                                   "images/jpeg", "depth/uvd", "labels/bev", "labels/mask_camera"])
 def test_loader_refuses_missing_chunk(store: Path, name: str) -> None:
     _chunk_files(store, name)[0].unlink()
+    drop_pack(zarr.open_group(str(store), mode="r+"))  # small arrays: from their chunks, not the packed copies
     with pytest.raises(CorruptStoreError, match=rf"sample \d+ .*{name}"):
         _load_all(store)
 

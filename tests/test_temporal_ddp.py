@@ -28,7 +28,8 @@ from fastocc.model import FastOcc
 from fastocc.model.config import ModelConfig, preset
 from fastocc.train import load_config
 from fastocc.train.config import config_to_toml
-from occdata.store.build import BuildConfig, build_store
+from occdata.store.build import BuildConfig, build_store, consolidate
+from occdata.store.pack import write_pack
 from occdata.store.reader import open_store
 
 REPO = Path(__file__).resolve().parents[1]
@@ -40,9 +41,11 @@ def uneven_store(real_nuscenes_root, real_occ3d_label, tmp_path_factory) -> Path
     tree = make_replicated_tree(real_nuscenes_root, real_occ3d_label, tmp_path_factory.mktemp("rep") / "ns", 4, 4)
     out = tmp_path_factory.mktemp("store") / "uneven.zarr"
     build_store(BuildConfig(root=tree, out=out, gts=tree / "gts", block_samples=4, progress=False))
-    state = zarr.open_group(str(out), mode="r+")["status/state"]
+    root = zarr.open_group(str(out), mode="r+")
     for i in FAILED:
-        state[i] = 2
+        root["status/state"][i] = 2
+    write_pack(root)  # as a build that recorded the failures commits them (the loader reads the packed copies)
+    consolidate(str(out))
     return out
 
 

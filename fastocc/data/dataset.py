@@ -19,7 +19,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 
 from fastocc.data.batch import Batch, collate
 from fastocc.data.order import Slot, sequential_batches, shuffle_units
-from fastocc.data.sample import SampleConfig, SampleMaker, StoreSamples
+from fastocc.data.sample import RawSample, SampleConfig, SampleMaker, StoreSamples
 from fastocc.data.workers import check_main_guard, default_worker_context
 from occdata.errors import OccDataError
 from occdata.store.reader import open_store
@@ -69,9 +69,9 @@ class StoreDataset(IterableDataset):
         super().__init__()
         self.config = config
         self.epoch = 0
-        self._samples: StoreSamples | None = None
-        reader = open_store(config.store)  # fail fast in the main process on a bad path
-        self.indices = self._select(reader)
+        # Opened and read here, once: workers get the small arrays in shared memory (StoreSamples).
+        self._samples: StoreSamples = StoreSamples(open_store(config.store, packed=True))
+        self.indices = self._select(self._samples.reader)
         if config.drop_last and 0 < len(self.indices) < config.batch_size:
             # An epoch of zero batches is never what was meant: refuse rather than train on nothing.
             raise OccDataError(f"drop_last with {len(self.indices)} samples and batch_size {config.batch_size} "
@@ -81,11 +81,6 @@ class StoreDataset(IterableDataset):
         # Built samples only (pending / failed ones are never yielded), the first `limit_samples` if set.
         indices = reader.split_indices(self.config.splits or None)
         return indices[: self.config.limit_samples] if self.config.limit_samples else indices
-
-    def __getstate__(self) -> dict:
-        state = dict(self.__dict__)
-        state["_samples"] = None  # each worker opens its own store handle
-        return state
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
@@ -109,8 +104,7 @@ class StoreDataset(IterableDataset):
         return max(0, -(-(self.config.skip_batches - slot.worker) // slot.num_workers))
 
     def samples(self) -> StoreSamples:
-        if self._samples is None:  # opened lazily: once per worker process
-            self._samples = StoreSamples(open_store(self.config.store))
+        self._samples = self._samples.for_this_process()  # a forked worker: its own store handle
         return self._samples
 
     def __len__(self) -> int:
@@ -150,32 +144,32 @@ class StoreDataset(IterableDataset):
     def _iter_shuffled(self, slot: Slot) -> Iterator[Batch]:
         c, s = self.config, self.samples()
         make = SampleMaker(s, c.sample)
-        units = shuffle_units(self.indices, s.block, slot, c.seed, self.epoch, pad=c.pad)
+        units = _LazyUnits(s, shuffle_units(self.indices, s.block, slot, c.seed, self.epoch, pad=c.pad))
         rng = np.random.default_rng([c.seed, self.epoch, slot.rank, slot.worker, 2])
-        buffer: list = []
-        batch: list = []
+        buffer: list[tuple[int, int]] = []  # (unit, store index): the payload is read when taken
+        batch: list[tuple[int, int]] = []
         skip = [self._skip(slot)]
 
         def full() -> Iterator[Batch]:
-            if skip[0] > 0:  # planned, never decoded
+            if skip[0] > 0:  # planned, never read nor decoded
                 skip[0] -= 1
+                for u, _ in batch:
+                    units.release(u)
             else:
-                yield collate([make(r, self._rng(r.index)) for r in batch])
+                raws = [units.take(u, i) for u, i in batch]
+                yield collate([make(r, self._rng(r.index)) for r in raws])
             batch.clear()
 
         emitted = [0]
 
-        def emit(raw) -> Iterator[Batch]:
-            batch.append(raw)
+        def emit(entry: tuple[int, int]) -> Iterator[Batch]:
+            batch.append(entry)
             if len(batch) == c.batch_size:
                 emitted[0] += 1
                 yield from full()
 
-        for unit in units:
-            # Padding repeats may repeat an index inside a unit: read each once, yield each occurrence.
-            uniq = np.unique(unit)
-            by_index = {r.index: r for r in s.read_run(int(uniq[0]), int(uniq[-1]) + 1, set(uniq.tolist()))}
-            buffer.extend(by_index[int(i)] for i in unit)
+        for u, unit in enumerate(units.units):
+            buffer.extend((u, int(i)) for i in unit)
             while len(buffer) > c.shuffle_buffer:
                 k = int(rng.integers(len(buffer)))
                 buffer[k], buffer[-1] = buffer[-1], buffer[k]
@@ -204,6 +198,32 @@ class StoreDataset(IterableDataset):
                 (raw,) = s.read_run(idx, idx + 1)
                 out.append(make(raw, self._rng(idx), seq_start=start))
             yield collate(out)
+
+
+class _LazyUnits:
+    """The shuffled order's units (blocks), each read whole (one read per array) when the first of its
+    samples is taken, and dropped once every entry of it is taken or released. The order is planned on
+    indices alone, so the first batch waits for one block, not for the shuffle buffer's fill of blocks,
+    and skipped batches (`skip_batches`) are never read."""
+
+    def __init__(self, samples: StoreSamples, units: list[np.ndarray]) -> None:
+        self.samples, self.units = samples, units
+        self.left = [len(u) for u in units]  # entries not yet taken or released (padding may repeat one)
+        self.loaded: dict[int, dict[int, RawSample]] = {}
+
+    def take(self, u: int, index: int) -> RawSample:
+        if u not in self.loaded:
+            uniq = np.unique(self.units[u])
+            runs = self.samples.read_run(int(uniq[0]), int(uniq[-1]) + 1, set(uniq.tolist()))
+            self.loaded[u] = {r.index: r for r in runs}
+        raw = self.loaded[u][index]
+        self.release(u)
+        return raw
+
+    def release(self, u: int) -> None:
+        self.left[u] -= 1
+        if not self.left[u]:
+            self.loaded.pop(u, None)
 
 
 def _warn_all_dropped(n: int, batch_size: int, slot: Slot) -> None:
@@ -235,7 +255,7 @@ def loader_batches(loader: torch.utils.data.DataLoader) -> int:
 
 def load_batch(store: str | Path, indices: list[int], sample: SampleConfig, seed: int = 0, epoch: int = 0) -> Batch:
     """A Batch of the given store indices (random access; the same augmentation as the loader draws)."""
-    samples = StoreSamples(open_store(store))
+    samples = StoreSamples(open_store(store))  # a tool (show-batch): the block chunks, where damage shows
     make = SampleMaker(samples, sample)
     out = []
     for i in indices:

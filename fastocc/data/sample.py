@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+import os
 from dataclasses import dataclass, field
 
 import cv2
@@ -17,13 +19,14 @@ from fastocc.data.augment import (
     sample_image_aug,
 )
 from fastocc.data.batch import IGNORE_LABEL
+from fastocc.data.shared import SharedArray, from_shared, to_shared
 from occdata.constants import GRID, NUM_CLASSES
 from occdata.errors import OccDataError
 from occdata.sensors.depth_targets import DEPTH_MAX, DEPTH_MIN, depth_target
 from occdata.sensors.image_ops import normalise_chw, normalise_lut
 from occdata.store.bev import unpack_bev
 from occdata.store.layout import STATE_DONE, STATE_PENDING
-from occdata.store.reader import StoreReader
+from occdata.store.reader import StoreReader, open_store
 
 __all__ = [
     "RawSample",
@@ -38,6 +41,10 @@ __all__ = [
 
 _REDUCE_FLAG = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
                 8: cv2.IMREAD_REDUCED_COLOR_8}
+# The small arrays the loader holds (state, flags, calibration, poses, history, sizes, ids, offsets, checksums).
+_SMALL = ("status/state", "labels/present", "status/checksum", "calib/K", "calib/T_keyego_from_cam",
+          "pose/T_global_from_keyego", "temporal/prev_index", "temporal/prev_valid", "cam/image_size",
+          "sample/scene_index", "sample/split", "images/offsets", "depth/offsets")
 _LABELS = ("labels/semantics", "labels/mask_camera", "labels/mask_lidar", "labels/bev")
 
 
@@ -61,14 +68,23 @@ class RawSample:
 
 
 class StoreSamples:
-    """Store access for the loader: small arrays cached once, big ones read per contiguous run."""
+    """Store access for the loader: small arrays read once per process tree, big ones per contiguous run.
+
+    Pickled (a forkserver or spawn loader worker), the small arrays travel in shared memory
+    (`fastocc.data.shared`) and the worker's reader opens the store's metadata only (one request with
+    consolidated metadata), never re-reading them. Forked, the worker inherits them (`for_this_process`).
+    """
 
     def __init__(self, reader: StoreReader) -> None:
         self.reader = reader
+        self._pid = os.getpid()
+        self._shared: dict[str, SharedArray] | None = None
         r = reader
+        r.small_many(_SMALL)  # one round trip for the packed copies
         self.n_cams = r.n_cams  # C: the store's cameras (attrs camera_order), each with its own image size
         self.state = r.small("status/state")
         self.present = r.small("labels/present")
+        r.small("status/checksum")  # what check_rows compares with: read here, shared with the workers
         self.K = r.small("calib/K").astype(np.float32)
         self.T_keyego_from_cam = r.small("calib/T_keyego_from_cam").astype(np.float32)
         self.T_global_from_keyego = r.small("pose/T_global_from_keyego")  # float64: relative poses need it
@@ -81,6 +97,44 @@ class StoreSamples:
         self.uvd_off = r.small("depth/offsets")
         self.stored_scale = float(r.attrs.get("images", {}).get("scale", 1.0))
         self.block = int(r.array("status/state").chunks[0])
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        """Every array this object holds: its own (`.name`) and the reader's cache (`reader:name`)."""
+        own = {k: v for k, v in self.__dict__.items() if isinstance(v, np.ndarray)}
+        return own | {f"reader:{k}": v for k, v in self.reader._cache.items()}
+
+    def __getstate__(self) -> dict:
+        if self._shared is None:  # copied into shared memory once; later pickles pass descriptors only
+            self._shared = {k: to_shared(v) for k, v in self._arrays().items()}
+            self._use_shared()  # this process too: the private copies are freed, one copy in all
+        plain = {k: v for k, v in self.__dict__.items()
+                 if k not in ("reader", "_shared") and not isinstance(v, np.ndarray)}
+        return {"plain": plain, "shared": self._shared, "store": self.reader.path}
+
+    def _use_shared(self) -> None:
+        for k, v in (self._shared or {}).items():
+            if k.startswith("reader:"):
+                self.reader._cache[k.removeprefix("reader:")] = from_shared(v)
+            else:
+                setattr(self, k, from_shared(v))
+
+    def __setstate__(self, state: dict) -> None:
+        arrays = {k: from_shared(v) for k, v in state["shared"].items()}
+        self.__dict__.update(state["plain"])
+        self.__dict__.update({k: v for k, v in arrays.items() if not k.startswith("reader:")})
+        self._shared, self._pid = state["shared"], os.getpid()
+        self.reader = open_store(state["store"], check_metadata=False, packed=True)  # the parent checked it
+        self.reader.preload({k.removeprefix("reader:"): v for k, v in arrays.items() if k.startswith("reader:")})
+
+    def for_this_process(self) -> StoreSamples:
+        """Self, or in a forked child a copy with its own store handle and the inherited arrays."""
+        if self._pid == os.getpid():
+            return self
+        child = copy.copy(self)
+        child._pid = os.getpid()
+        child.reader = open_store(self.reader.path, check_metadata=False, packed=True)
+        child.reader.preload(dict(self.reader._cache))
+        return child
 
     def read_run(self, lo: int, hi: int, wanted: set[int] | None = None) -> list[RawSample]:
         """Samples `lo <= i < hi` (only `wanted` ones if given) with one read per array.

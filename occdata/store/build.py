@@ -31,6 +31,7 @@ from occdata.store.create import STAGING_SUFFIX, consolidate, grow_flat, open_or
 from occdata.store.identity import identity_diff
 from occdata.store.inputs import BuildInputs, check_sweep_files, find_label_files, read_inputs
 from occdata.store.layout import REGIONS, STATE_DONE, STATE_ERROR, STATE_PENDING
+from occdata.store.pack import write_pack
 from occdata.store.plan import (
     Coordinator,
     Span,
@@ -165,6 +166,7 @@ def _finish(config: BuildConfig, root: zarr.Group, out: str, inputs: BuildInputs
     metadata."""
     final_state = root["status/state"][:]
     complete = bool((final_state != STATE_PENDING).all())
+    write_pack(root)  # the small arrays in one chunk each, for readers (occdata.store.pack)
     root.attrs.update({"complete": complete, "errors": coord.recorded(),
                        "build_config": {"workers": config.cluster.workers, "on_error": config.on_error}})
     consolidate(out)

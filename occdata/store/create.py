@@ -37,6 +37,7 @@ from occdata.store.layout import (
     schema_version,
     token_width,
 )
+from occdata.store.pack import drop_pack
 from occdata.store.reader import StoreReader, store_location
 
 if TYPE_CHECKING:
@@ -217,6 +218,7 @@ def _open_existing(config: BuildConfig, out: str, attrs: dict[str, Any]) -> zarr
         )
     if not is_remote(out):
         remove_stale_temps(out, recursive=True)  # atomic-write leftovers of a killed run (we hold the lock)
+    drop_pack(root)  # this run rewrites small arrays: readers use the chunks until its final commit repacks
     return root
 
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 import zlib
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
@@ -69,8 +69,12 @@ def _specs(attrs: dict[str, Any]) -> dict[str, ArraySpec]:
 class StoreIntegrity:
     """Presence and checksum checks over one open zarr group (read-only use)."""
 
-    def __init__(self, group: zarr.Group, attrs: dict[str, Any] | None = None) -> None:
+    def __init__(self, group: zarr.Group, attrs: dict[str, Any] | None = None,
+                 packed: Callable[[str], np.ndarray | None] | None = None) -> None:
+        """`packed(name)`: a small array the reader holds or reads in one request (its checked packed copy),
+        or None: then its chunks are read."""
         self.group = group
+        self._packed = packed
         self.attrs = dict(group.attrs) if attrs is None else attrs
         self.names = checksummed_names(has_flow(self.attrs))
         self._spec = _specs(self.attrs)
@@ -83,8 +87,8 @@ class StoreIntegrity:
     def _chunk_rows(self, name: str) -> int:
         return int(self.group[name].metadata.chunk_grid.chunk_shape[0])
 
-    def _chunk_key(self, name: str, k: int) -> str:
-        arr = self.group[name]
+    def _chunk_key(self, name: str, k: int, arr: zarr.Array | None = None) -> str:
+        arr = self.group[name] if arr is None else arr  # a group lookup may be a request: pass arr in loops
         return f"{arr.path}/" + arr.metadata.encode_chunk_key((k,) + (0,) * (arr.ndim - 1))
 
     def stored_keys(self, name: str) -> set[str]:
@@ -102,7 +106,7 @@ class StoreIntegrity:
         arr = self.group[name]
         n = math.ceil(arr.shape[0] / self._chunk_rows(name)) if arr.shape[0] else 0
         keys = self.stored_keys(name)
-        return np.array([self._chunk_key(name, k) not in keys for k in range(n)], dtype=bool)
+        return np.array([self._chunk_key(name, k, arr) not in keys for k in range(n)], dtype=bool)
 
     def chunk_file(self, name: str, row: int) -> str:
         return self._chunk_key(name, row // self._chunk_rows(name))
@@ -116,7 +120,7 @@ class StoreIntegrity:
     def token(self, i: int) -> str:
         try:
             if self._tokens is None:
-                self._tokens = self.group["sample/token"][:]
+                self._tokens = self._read("sample/token")
             return token_str(self._tokens[i])
         except Exception:  # noqa: BLE001 - the token array itself may be the damaged one
             return "?"
@@ -128,6 +132,9 @@ class StoreIntegrity:
         return self._fill_crc[name]
 
     def _read(self, name: str) -> np.ndarray:
+        packed = self._packed(name) if self._packed is not None else None
+        if packed is not None:
+            return packed
         try:
             return np.asarray(self.group[name][:])
         except Exception as exc:  # noqa: BLE001 - codec errors surface as many types
@@ -138,7 +145,11 @@ class StoreIntegrity:
 
     # --- checks ------------------------------------------------------------------------------------
     def read_state(self) -> np.ndarray:
-        """`status/state`, checked: raises `CorruptStoreError` where a state chunk went missing."""
+        """`status/state`, checked: raises `CorruptStoreError` where a state chunk went missing (a
+        current packed copy is checked by its crc32 instead: no listing)."""
+        packed = self._packed("status/state") if self._packed is not None else None
+        if packed is not None:
+            return packed
         state = self._read("status/state")
         absent = self.absent_chunks("status/state")
         if absent.any():
@@ -184,14 +195,15 @@ class StoreIntegrity:
         off_name = next(o for o, f in FLAT_OF_OFFSETS.items() if f == name)
         off = self._read(off_name)
         keys = self.stored_keys(name)
-        n_chunks = math.ceil(self.group[name].shape[0] / rows)
+        arr = self.group[name]
+        n_chunks = math.ceil(arr.shape[0] / rows)
         out: list[tuple[int, str]] = []
         for i in np.flatnonzero(committed):
             for start, n in off[i]:
                 if n <= 0:
                     continue
                 gone = [k for k in range(int(start) // rows, min((int(start) + int(n) - 1) // rows + 1, n_chunks))
-                        if self._chunk_key(name, k) not in keys]
+                        if self._chunk_key(name, k, arr) not in keys]
                 if gone:
                     out.append((int(i), f"chunk {self._chunk_key(name, gone[0])} is missing"))
                     break

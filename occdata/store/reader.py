@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import asyncio
+import json
 import urllib.parse
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -10,6 +13,9 @@ from typing import Any
 import cv2
 import numpy as np
 import zarr
+from zarr.core.buffer import default_buffer_prototype
+from zarr.core.metadata.v3 import ArrayV3Metadata
+from zarr.core.sync import sync
 
 from occdata.errors import OccDataError
 from occdata.formats.gridspec import GridSpec
@@ -31,6 +37,7 @@ from occdata.store.layout import (
     per_sample,
     token_str,
 )
+from occdata.store.pack import PACK_ATTR, PACK_GROUP, pack_names, packed_crc
 
 __all__ = ["StoreReader", "open_store", "store_location"]
 
@@ -49,16 +56,23 @@ def store_location(path: str | Path) -> str:
 
 
 class StoreReader:
-    """A thin reader over one store. `root` may be a local path or an fsspec URL."""
+    """A thin reader over one store. `root` may be a local path or an fsspec URL.
 
-    def __init__(self, root: str | Path) -> None:
+    Opening costs a bounded number of requests, whatever the sample count: the root `zarr.json` with
+    the consolidated metadata (every array's metadata), with `check_metadata` each array's own
+    `zarr.json` fetched concurrently and compared with it (an edited or damaged one is seen, and the
+    store is then opened array by array, which names it), and with `packed` one request per small array
+    read (`small`: the copies the build's final commit packed, occdata.store.pack). Without `packed`
+    (checks, verify, tools) `small` reads the block chunks, where damage shows. Stores without
+    consolidated metadata or packed copies (older versions, an interrupted build) open array by array
+    and read the block chunks.
+    """
+
+    def __init__(self, root: str | Path, check_metadata: bool = True, packed: bool = False) -> None:
         self.path = store_location(root)
-        try:
-            # Each array's own zarr.json, not the consolidated copy in the root: a damaged or edited
-            # array metadata file must be seen (the copy only speeds up the build's tasks).
-            self.group = zarr.open_group(self.path, mode="r", use_consolidated=False)
-        except Exception as exc:  # noqa: BLE001 - every failure to open reads the same to a user
-            raise OccDataError(f"not a readable occdata store: {self.path} ({type(exc).__name__})") from None
+        self.group, self.consolidated = _open_group(self.path)
+        if self.consolidated and check_metadata and not _array_files_agree(self.group):
+            self.group, self.consolidated = _open_group(self.path, consolidated=False)
         attrs = dict(self.group.attrs)
         if attrs.get("schema") != SCHEMA_NAME:
             raise OccDataError(f"not an occdata store: {self.path} (no schema attribute)")
@@ -76,8 +90,14 @@ class StoreReader:
             raise OccDataError(f"store {self.path}: attribute grid has shape {list(self.grid_shape)}, but its "
                                f"range and voxel size make {list(self.grid.shape)}; the metadata was edited")
         self.n_samples: int = self._check_layout()
-        self.integrity = StoreIntegrity(self.group, attrs)
         self._cache: dict[str, np.ndarray] = {}
+        pack = attrs.get(PACK_ATTR) if packed else None
+        self.pack_generation: str | None = pack.get("generation") if isinstance(pack, dict) else None
+        if packed and self.pack_generation is None and attrs.get("complete"):
+            warnings.warn(f"store {self.path} has no packed small arrays (built before occdata packed them, or "
+                          "changed since): the loader reads them block by block, one request per block and array; "
+                          "`occdata build ... --resume` with this version packs them", UserWarning, stacklevel=3)
+        self.integrity = StoreIntegrity(self.group, attrs, packed=self._known)
 
     def _check_layout(self) -> int:
         """Every array exists with the schema's shape and dtype, and agrees on the sample count.
@@ -124,12 +144,16 @@ class StoreReader:
         return self.group[name]
 
     def small(self, name: str) -> np.ndarray:
-        """A whole small per-sample array, read once and cached (state, offsets, tokens, poses).
+        """A whole small per-sample array, read once and cached (state, offsets, tokens, poses): its
+        packed copy (one request) when current, else every block chunk.
 
         Checked: a chunk that went missing under a committed sample raises `CorruptStoreError`.
         """
         if name not in self._cache:
-            if name == "status/state":
+            packed = self._packed(name)
+            if packed is not None:
+                self._cache[name] = packed
+            elif name == "status/state":
                 self._cache[name] = self.integrity.read_state()
             else:
                 state = self.small("status/state")
@@ -141,6 +165,59 @@ class StoreReader:
                 self.integrity.check_present(name, state)
                 self._cache[name] = data
         return self._cache[name]
+
+    def small_many(self, names: Sequence[str]) -> dict[str, np.ndarray]:
+        """`small(name)` for each name; current packed copies are fetched concurrently (one round trip)."""
+        arrays = {n: self._pack_array(n) for n in names if n not in self._cache}
+        todo = {n: a for n, a in arrays.items() if a is not None}
+        if todo:
+            async def fetch() -> list:  # runs on zarr's loop: no sync zarr call in here
+                return await asyncio.gather(*(a._async_array.getitem(...) for a in todo.values()),
+                                            return_exceptions=True)
+
+            for name, data in zip(todo, sync(fetch()), strict=True):
+                if not isinstance(data, BaseException) and self._pack_intact(name, np.asarray(data)):
+                    self._cache[name] = np.asarray(data)
+        return {n: self.small(n) for n in names}
+
+    def preload(self, arrays: dict[str, np.ndarray]) -> None:
+        """Take small arrays another process already read (a loader worker: shared memory), unread."""
+        self._cache.update(arrays)
+
+    def _known(self, name: str) -> np.ndarray | None:
+        """A small array without reading its chunks: cached, or its current packed copy; else None."""
+        return self._cache.get(name) if name in self._cache else self._packed(name)
+
+    def _packed(self, name: str) -> np.ndarray | None:
+        """The packed copy of small array `name` if it is current and intact, else None (read the chunks)."""
+        arr = self._pack_array(name)
+        if arr is None:
+            return None
+        try:
+            data = np.asarray(arr[...])
+        except Exception:  # noqa: BLE001 - an unreadable copy: the chunks are the truth
+            return None
+        return data if self._pack_intact(name, data) else None
+
+    def _pack_array(self, name: str) -> zarr.Array | None:
+        """`pack/<name>` when it is the current generation with the array's shape and dtype, else None."""
+        if self.pack_generation is None or name not in pack_names(self.attrs):
+            return None
+        try:
+            arr = self.group[f"{PACK_GROUP}/{name}"]
+            want = self.group[name]
+        except Exception:  # noqa: BLE001 - a missing copy: the chunks are the truth
+            return None
+        if arr.attrs.get("generation") != self.pack_generation or arr.shape != want.shape or arr.dtype != want.dtype:
+            return None
+        return arr
+
+    def _pack_intact(self, name: str, data: np.ndarray) -> bool:
+        if packed_crc(data) == self.group[f"{PACK_GROUP}/{name}"].attrs.get("crc32"):
+            return True
+        warnings.warn(f"store {self.path}: the packed copy of {name} is damaged (crc32); reading its chunks",
+                      RuntimeWarning, stacklevel=4)
+        return False
 
     @property
     def state(self) -> np.ndarray:
@@ -252,9 +329,59 @@ class StoreReader:
             raise OccDataError(f"sample index {index} out of range (store has {self.n_samples} samples)")
 
 
-def open_store(path: str | Path) -> StoreReader:
-    """Open a store for reading: a local path or an fsspec URL (`file:///x.zarr`, `s3://...`)."""
+def _open_group(path: str, consolidated: bool = True) -> tuple[zarr.Group, bool]:
+    """The store's root group (read-only), and whether its array metadata came consolidated."""
+    # s3fs sends a HEAD before each whole-object GET, to split objects over its block size (50 MB) into
+    # concurrent ranges; a store's objects are smaller, so with one stream per object each read is one request.
+    options = {"max_concurrency": 1} if path.startswith(("s3://", "s3a://")) else None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # zarr: consolidated metadata is not (yet) in the v3 spec
+            if consolidated:
+                try:
+                    group = zarr.open_group(path, mode="r", use_consolidated=True, zarr_format=3,
+                                            storage_options=options)
+                    return group, True
+                except ValueError:  # no consolidated metadata (a store from before it, or after an attrs edit)
+                    pass
+            return zarr.open_group(path, mode="r", use_consolidated=False, zarr_format=3,
+                                   storage_options=options), False
+    except Exception as exc:  # noqa: BLE001 - every failure to open reads the same to a user
+        raise OccDataError(f"not a readable occdata store: {path} ({type(exc).__name__})") from None
+
+
+def _schema_arrays(group: zarr.Group) -> list[str]:
+    attrs = group.attrs
+    specs = per_sample(has_flow(attrs), grid_shape(attrs), camera_count(attrs))
+    return [*(s.name for s in specs), *FLAT_ARRAYS]
+
+
+def _array_files_agree(group: zarr.Group) -> bool:
+    """Whether every schema array's own `zarr.json` says what the consolidated copy says (fetched
+    concurrently: one round trip's worth of requests, however many samples)."""
+    meta = group.metadata.consolidated_metadata
+    flat = meta.flattened_metadata if meta is not None else {}
+    names = _schema_arrays(group)
+    if any(not isinstance(flat.get(n), ArrayV3Metadata) for n in names):
+        return False
+    store, proto = group.store, default_buffer_prototype()
+
+    async def fetch() -> list:
+        return await asyncio.gather(*(store.get(f"{n}/zarr.json", proto) for n in names))
+
+    try:
+        raws = sync(fetch())
+        return all(raw is not None and ArrayV3Metadata.from_dict(json.loads(raw.to_bytes())) == flat[n]
+                   for n, raw in zip(names, raws, strict=True))
+    except Exception:  # noqa: BLE001 - unreadable or invalid: the array-by-array open names it
+        return False
+
+
+def open_store(path: str | Path, check_metadata: bool = True, packed: bool = False) -> StoreReader:
+    """Open a store for reading: a local path or an fsspec URL (`file:///x.zarr`, `s3://...`).
+    `check_metadata=False` trusts the consolidated metadata (a loader worker, after its parent checked);
+    `packed` reads small arrays from their packed copies (the loader; see `StoreReader`)."""
     path = store_location(path)
     if "://" not in path and not Path(path).exists():
         raise OccDataError(f"store not found: {path}")
-    return StoreReader(path)
+    return StoreReader(path, check_metadata, packed)

@@ -7,15 +7,18 @@ and a rerun repairs it.
 
 from __future__ import annotations
 
+import warnings
 import zlib
 from collections.abc import Callable
 
 import numpy as np
 import zarr
 from tqdm import tqdm
+from zarr import consolidate_metadata
 
 from occdata.store.integrity import StoreIntegrity
 from occdata.store.layout import STATE_DONE, checksummed_names, has_flow
+from occdata.store.pack import drop_pack, write_pack
 
 __all__ = ["update_samples"]
 
@@ -37,6 +40,7 @@ def update_samples(
     `select` is an `(N,) bool` mask. Returns the number of samples updated.
     """
     names = checksummed_names(has_flow(group.attrs))
+    drop_pack(group)  # small arrays may change: readers use the chunks until the copies are rewritten
     integrity = StoreIntegrity(group)
     state = integrity.read_state()
     todo = np.flatnonzero(select & (state == STATE_DONE))
@@ -73,4 +77,8 @@ def update_samples(
                     sums[i - i0, names.index(k)] = zlib.crc32(np.ascontiguousarray(v[i - i0]).tobytes())
             group["status/checksum"][i0:i1] = sums
             n_done += len(touched)
+    write_pack(group)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # zarr: consolidated metadata is not (yet) in the v3 spec
+        consolidate_metadata(group.store)
     return n_done

@@ -1,0 +1,73 @@
+"""The small per-sample arrays packed for readers: one chunk per array, read in one request each.
+
+The build writes each small array (poses, calibration, offsets, state, checksums...) in chunks of one
+block, so that every task owns its chunks: 1,063 chunks per array at 34,000 samples. A reader wants
+them whole. At the build's final commit the client copies each small array into `pack/<name>`, ONE
+chunk, and stamps the copies and the root attribute `pack` with the same generation (a digest of
+their content). A reader
+uses the copy only when both generations agree (they come with the consolidated metadata, so checking
+costs no request) and the copy's crc32 matches its attribute; otherwise it reads the block chunks.
+
+A writer that may change a small array drops the root attribute first (`drop_pack`): a resumed build
+(`occdata.store.create`) and `update_samples` (bev-gt, visibility). A run killed before its final commit
+leaves no valid pack, and readers fall back to the chunks. Cost: the small arrays stored twice (~3.5 KB
+per sample before compression) and, at the commit, one read of every small chunk.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import zlib
+from typing import Any
+
+import numpy as np
+import zarr
+from zarr.codecs import ZstdCodec
+
+from occdata.store.layout import camera_count, grid_shape, has_flow, per_sample
+
+__all__ = ["PACK_ATTR", "PACK_GROUP", "drop_pack", "pack_names", "packed_crc", "write_pack"]
+
+PACK_ATTR = "pack"  # root attribute: {"generation": hex}
+PACK_GROUP = "pack"
+
+
+def pack_names(attrs: Any) -> tuple[str, ...]:
+    """The small (not sharded) per-sample arrays of a store with these root attributes."""
+    return tuple(s.name for s in per_sample(has_flow(attrs), grid_shape(attrs), camera_count(attrs)) if not s.sharded)
+
+
+def packed_crc(data: np.ndarray) -> int:
+    """crc32 of an array's C-order bytes: the check a reader runs on a packed copy."""
+    return zlib.crc32(np.ascontiguousarray(data).tobytes())
+
+
+def drop_pack(root: zarr.Group) -> None:
+    """Mark the packed copies stale before writing any small array (readers then read the chunks)."""
+    if PACK_ATTR in root.attrs:
+        root.attrs.put({k: v for k, v in root.attrs.items() if k != PACK_ATTR})
+
+
+def write_pack(root: zarr.Group) -> None:
+    """Copy every small per-sample array into `pack/<name>` (one chunk each), then stamp the root.
+
+    The root attribute is written last: a run killed half-way leaves readers on the chunks. The caller
+    rewrites the consolidated metadata afterwards (the build's final commit does)."""
+    drop_pack(root)
+    data = {name: np.asarray(root[name][:]) for name in pack_names(root.attrs)}
+    generation = _generation(data)
+    for name, values in data.items():
+        arr = root.create_array(f"{PACK_GROUP}/{name}", shape=values.shape, dtype=values.dtype,
+                                chunks=values.shape if values.size else None, compressors=ZstdCodec(level=3),
+                                overwrite=True, attributes={"generation": generation, "crc32": packed_crc(values)})
+        arr[...] = values
+    root.attrs[PACK_ATTR] = {"generation": generation}
+
+
+def _generation(data: dict[str, np.ndarray]) -> str:
+    """A digest of the packed content: equal stores get equal attributes (a resumed build's store is
+    identical to an uninterrupted one), and copies from another commit carry another generation."""
+    h = hashlib.sha256()
+    for name, values in sorted(data.items()):
+        h.update(f"{name} {values.dtype.str} {values.shape} {packed_crc(values)};".encode())
+    return h.hexdigest()[:32]
