@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 from occdata.errors import OccDataError
 from occdata.runtime.allocator import ALLOCATOR_ENV
-from occdata.runtime.tasks import Task, TaskFailed, run_on_worker, worker_setup
+from occdata.runtime.tasks import ZARR_POOL_ENV, Task, TaskFailed, run_on_worker, worker_setup
 
 if TYPE_CHECKING:  # distributed is imported lazily: `occdata` commands that do not run tasks stay light
     from distributed import Client, Future
@@ -110,7 +110,8 @@ def cluster_client(config: ClusterConfig) -> Iterator[Client | None]:
     _quiet_dask()
     address = config.address()
     # Workers start with the allocator settings (one arena: see occdata.runtime.allocator).
-    spawn_env = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **ALLOCATOR_ENV}
+    # ... and one zarr codec thread each (one task thread per worker: see tasks._limit_zarr_pool).
+    spawn_env = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **ALLOCATOR_ENV, **ZARR_POOL_ENV}
     with dask.config.set({"logging.distributed": "critical", "distributed.nanny.pre-spawn-environ": spawn_env}):
         if address is not None:
             try:
