@@ -1,7 +1,7 @@
 """Peak memory of the `occdata build` and `labels` clients against the number of samples (issue 48).
 
-    python -m benchmarks.bench_client_memory --sizes 3400 10200 34000 \\
-        --code before=/path/to/older/checkout --code after=. --json docs/results/bench_client_memory.json
+    python -m benchmarks.bench_client_memory --sizes 3400 10200 34000 --plan-only 34000 --commands build labels \\
+        plan --code before=/path/to/older/checkout --code after=. --json docs/results/bench_client_memory.json
 
 Trees replay the real keyframe (`tests/replicated_tree.py`: 2 scenes, the real sensor files linked,
 the real Occ3D label linked per sample), made once under `--trees`. Each (code, size, command) runs in
@@ -11,6 +11,9 @@ creation, every task made and handed over, the final commit), the part that a cl
 not share. A build task returns at once what a converted block would (`BlockSummary`, nothing
 written); a labels task returns no counts. So the figures are the client's whatever the conversion
 costs, and 34,000 samples take a minute, not hours.
+
+`--plan-only N` measures the trees of N samples with `plan` alone: the tables read and checked
+(`read_inputs`) and the payload plan (`payload_bounds`, `plan_regions`), without the store or tasks.
 
 Figures per run: `peak_rss_mib` (VmHWM at the end), `wall_s`, and per size pair the slope in KiB per
 sample. `--trace` (slower: tracemalloc) adds, for the build, the Python objects alive right after the
@@ -109,6 +112,15 @@ def child(spec: dict[str, Any]) -> dict[str, Any]:
             found["samples"] = len(inputs.ds.samples)
             del inputs
         build_store(config)
+    elif spec["command"] == "plan":  # the tables and the plan alone: read_inputs, payload_bounds, plan_regions
+        from occdata.store.build import BuildConfig
+        from occdata.store.inputs import read_inputs
+        from occdata.store.plan import block_spans, payload_bounds, plan_regions
+
+        config = BuildConfig(root=root, out=out, gts=root / "gts", progress=False)
+        inputs = read_inputs(config)
+        plan_regions(payload_bounds(inputs.ds.samples, inputs.histories, config.options),
+                     block_spans(len(inputs.ds.samples), config.block_samples))
     else:
         _no_op_labels()
         from occdata.labels import LabelOptions, LabelsConfig, generate_labels
@@ -158,7 +170,9 @@ def main() -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[3400, 10200, 34000], help="samples per tree")
     ap.add_argument("--code", action="append", default=[], metavar="NAME=DIR",
                     help="a checkout to measure (repeatable; default: this one as 'after')")
-    ap.add_argument("--commands", nargs="+", default=["build", "labels"])
+    ap.add_argument("--commands", nargs="+", default=["build", "labels"], help="of build, labels, plan")
+    ap.add_argument("--plan-only", type=int, nargs="*", default=[], metavar="N",
+                    help="sizes measured with `plan` alone (the tables and the plan: large trees, little time)")
     ap.add_argument("--trace", type=int, nargs="*", default=[], metavar="N",
                     help="also trace the build's Python objects at these sizes (tracemalloc, slower)")
     ap.add_argument("--trees", type=Path, help="keep the trees here (reused when present)")
@@ -180,11 +194,12 @@ def main() -> None:
                           "shared with other jobs: RSS is the figure, timings are noisy")
     work = Path(tempfile.mkdtemp(prefix="bench_client_memory_"))
     trees = args.trees or work / "trees"
-    runs: dict[str, Any] = {name: {c: {} for c in args.commands} for name in codes}
+    commands = args.commands + (["plan"] if args.plan_only and "plan" not in args.commands else [])
+    runs: dict[str, Any] = {name: {c: {} for c in commands} for name in codes}
     try:
         for n in args.sizes:
             root = _tree(trees, n)
-            for command in args.commands:
+            for command in ["plan"] if n in args.plan_only else args.commands:
                 for name, code in codes.items():
                     out = work / f"{name}_{command}_{n}" / ("data.zarr" if command == "build" else "")
                     spec = {"command": command, "root": str(root), "out": str(out),
