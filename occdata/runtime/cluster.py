@@ -44,9 +44,14 @@ from occdata.runtime.tasks import ZARR_POOL_ENV, Task, TaskFailed, run_on_worker
 if TYPE_CHECKING:  # distributed is imported lazily: `occdata` commands that do not run tasks stay light
     from distributed import Client, Future
 
-__all__ = ["SCHEDULER_ENV", "ClusterConfig", "Interrupted", "LazyTasks", "cluster_client", "dask_setup", "run_tasks"]
+__all__ = ["SCHEDULER_ENV", "WORKER_CONFIG", "ClusterConfig", "Interrupted", "LazyTasks", "cluster_client",
+           "dask_setup", "run_tasks"]
 
 SCHEDULER_ENV = "DASK_SCHEDULER_ADDRESS"
+# LocalCluster workers (the nanny hands this process's Dask config to them): no statistical profiler.
+# It samples every thread's stack each 10 ms for a dashboard that no one sees here, in the worker's
+# event-loop thread, next to the task (docs/scale.md, "Two workers": where the extra CPU went).
+WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
 T = TypeVar("T", bound=Task[Any])
 
 
@@ -112,7 +117,8 @@ def cluster_client(config: ClusterConfig) -> Iterator[Client | None]:
     # Workers start with the allocator settings (one arena: see occdata.runtime.allocator).
     # ... and one zarr codec thread each (one task thread per worker: see tasks._limit_zarr_pool).
     spawn_env = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **ALLOCATOR_ENV, **ZARR_POOL_ENV}
-    with dask.config.set({"logging.distributed": "critical", "distributed.nanny.pre-spawn-environ": spawn_env}):
+    with dask.config.set({"logging.distributed": "critical", "distributed.nanny.pre-spawn-environ": spawn_env,
+                          **WORKER_CONFIG}):
         if address is not None:
             try:
                 timeout = {} if config.connect_timeout_s is None else {"timeout": config.connect_timeout_s}
