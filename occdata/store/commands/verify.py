@@ -34,7 +34,7 @@ from occdata.store.reader import StoreReader
 
 __all__ = ["Problem", "VerifyJob", "pending_samples", "verify_rows", "verify_store"]
 
-TASK_SAMPLES = 256  # samples per task: a few hundred MB read, ~1-5 s on one core; blocks of 32 inside
+TASK_SAMPLES = 256  # samples per task at most: a few hundred MB read, ~1-5 s on one core; blocks of 32 inside
 
 
 @dataclass(frozen=True)
@@ -94,7 +94,10 @@ def verify_store(reader: StoreReader, block: int = 32, progress: Callable[[int],
     if stored.shape[1] != len(names):
         raise OccDataError(f"{reader.path}: checksum table has {stored.shape[1]} columns, expected {len(names)}")
     problems = _absent_problems(reader, state)
-    step = max(block, task_samples // block * block)  # whole blocks per task: one chunk is never read twice
+    # Whole blocks per task (a chunk is never read by two tasks), at most `task_samples`, and at least
+    # ~16 tasks where the store has the blocks: two workers given two large tasks finish unevenly.
+    spread = -(-reader.n_samples // (16 * block)) * block
+    step = max(block, min(task_samples // block * block, spread))
     jobs = [VerifyJob(str(reader.path), i0, min(i0 + step, reader.n_samples), block)
             for i0 in range(0, reader.n_samples, step)]
     found: dict[int, tuple[Problem, ...]] = {}
