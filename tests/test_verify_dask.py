@@ -85,3 +85,15 @@ def test_cli_verify_on_a_scheduler_reports_what_one_process_does(damaged, client
 def test_a_verify_job_needs_a_sample_range() -> None:
     with pytest.raises(OccDataError, match="not a sample range"):
         VerifyJob("x.zarr", 5, 4)
+
+
+def test_localcluster_workers_run_without_the_profiler_and_with_one_zarr_codec_thread(client) -> None:
+    """Issue 48, where two workers' CPU went: Dask's statistical profiler off, zarr's codec pool at one
+    thread (it starts cores + 4 by default), in every worker of our LocalCluster."""
+    def settings() -> tuple[object, object]:
+        import dask
+        import zarr
+
+        return dask.config.get("distributed.worker.profile.enabled"), zarr.config.get("threading.max_workers")
+
+    assert set(client.run(settings).values()) == {(False, 1)}
