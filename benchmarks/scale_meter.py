@@ -11,7 +11,12 @@
 - the time from the start to the first task running: Dask's task stream (the first `compute`
   start on a worker); in this process, the first `run_tasks` call (its first task starts at
   once), with the client's CPU until then;
-- the workers' busy share: their tasks' compute time over (wall time x workers).
+- the workers' busy share: their tasks' compute time over (wall time x workers);
+- inside the tasks (`task_probe`: each build or labels task's `run` wrapped in every process that runs
+  tasks): the process's CPU during each task, user and kernel, and the task thread's own share of
+  it (the rest: zarr's codec and IO threads, Dask's threads meanwhile), against each process's whole
+  CPU over the run: what a worker spends outside its tasks (receiving and unpickling tasks, Dask's
+  event loop, results) is the difference.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
-__all__ = ["TASK_ENTRIES", "first_call", "measure", "process_cpu", "usage"]
+__all__ = ["TASK_ENTRIES", "first_call", "measure", "process_cpu", "task_probe", "taken_tasks", "usage"]
 
 # Where `build` and `labels` hand their tasks to the runtime: patched to note the first call.
 TASK_ENTRIES = (("occdata.store.build", "run_tasks"), ("occdata.labels.generate", "run_tasks"))
@@ -48,6 +53,45 @@ def usage() -> dict[str, float]:
     return {"user": ru.ru_utime, "sys": ru.ru_stime, "vcsw": ru.ru_nvcsw, "ivcsw": ru.ru_nivcsw,
             "wchar": _proc_value("io", "wchar"), "threads": _proc_value("status", "Threads"),
             "maxrss_mib": ru.ru_maxrss / 1024}
+
+
+_TASK_CLASSES = (("occdata.store.blocks", "ConvertJob"), ("occdata.labels.generate", "SceneJob"))
+_taken: list[tuple[int, float, float, float, float]] = []  # per task: units, user, sys, thread CPU, wall
+
+
+def _probed(run: Callable[..., Any]) -> Callable[..., Any]:
+    def timed(self: Any, *args: Any, **kwargs: Any) -> Any:
+        r0, th0, w0 = resource.getrusage(resource.RUSAGE_SELF), time.thread_time(), time.perf_counter()
+        try:
+            return run(self, *args, **kwargs)
+        finally:
+            r1 = resource.getrusage(resource.RUSAGE_SELF)
+            _taken.append((int(self.units), r1.ru_utime - r0.ru_utime, r1.ru_stime - r0.ru_stime,
+                           time.thread_time() - th0, time.perf_counter() - w0))
+
+    timed.original = run  # type: ignore[attr-defined]
+    return timed
+
+
+def task_probe() -> None:
+    """From now on, note each build / labels task's CPU in this process (`taken_tasks` returns them).
+    Patches the task classes' `run`, which unpickled tasks share; idempotent."""
+    _taken.clear()
+    for module_name, name in _TASK_CLASSES:
+        cls = getattr(importlib.import_module(module_name), name)
+        if not hasattr(cls.run, "original"):
+            cls.run = _probed(cls.run)
+
+
+def taken_tasks() -> list[tuple[int, float, float, float, float]]:
+    """The tasks noted since `task_probe` (units, user, sys, thread CPU, wall seconds); the probe is removed."""
+    for module_name, name in _TASK_CLASSES:
+        cls = getattr(importlib.import_module(module_name), name)
+        if hasattr(cls.run, "original"):
+            cls.run = cls.run.original
+    out = list(_taken)
+    _taken.clear()
+    return out
 
 
 def process_cpu(pid: int) -> dict[str, float]:
@@ -95,6 +139,9 @@ def measure(run: Callable[[], int], client: Any = None, server_pid: int | None =
     docstring. `client`: the Dask client the run uses (None: it runs in this process);
     `server_pid`: a server process whose CPU to count apart (the S3 server)."""
     w0 = _workers_usage(client)
+    task_probe()
+    if client is not None:
+        client.run(task_probe)
     s0 = process_cpu(server_pid) if server_pid else None
     with ExitStack() as stack:
         first = stack.enter_context(first_call())
@@ -109,7 +156,11 @@ def measure(run: Callable[[], int], client: Any = None, server_pid: int | None =
         c1 = usage()
         s1 = process_cpu(server_pid) if server_pid else None
     w1 = _workers_usage(client)
-    rec = _cpu_summary(units, seconds, _delta(c0, c1), {a: _delta(w0[a], w1[a]) for a in w1 if a in w0})
+    tasks = taken_tasks() + [t for per in (client.run(taken_tasks) if client is not None else {}).values() for t in per]
+    workers = {a: _delta(w0[a], w1[a]) for a in w1 if a in w0}
+    rec = _cpu_summary(units, seconds, _delta(c0, c1), workers)
+    rec["in_tasks"] = _in_tasks(tasks, units, _delta(c0, c1) if client is None else
+                                {k: sum(d[k] for d in workers.values()) for k in ("user", "sys")})
     rec["threads"] = {"client": c1["threads"], "workers": sorted(u["threads"] for u in w1.values())}
     if w1:
         rec["worker_peak_rss_mib"] = sorted(round(u["maxrss_mib"], 1) for u in w1.values())
@@ -138,6 +189,24 @@ def _cpu_summary(units: int, seconds: float, client: dict[str, float],
                                       "involuntary": (client["ivcsw"] + w["ivcsw"]) / units},
         "written_bytes_per_unit": (client["wchar"] + w["wchar"]) / units,
     }
+
+
+def _in_tasks(tasks: list[tuple[int, float, float, float, float]], units: int,
+              runners: dict[str, float]) -> dict[str, Any]:
+    """CPU inside the tasks against the whole CPU of the processes that ran them (`runners`: user and
+    sys of the workers, or of this process when it ran the tasks): per unit, and what is left outside."""
+    user, kernel = sum(t[1] for t in tasks), sum(t[2] for t in tasks)
+    thread, wall = sum(t[3] for t in tasks), sum(t[4] for t in tasks)
+    whole = runners["user"] + runners["sys"]
+    done = max(sum(t[0] for t in tasks), 1)
+    return {"tasks": len(tasks), "units": done,
+            "cpu_s_per_unit": {"user": user / done, "sys": kernel / done},
+            "task_thread_cpu_s_per_unit": thread / done,
+            "other_threads_cpu_share": (user + kernel - thread) / max(user + kernel, 1e-9),
+            "task_wall_s_per_unit": wall / done,
+            "task_cores_busy": (user + kernel) / max(wall, 1e-9),
+            "runner_cpu_s": whole, "outside_tasks_cpu_s": whole - user - kernel,
+            "outside_tasks_cpu_s_per_unit": (whole - user - kernel) / max(units, 1)}
 
 
 def _first_task(start: float, seconds: float, c0: dict[str, float], first: dict[str, Any],

@@ -469,22 +469,28 @@ def info(store: str, as_json: bool) -> None:
 @store_option()
 @progress_option()
 @click.option("--images", is_flag=True, help="Also decode every stored image and report damaged JPEGs.")
+@cluster_options(", a few hundred samples each at a time")
 @friendly_errors
-def verify(store: str, progress: bool, images: bool) -> None:
+def verify(store: str, progress: bool, images: bool, cluster: ClusterConfig) -> None:
     """Recompute every committed sample's checksums; report corruption with the sample it hits.
 
-    With --images, also decode every stored image and report those that libjpeg decodes only with
-    a warning (damage that a store built before that check at build time may hold). Exits 1 if
+    The checksums run as tasks of a few hundred samples, in this process or on Dask (--workers,
+    --scheduler: the workers must reach --store at the same path); the report is the same. With
+    --images, also decode every stored image and report those that libjpeg decodes only with a
+    warning (damage that a store built before that check at build time may hold). Exits 1 if
     anything is wrong.
     """
     from tqdm import tqdm
 
+    from occdata.runtime.cluster import cluster_client
     from occdata.store.commands.verify import pending_samples, verify_store
     from occdata.store.reader import open_store
 
     reader = open_store(store)
-    with tqdm(total=reader.n_samples, desc="verify", unit="sample", disable=not progress) as bar:
-        problems = verify_store(reader, progress=bar.update)
+    with exit_on_interrupt("interrupted: verify stopped before it finished; nothing was changed"), \
+            cluster_client(cluster) as client, \
+            tqdm(total=reader.n_samples, desc="verify", unit="sample", disable=not progress) as bar:
+        problems = verify_store(reader, progress=bar.update, client=client)
     pending = pending_samples(reader)
     if images:
         from occdata.store.commands.verify_images import verify_images

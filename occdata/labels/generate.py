@@ -33,7 +33,7 @@ from occdata.nuscenes.annotations import load_annotations
 from occdata.nuscenes.lidarseg import lidarseg_index_names, load_lidarseg_index, occ3d_lut
 from occdata.nuscenes.rig import Rig, RigChoice
 from occdata.nuscenes.splits import SplitChoice
-from occdata.runtime.cluster import ClusterConfig, cluster_client, run_tasks
+from occdata.runtime.cluster import ClusterConfig, LazyTasks, cluster_client, run_tasks
 from occdata.runtime.lock import store_lock
 from occdata.runtime.tasks import StopCheck, no_stop
 
@@ -306,8 +306,10 @@ def generate_labels(cfg: LabelsConfig, client: Any = None) -> LabelsReport:
         skipped = len(inputs.dataset.scenes) - len(todo)
         settings = json.dumps(_settings(header), sort_keys=True)
         # The tables are read once, here; each task carries its scene's slice (O(scene) to make).
-        jobs = [SceneJob(cfg, sc.name, settings, len(sc.sample_tokens), inputs.for_scene(sc)) for sc in todo]
+        # Each task made when it is sent: only the scenes in flight have their slice at once.
+        jobs = LazyTasks(todo, lambda sc: SceneJob(cfg, sc.name, settings, len(sc.sample_tokens), inputs.for_scene(sc)))
         with contextlib.nullcontext(client) if client is not None else cluster_client(cfg.cluster) as run_on:
-            run_tasks(run_on, jobs, desc="labels", unit="sample", progress=cfg.progress)
+            run_tasks(run_on, jobs, desc="labels", unit="sample", progress=cfg.progress,
+                      total=sum(len(sc.sample_tokens) for sc in todo))
         manifest = _commit(cfg.out, header, (sc.name for sc in inputs.dataset.scenes))
     return LabelsReport(len(todo), skipped, len(inputs.dataset.samples), bool(inputs.lidarseg), manifest, modes)

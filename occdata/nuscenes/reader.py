@@ -14,6 +14,7 @@ import re
 from collections import Counter, defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
+from dataclasses import field as dc_field
 from pathlib import Path
 from typing import Any
 
@@ -134,6 +135,9 @@ class TableIndex:
     keyframes: dict[str, dict[str, dict[str, Any]]]
     notes: tuple[str, ...]  # one line each: identical duplicate rows ignored
     rig: Rig
+    # (calibrated_sensor token, is a camera) -> (T_sensor, K): made once, shared (`_calibration`)
+    calib_cache: dict[tuple[str, bool], tuple[np.ndarray, np.ndarray | None]] = dc_field(
+        default_factory=dict)
 
 
 def read_tables(root: Path, version: str, sweeps: bool, rig: RigChoice | None = None) -> TableIndex:
@@ -465,17 +469,33 @@ def _timestamp(sd: dict[str, Any]) -> int:
     return timestamp_us(field(sd, "timestamp", "sample_data"), f"sample_data {sd['token']!r} timestamp")
 
 
+def _calibration(idx: TableIndex, cs_token: str, channel: str | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """A calibrated_sensor row's `T_sensor` `(4, 4) float64` (sensor -> ego) and, for a camera
+    (`channel` given), `K (3, 3) float64`: made once per row and shared, read-only, by every record
+    of that sensor (a sample's records held ~2 KB of copies of them). `RowProblem`s are not cached."""
+    key = (cs_token, channel is not None)
+    if key not in idx.calib_cache:
+        cs = idx.calibs[cs_token]
+        K = None
+        if channel is not None:
+            where = f"calibrated_sensor {cs['token']!r} ({channel})"
+            K = floats(field(cs, "camera_intrinsic", "calibrated_sensor"), (3, 3), f"{where} camera_intrinsic")
+            K.setflags(write=False)
+        T = pose(cs, "calibrated_sensor")
+        T.setflags(write=False)
+        idx.calib_cache[key] = (T, K)
+    return idx.calib_cache[key]
+
+
 def _camera_record(idx: TableIndex, channel: str, sd: dict[str, Any], check_files: bool) -> CameraRecord:
-    cs = idx.calibs[sd["calibrated_sensor_token"]]
-    where = f"calibrated_sensor {cs['token']!r} ({channel})"
-    K = floats(field(cs, "camera_intrinsic", "calibrated_sensor"), (3, 3), f"{where} camera_intrinsic")
+    T_ego_from_cam, K = _calibration(idx, sd["calibrated_sensor_token"], channel)
     sd_where = f"sample_data {sd['token']!r}"
     return CameraRecord(
         channel=channel,
         token=sd["token"],
         path=_sensor_path(idx, sd, check_files),
         K=K,
-        T_ego_from_cam=pose(cs, "calibrated_sensor"),
+        T_ego_from_cam=T_ego_from_cam,
         T_global_from_ego=_ego_pose(idx, sd),
         timestamp=_timestamp(sd),
         width=integer(field(sd, "width", "sample_data"), f"{sd_where} width"),
@@ -488,7 +508,7 @@ def _lidar_record(idx: TableIndex, sd: dict[str, Any], check_files: bool) -> Lid
         channel=idx.channel_of_calib[sd["calibrated_sensor_token"]],
         token=sd["token"],
         path=_sensor_path(idx, sd, check_files),
-        T_ego_from_lidar=pose(idx.calibs[sd["calibrated_sensor_token"]], "calibrated_sensor"),
+        T_ego_from_lidar=_calibration(idx, sd["calibrated_sensor_token"], None)[0],
         T_global_from_ego=_ego_pose(idx, sd),
         timestamp=_timestamp(sd),
         sample_token=sd["sample_token"],

@@ -34,21 +34,26 @@ import traceback
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar, overload
 
 from tqdm import tqdm
 
 from occdata.errors import OccDataError
 from occdata.runtime.allocator import ALLOCATOR_ENV
-from occdata.runtime.tasks import Task, TaskFailed, run_on_worker, worker_setup
+from occdata.runtime.tasks import ZARR_POOL_ENV, Task, TaskFailed, run_on_worker, worker_setup
 
 if TYPE_CHECKING:  # distributed is imported lazily: `occdata` commands that do not run tasks stay light
     from distributed import Client, Future
 
-__all__ = ["SCHEDULER_ENV", "ClusterConfig", "Interrupted", "cluster_client", "dask_setup", "run_tasks"]
+__all__ = ["SCHEDULER_ENV", "WORKER_CONFIG", "ClusterConfig", "Interrupted", "LazyTasks", "cluster_client",
+           "dask_setup", "run_tasks"]
 
 SCHEDULER_ENV = "DASK_SCHEDULER_ADDRESS"
 DRAIN_S = 60.0  # how long a stopped run waits for the tasks its workers still run (fenced: they stop at a write)
+# LocalCluster workers (the nanny hands this process's Dask config to them): no statistical profiler.
+# It samples every thread's stack each 10 ms for a dashboard that no one sees here, in the worker's
+# event-loop thread, next to the task (docs/scale.md, "Two workers": where the extra CPU went).
+WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
 T = TypeVar("T", bound=Task[Any])
 
 
@@ -112,8 +117,10 @@ def cluster_client(config: ClusterConfig) -> Iterator[Client | None]:
     _quiet_dask()
     address = config.address()
     # Workers start with the allocator settings (one arena: see occdata.runtime.allocator).
-    spawn_env = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **ALLOCATOR_ENV}
-    with dask.config.set({"logging.distributed": "critical", "distributed.nanny.pre-spawn-environ": spawn_env}):
+    # ... and one zarr codec thread each (one task thread per worker: see tasks._limit_zarr_pool).
+    spawn_env = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **ALLOCATOR_ENV, **ZARR_POOL_ENV}
+    with dask.config.set({"logging.distributed": "critical", "distributed.nanny.pre-spawn-environ": spawn_env,
+                          **WORKER_CONFIG}):
         if address is not None:
             try:
                 timeout = {} if config.connect_timeout_s is None else {"timeout": config.connect_timeout_s}
@@ -198,14 +205,17 @@ class _StopSignals:
 def run_tasks(client: Client | None, tasks: Sequence[T], *, desc: str, unit: str = "task",
               progress: bool = True, on_result: Callable[[T, Any], Sequence[T] | None] | None = None,
               keep: Callable[[T], bool] | None = None, window: int | None = None,
-              check: Callable[[], None] | None = None, revoke: Callable[[], None] | None = None) -> None:
+              check: Callable[[], None] | None = None, revoke: Callable[[], None] | None = None,
+              total: int | None = None) -> None:
     """Run every task (`client` None: here, one after the other, each given the stop check).
 
     `on_result(task, result)` runs in this process as each task finishes (in any order) and may
     return follow-up tasks, which run before the remaining ones. `keep(task)`, asked just before a
     task is submitted, drops it when False. `check()`, polled with the stop signals (every 0.25 s,
     and between and inside tasks run here), ends the run with what it raises (a store's lease that
-    was lost: `occdata.runtime.lock.StoreLock.check`). The bar counts `task.units` in `unit`s. Raises
+    was lost: `occdata.runtime.lock.StoreLock.check`). The bar counts `task.units` in `unit`s (`total`:
+    their sum, when `tasks` makes each task only when indexed, so that no more of them than the window
+    ever exist at once: the sequence is read in order, never copied). Raises
     `Interrupted` on Ctrl-C/SIGTERM (queued tasks are cancelled), a task's own exception (the rest
     is cancelled first), or `OccDataError` for anything else on the cluster side: a lost scheduler,
     or an error that is not the connection's, named as what it is (`_not_lost`).
@@ -214,8 +224,10 @@ def run_tasks(client: Client | None, tasks: Sequence[T], *, desc: str, unit: str
     on), cancels the tasks and waits, up to `DRAIN_S`, until no worker still runs one: a task cannot
     be interrupted, so what the caller writes after this returns never races a task's last write.
     """
-    bar = tqdm(total=sum(t.units for t in tasks), desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)
-    queue = _Queue(list(tasks), keep)
+    if total is None:
+        total = sum(t.units for t in tasks)
+    bar = tqdm(total=total, desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)
+    queue = _Queue(tasks, keep)
     try:
         with _StopSignals(check) as stop:
             if client is None:
@@ -226,12 +238,33 @@ def run_tasks(client: Client | None, tasks: Sequence[T], *, desc: str, unit: str
         bar.close()
 
 
+class LazyTasks(Sequence[T]):
+    """`make(item)` for each of `items`, made when indexed: handed to `run_tasks` (with `total`), only
+    the tasks in flight exist at once, so the client does not hold every task's inputs together."""
+
+    def __init__(self, items: Sequence[Any], make: Callable[[Any], T]) -> None:
+        self.items, self.make = items, make
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    @overload
+    def __getitem__(self, k: int) -> T: ...
+    @overload
+    def __getitem__(self, k: slice) -> list[T]: ...
+
+    def __getitem__(self, k: int | slice) -> T | list[T]:
+        if isinstance(k, slice):
+            return [self.make(item) for item in self.items[k]]
+        return self.make(self.items[k])
+
+
 class _Queue:
     """Tasks still to submit: follow-ups first, then the initial ones in order; `keep` filters."""
 
-    def __init__(self, tasks: list[Any], keep: Callable[[Any], bool] | None) -> None:
+    def __init__(self, tasks: Sequence[Any], keep: Callable[[Any], bool] | None) -> None:
         self.urgent: list[Any] = []
-        self.rest = tasks[::-1]
+        self.tasks, self.next = tasks, 0  # the initial tasks, taken in order by index (made when taken)
         self.keep = keep
         self.seq = 0
 
@@ -240,9 +273,12 @@ class _Queue:
 
     def pop(self) -> tuple[Any, int] | None:
         """The next task and its Dask priority (higher runs first), or None when empty."""
-        while self.urgent or self.rest:
+        while self.urgent or self.next < len(self.tasks):
             urgent = bool(self.urgent)
-            task = (self.urgent or self.rest).pop()
+            if urgent:
+                task = self.urgent.pop()
+            else:
+                task, self.next = self.tasks[self.next], self.next + 1
             if self.keep is None or self.keep(task):
                 self.seq += 1
                 return task, (1 << 30) - self.seq if urgent else -self.seq

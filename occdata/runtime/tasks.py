@@ -21,12 +21,13 @@ from typing import Any, NoReturn, Protocol, TypeVar
 
 from occdata.runtime.allocator import tune_allocator
 
-__all__ = ["StopCheck", "Task", "TaskFailed", "no_stop", "run_on_worker", "worker_setup"]
+__all__ = ["ZARR_POOL_ENV", "StopCheck", "Task", "TaskFailed", "no_stop", "run_on_worker", "worker_setup"]
 
 R_co = TypeVar("R_co", covariant=True)
 StopCheck = Callable[[], None]
 _THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 _MAX_MESSAGE = 2000  # characters of a task's error message carried back
+ZARR_POOL_ENV = {"ZARR_THREADING__MAX_WORKERS": "1"}  # zarr's config from the environment: one codec thread
 
 
 class Task(Protocol[R_co]):
@@ -91,6 +92,7 @@ def worker_setup(threads: int | None) -> None:
         return
     for name in _THREAD_ENV:  # BLAS / OpenMP pools started from now on (the nanny sets these at spawn)
         os.environ[name] = str(threads)
+    _limit_zarr_pool(threads)
     try:
         import cv2
 
@@ -98,6 +100,16 @@ def worker_setup(threads: int | None) -> None:
     except ImportError:
         pass
     _process_threads = threads
+
+
+def _limit_zarr_pool(threads: int) -> None:
+    """zarr's codec pool (compression runs there) to `threads`: by default it starts cores + 4
+    threads in each worker, on top of the task's own, so two one-core workers ran up to 12 codec
+    threads on two cores. Binds only before zarr's first read or write in this process (it makes the
+    pool once); LocalCluster workers get it from their environment (`ZARR_POOL_ENV`)."""
+    import zarr
+
+    zarr.config.set({"threading.max_workers": threads})
 
 
 def run_on_worker(task: Task[R_co]) -> R_co | TaskFailed:

@@ -13,6 +13,7 @@ resume must match), `create` (the store's layout), `plan` (the client side of a 
 from __future__ import annotations
 
 import contextlib
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,7 @@ import zarr
 
 from occdata.errors import OccDataError
 from occdata.nuscenes.rig import NUSCENES_RIG, Rig
-from occdata.runtime.cluster import cluster_client, run_tasks
+from occdata.runtime.cluster import LazyTasks, cluster_client, run_tasks
 from occdata.runtime.lock import Fence, LeaseLostError, StoreLock, store_lock
 from occdata.runtime.storage import is_remote
 from occdata.store.blocks import BlockSummary, ConvertJob, sample_checksums
@@ -131,9 +132,13 @@ def _run_waves(config: BuildConfig, client: Any, inputs: BuildInputs, root: zarr
     tok_width = int(root["sample/token"].shape[-1])
     wave = sorted(todo)
     for attempt in range(2):  # the second wave: blocks that outgrew their region, in their new one
-        jobs = [_convert_job(config, inputs, out, spans[b], regions, tok_width, lock.fence) for b in wave]
+        # Each task made when it is sent: all of them made up front held ~5 KB per sample (static arrays).
+        jobs = LazyTasks([spans[b] for b in wave],
+                         functools.partial(_convert_job, config, inputs, out, regions=regions, tok_width=tok_width,
+                                           fence=lock.fence))
         run_tasks(client, jobs, desc="build", unit="sample", progress=config.progress, on_result=on_result,
-                  keep=coord.keep, check=lock.check, revoke=lock.revoke)
+                  keep=coord.keep, check=lock.check, revoke=lock.revoke,
+                  total=sum(i1 - i0 for _, i0, i1 in jobs.items))
         if not coord.outgrown:
             break
         if attempt:
