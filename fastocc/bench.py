@@ -411,7 +411,8 @@ def format_runtime_report(result: dict[str, Any]) -> str:
 
 
 # -- the paper's Table III split: 2D / 2D-to-3D / 3D / total per preset, eager and ONNX Runtime ---------------
-PAPER_SPLIT_MS: dict[str, dict[str, float]] = {  # V100, PyTorch (DESIGN §7); only tiny's split is published
+# V100, PyTorch (docs/design.md#the-network); only tiny's split is published
+PAPER_SPLIT_MS: dict[str, dict[str, float]] = {
     "tiny": {"2d": 26.32, "2d_to_3d": 3.59, "3d": 32.89, "total": 62.80},
     "small": {"total": 90.34},
     "base": {"total": 221.28},

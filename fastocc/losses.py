@@ -1,4 +1,4 @@
-"""Occupancy losses (DESIGN §8), each a pure function of tensors, plus a configurable combined loss.
+"""Occupancy losses (docs/design.md#losses), each a pure function of tensors, plus a configurable combined loss.
 
 Shapes: voxel logits `(B, C, X, Y, Z)` (C = 18 incl. free), labels `(B, X, Y, Z) int64`, optional camera
 mask `(B, X, Y, Z) bool`. Every voxel loss accepts the mask; voxels with mask False do not contribute.

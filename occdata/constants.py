@@ -19,7 +19,7 @@ __all__ = [
     "OccGrid",
 ]
 
-# Model camera order (DESIGN §3); stored in store attrs so consumers never guess it.
+# Model camera order (docs/design.md#frames-and-names); stored in store attrs so consumers never guess it.
 CAMERA_ORDER: tuple[str, ...] = (
     "CAM_FRONT_LEFT",
     "CAM_FRONT",

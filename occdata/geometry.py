@@ -1,4 +1,4 @@
-"""Rigid transforms named by frames: `T_b_from_a @ p_a = p_b` (DESIGN §2)."""
+"""Rigid transforms named by frames: `T_b_from_a @ p_a = p_b` (docs/design.md#frames-and-names)."""
 
 from __future__ import annotations
 

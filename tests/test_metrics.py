@@ -375,7 +375,7 @@ def test_rayiou_wall_shifted_one_voxel_along_x_by_hand() -> None:
     offset L tan p / cos a; it enters the wall voxel only if both stay inside the tube at the wall's
     near face: truth L = 13.8, prediction L = 14.2.
     - Azimuth: |tan a| < 0.2 / 13.8 = 0.0145 only for a = 0 (tan 1 deg = 0.0175). So a = 0, dy = 0.
-    - Pitch (tan p from DESIGN's list): going up the ray may rise 0.3 m, going down drop 0.1 m.
+    - Pitch (tan p from the list in docs/metrics.md): going up the ray may rise 0.3 m, going down drop 0.1 m.
         tan p = -0.01176: drop 0.162 at 13.8 > 0.1 -> no hit (truth and prediction)
         tan p = -0.00077: drop 0.011 / 0.011 -> truth hit, prediction hit
         tan p = +0.01022: rise 0.141 / 0.145 -> truth hit, prediction hit

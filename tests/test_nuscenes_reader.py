@@ -10,7 +10,7 @@ from occdata.geometry import invert_rigid
 from occdata.nuscenes import load_lidar_points, load_nuscenes, validate_sample
 from occdata.sensors.projection import project_lidar_to_image
 
-# The official devkit's map_pointcloud_to_image (min_dist 1.0) on this keyframe (DESIGN §12).
+# The official devkit's map_pointcloud_to_image (min_dist 1.0) on this real keyframe.
 DEVKIT_COUNTS = {
     "CAM_FRONT": 3053,
     "CAM_FRONT_RIGHT": 3076,

@@ -18,7 +18,7 @@ from occdata.synth.annotations import object_boxes, object_parts, rays_hit_parts
 from occdata.synth.pipeline import keyframe_object_boxes, keyframe_times, scene_world
 from occdata.synth.world import BARRIER, BICYCLE, CAR, CONE, MOTORCYCLE
 
-# The 32 nuScenes-lidarseg category names in index order (DESIGN §5.5 / the devkit's category.json).
+# The 32 nuScenes-lidarseg category names in index order (the devkit's category.json).
 LIDARSEG_NAMES = (
     "noise", "animal", "human.pedestrian.adult", "human.pedestrian.child", "human.pedestrian.construction_worker",
     "human.pedestrian.personal_mobility", "human.pedestrian.police_officer", "human.pedestrian.stroller",
@@ -29,7 +29,7 @@ LIDARSEG_NAMES = (
     "flat.other", "flat.sidewalk", "flat.terrain", "static.manmade", "static.other", "static.vegetation",
     "vehicle.ego",
 )
-# lidarseg index -> Occ3D class (the challenge mapping, DESIGN §5.5), for the indices the world uses.
+# lidarseg index -> Occ3D class (the challenge mapping), for the indices the world uses.
 OCC3D_OF_INDEX = {2: 7, 9: 1, 12: 8, 14: 2, 16: 3, 17: 4, 21: 6, 23: 10, 24: 11, 25: 12, 26: 13, 27: 14, 28: 15,
                   30: 16}
 OBJECT_INDICES = (2, 9, 12, 14, 16, 17, 21, 23)  # lidarseg indices of box categories
@@ -243,7 +243,7 @@ def test_boxes_match_the_actor_poses(tree: Tree) -> None:
 
 
 def test_boxes_interpolated_to_sweeps_follow_the_actors(tree: Tree) -> None:
-    """The devkit's rule for a sweep (DESIGN §5.5: linear between the previous and the current keyframe
+    """The devkit's rule for a sweep (linear between the previous and the current keyframe
     annotation of the instance) lands on the object's true position at the sweep time: exact on
     straight roads, a chord error on curves."""
     scenes = [s["token"] for s in sorted(tree.t["scene"], key=lambda s: s["name"])]

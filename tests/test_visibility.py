@@ -1,4 +1,4 @@
-"""Visibility kernels agree with their numpy twins and with hand-computed cases (DESIGN §5.3)."""
+"""Visibility kernels agree with their numpy twins and with hand-computed cases (docs/design.md#visibility-masks)."""
 
 from __future__ import annotations
 

@@ -30,7 +30,7 @@ def test_real_label_agreement(real_occ3d_label: Path, real_nuscenes_root: Path) 
     assert got["iou_free"] == pytest.approx(100.0, abs=1e-4)
     assert got["precision"] == pytest.approx(92.43, abs=0.1) and got["recall"] == pytest.approx(94.19, abs=0.1)
     pct = got["visible"]
-    # The label's own visible shares (DESIGN §5.3) come back beside ours.
+    # The label's own visible shares (docs/design.md#visibility-masks) come back beside ours.
     assert pct["car"]["label"] == pytest.approx(90.6, abs=0.1)
     assert pct["free"]["label"] == pytest.approx(3.4, abs=0.1)
     # Ground classes and free space: visible exactly where LiDAR-observed, as in the label.

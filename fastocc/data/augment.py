@@ -1,4 +1,4 @@
-"""Image and BEV augmentation as matrices (DESIGN §6).
+"""Image and BEV augmentation as matrices (docs/design.md#augmentation).
 
 Image: one 3x3 matrix A per camera maps an ORIGINAL-image pixel (u, v, 1) to the AUGMENTED input
 pixel. Pixel coordinates follow OpenCV's convention (integer = pixel centre), so one

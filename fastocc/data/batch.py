@@ -23,7 +23,7 @@ class Batch:
     (h, w) = (H // 16, W // 16).
 
     Inputs (same meaning as `fastocc.model.inputs.SceneInputs`):
-      images              (B, N, 3, H, W) float32  normalised RGB (DESIGN §6 mean/std)
+      images              (B, N, 3, H, W) float32  normalised RGB (docs/design.md#augmentation mean/std)
       K                   (B, N, 3, 3) float32     ORIGINAL-image intrinsics
       T_keyego_from_cam   (B, N, 4, 4) float32     camera -> key ego
       img_aug             (B, N, 3, 3) float32     A: original pixel (u, v, 1) -> augmented pixel

@@ -1,4 +1,4 @@
-"""Frozen network configs and the four presets (DESIGN §7)."""
+"""Frozen network configs and the four presets (docs/design.md#the-network)."""
 
 from __future__ import annotations
 
@@ -91,7 +91,7 @@ class BackboneConfig:
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """Everything that sizes the network. Channel names follow DESIGN §7 (C1, C2, C3)."""
+    """Everything that sizes the network. Channel names follow docs/design.md#the-network (C1, C2, C3)."""
 
     name: str = "tiny"
     backbone: BackboneConfig = field(default_factory=BackboneConfig)

@@ -1,4 +1,5 @@
-"""Torch-side geometry shared by the view transform and interpolation sampling (DESIGN §2, §6).
+"""Torch-side geometry shared by the view transform and interpolation sampling (docs/design.md#frames-and-names,
+#augmentation).
 
 Pixel convention: integer (u, v) are pixel centres. Feature cell (r, c) of a stride-s map covers the
 augmented pixels [s c, s c + s) and its centre is the augmented pixel (s c + (s-1)/2, s r + (s-1)/2).

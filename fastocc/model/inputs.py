@@ -17,7 +17,7 @@ class SceneInputs:
     """One batch as the data loader produces it.
 
     images: `(B, N, 3, H_in, W_in) float32` normalised RGB (N cameras in the store's
-        `camera_order`; nuScenes: 6, DESIGN §3 order).
+        `camera_order`; nuScenes: 6, docs/design.md#frames-and-names order).
     K: `(B, N, 3, 3) float32` intrinsics of each camera's ORIGINAL image (1600 x 900 for nuScenes; cameras
        may differ in size).
     T_keyego_from_cam: `(B, N, 4, 4) float32` camera (x right, y down, z forward) -> key ego.

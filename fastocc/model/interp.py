@@ -1,4 +1,5 @@
-"""Interpolation sampling: image features at the fine voxel centres, averaged over cameras (DESIGN §7.4)."""
+"""Interpolation sampling: image features at the fine voxel centres, averaged over cameras
+(docs/design.md#the-network)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The FastOcc network: stages composed, each a separate module (DESIGN §7)."""
+"""The FastOcc network: stages composed, each a separate module (docs/design.md#the-network)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Temporal fusion: a queue of previous BEV features warped by ego motion (DESIGN §7.7)."""
+"""Temporal fusion: a queue of previous BEV features warped by ego motion (docs/design.md#the-network)."""
 
 from __future__ import annotations
 

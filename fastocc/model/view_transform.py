@@ -1,4 +1,4 @@
-"""2D -> 3D view transform: depth net (88-bin softmax + context) and LSS voxel pooling (DESIGN §7.2)."""
+"""2D -> 3D view transform: depth net (88-bin softmax + context) and LSS voxel pooling (docs/design.md#the-network)."""
 
 from __future__ import annotations
 

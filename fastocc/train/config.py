@@ -49,7 +49,8 @@ _LEGACY_LOSS_KEYS = {f"w_{k}": k for k in ("focal", "sem_scal", "geo_scal", "dic
 
 @dataclass(frozen=True)
 class LossWeights:
-    """Weights of the loss terms (DESIGN §8): the `[loss]` TOML table (flat `w_focal = ...` keys are read too)."""
+    """Weights of the loss terms (docs/design.md#losses): the `[loss]` TOML table (flat `w_focal = ...` keys are
+    read too)."""
 
     focal: float = 1.0
     sem_scal: float = 1.0
@@ -68,7 +69,7 @@ class LossWeights:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """A training run. Defaults follow the paper's recipe (DESIGN §9); see docs/training.md.
+    """A training run. Defaults follow the paper's recipe (docs/design.md#training-recipe); see docs/training.md.
 
     Batch and schedule: `batch_size` is the GLOBAL batch (all ranks, all accumulation micro-steps);
     each optimizer step consumes exactly `batch_size` samples whatever the number of processes, and
@@ -115,7 +116,7 @@ class TrainConfig:
     grad_clip: float = 5.0  # max global grad norm; 0 = off
     ema: bool = True
     ema_decay: float = 0.999  # ramps as min(decay, (1 + n) / (10 + n)) over optimizer steps n
-    # losses (DESIGN §8)
+    # losses (docs/design.md#losses)
     camera_mask: bool = True  # voxel losses on mask_camera = 1 only (matches Occ3D mIoU; see docs)
     class_weights: bool = True  # focal weights 1 / ln(f_c + 0.001) from the training split's counts
     loss: LossWeights = dataclasses.field(default_factory=LossWeights)

@@ -1,6 +1,6 @@
 """Occ3D mIoU: one confusion matrix summed over a split, optionally within a visibility mask (no torch).
 
-Definitions are in DESIGN §10 and docs/metrics.md. Label grids are `(X, Y, Z) uint8` in key ego
+Definitions are in docs/design.md#metrics and docs/metrics.md. Label grids are `(X, Y, Z) uint8` in key ego
 (axis order x, y, z; 17 = free), the Occ3D layout. `MIoUAccumulator` keeps its whole state in one
 int64 array (`state`), so ranks/processes can sum it. Values are fractions in [0, 1].
 """

@@ -1,7 +1,7 @@
 """RayIoU (SparseOcc protocol): rays from up to 8 LiDAR origins per sample cast through truth and
 prediction (3D DDA, `first_hits`); per-class ray counts summed over a split (no torch).
 
-Definitions are in DESIGN §10 and docs/metrics.md. `RayIoUAccumulator` keeps its whole state in one
+Definitions are in docs/design.md#metrics and docs/metrics.md. `RayIoUAccumulator` keeps its whole state in one
 int64 array (`state`), so ranks/processes can sum it. Values are fractions in [0, 1].
 """
 
@@ -40,7 +40,7 @@ _MAX_STEPS = 1000  # the reference's traversal cap (a ray from inside the grid n
 # RayIoU: rays, origins
 # --------------------------------------------------------------------------------------------------
 def ray_pitches() -> list[float]:
-    """The 39 pitch angles (rad) of the query rays, lowest first (DESIGN §10).
+    """The 39 pitch angles (rad) of the query rays, lowest first (docs/design.md#metrics).
 
     -(pi/2 - atan(k + 1)) for k = 0..9, then the last step repeated until the pitch reaches 0.21
     (the nuScenes LiDAR's upper field of view)."""

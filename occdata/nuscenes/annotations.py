@@ -1,4 +1,5 @@
-"""3D box annotations (`instance`, `sample_annotation`) and boxes at any LIDAR_TOP time (DESIGN §5.5).
+"""3D box annotations (`instance`, `sample_annotation`) and boxes at any LIDAR_TOP time
+(docs/design.md#labels-from-lidar).
 
 Frames: a box's pose is box -> global. Box frame (the devkit's `Box`): origin at the box centre,
 x along the length (forward), y along the width (left), z up; `size_wlh` is (width, length, height).

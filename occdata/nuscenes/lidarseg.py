@@ -1,4 +1,5 @@
-"""nuScenes-lidarseg: per-point labels of keyframe LIDAR_TOP sweeps, and their Occ3D classes (DESIGN §5.5).
+"""nuScenes-lidarseg: per-point labels of keyframe LIDAR_TOP sweeps, and their Occ3D classes
+(docs/design.md#labels-from-lidar).
 
 Files: `<version>/lidarseg.json` rows (token, sample_data_token, filename relative to the root);
 each `lidarseg/<version>/<sd_token>_lidarseg.bin` is `uint8`, one label per point of that keyframe

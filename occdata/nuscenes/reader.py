@@ -1,4 +1,4 @@
-"""Load a nuScenes-format version folder into frozen keyframe records (DESIGN §3).
+"""Load a nuScenes-format version folder into frozen keyframe records (docs/design.md#frames-and-names).
 
 Only what occupancy needs is kept: keyframe samples with the rig's cameras and LiDARs (`rig.py`: read
 from the tables, never assumed), each sensor with its calibration and its own ego pose; on request
@@ -80,7 +80,7 @@ def find_version(root: Path, version: str | None) -> str:
 
 
 def dataset_root(root: Path | str) -> Path:
-    """The absolute form of a dataset root, with its symlinks kept (DESIGN §3: record paths).
+    """The absolute form of a dataset root, with its symlinks kept (docs/design.md#frames-and-names: record paths).
 
     Record paths are `dataset_root(root) / filename`: a root that is a symlink (or lies under one,
     as on clusters) stays as the user named it, so paths compare equal to `root / filename`. Only
@@ -94,7 +94,7 @@ def dataset_root(root: Path | str) -> Path:
 
 
 def confined_path(root: Path, relative: Any, where: str) -> Path:
-    """`dataset_root(root) / relative`, refused unless it stays inside the root (DESIGN: paths from
+    """`dataset_root(root) / relative`, refused unless it stays inside the root (docs/design.md: paths from
     tables are data).
 
     The check is lexical (`..` and absolute paths are refused); symlinks are neither resolved nor

@@ -1,4 +1,4 @@
-"""Frozen records for the keyframe data that occupancy needs (DESIGN §3), and the LiDAR sweeps."""
+"""Frozen records for the keyframe data that occupancy needs (docs/design.md#frames-and-names), and the LiDAR sweeps."""
 
 from __future__ import annotations
 
@@ -109,7 +109,7 @@ class SampleRecord:
         return self.lidar.T_global_from_ego
 
     def T_keyego_from_cam(self, i: int) -> np.ndarray:
-        """Exact camera -> key-ego transform through global (DESIGN §2), `(4, 4) float64`."""
+        """Exact camera -> key-ego transform through global (docs/design.md#frames-and-names), `(4, 4) float64`."""
         cam = self.cameras[i]
         return invert_rigid(self.T_global_from_keyego) @ cam.T_global_from_ego @ cam.T_ego_from_cam
 

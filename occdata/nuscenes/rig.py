@@ -3,7 +3,8 @@ keyframe rows of `sample_data.json`), never assumed.
 
 A rig is which cameras, in which order, and which LiDARs, the first of them the reference LiDAR: its
 keyframe timestamp and ego pose define each sample's key-ego frame. nuScenes' six `CAM_*` keep their
-model order (`CAMERA_ORDER`, DESIGN §3); other cameras follow by name. `LIDAR_TOP` is the reference
+model order (`CAMERA_ORDER`, docs/design.md#frames-and-names); other cameras follow by
+name. `LIDAR_TOP` is the reference
 where there is one, else the first LiDAR by name. A sensor that is not used is named in `left_out`,
 one line each, and `occdata scan` / `build` print those lines: nothing is dropped silently.
 """

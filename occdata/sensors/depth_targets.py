@@ -1,4 +1,5 @@
-"""Depth targets at the network input from stored LiDAR (u, v, depth) points (DESIGN §5.1). No torch.
+"""Depth targets at the network input from stored LiDAR (u, v, depth) points (docs/design.md#the-store-layout).
+No torch.
 
 Points are stored in ORIGINAL-image pixels; at load time they are moved by the image-augmentation
 matrix A (3x3, original pixel -> augmented pixel), rounded to the nearest pixel (floor(x + 0.5), the
@@ -26,7 +27,7 @@ __all__ = [
     "rasterise_depth",
 ]
 
-DEPTH_MIN, DEPTH_MAX = 1.0, 45.0  # the depth-bin range [1, 45) m of DESIGN §5.1
+DEPTH_MIN, DEPTH_MAX = 1.0, 45.0  # the depth-bin range [1, 45) m of docs/design.md#the-store-layout
 
 
 @numba.njit(cache=True, nogil=True, inline="always")

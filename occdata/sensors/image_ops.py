@@ -11,7 +11,7 @@ import numpy as np
 
 __all__ = ["IMAGENET_MEAN", "IMAGENET_STD", "normalise_chw", "normalise_lut"]
 
-IMAGENET_MEAN = (123.675, 116.28, 103.53)  # RGB, DESIGN §6
+IMAGENET_MEAN = (123.675, 116.28, 103.53)  # RGB, docs/design.md#augmentation
 IMAGENET_STD = (58.395, 57.12, 57.375)
 
 

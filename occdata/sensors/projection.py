@@ -1,4 +1,4 @@
-"""LiDAR points -> camera pixels (DESIGN §2, §5.1).
+"""LiDAR points -> camera pixels (docs/design.md#frames-and-names, #the-store-layout).
 
 `project_to_cameras` is the numba kernel the store build uses (all cameras in one pass, float64
 arithmetic, float32 output); `project_to_cameras_reference` (tests/reference/) is its plain numpy twin with the same

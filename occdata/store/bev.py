@@ -1,4 +1,4 @@
-"""BEV multi-hot ground truth from voxel labels (DESIGN §5.2).
+"""BEV multi-hot ground truth from voxel labels (docs/design.md#the-store-layout).
 
 Stored as one uint32 bit field per BEV cell: bit c is set when any voxel of the column has label c.
 `free` (17) is a bit too, so consumers can choose whether it is a channel of the target.

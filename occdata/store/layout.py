@@ -60,7 +60,7 @@ SCHEMA_VERSION = 2  # 2: every block's ragged payload in its own planned region 
 # the extra column), naming the version, instead of calling the checksum table damaged.
 FLOW_SCHEMA_VERSION = 3
 READABLE_SCHEMA_VERSIONS = (1, 2, 3)  # version 1 (blocks packed back to back) reads the same, through the offsets
-N_PREV = 16  # temporal history length (DESIGN §5.4)
+N_PREV = 16  # temporal history length (docs/design.md#the-store-layout)
 N_CAM = 6
 
 STATE_PENDING, STATE_DONE, STATE_ERROR = 0, 1, 2

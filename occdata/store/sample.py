@@ -243,7 +243,7 @@ def temporal_indices(scene_index: np.ndarray, index_in_scene: np.ndarray) -> tup
     """Store indices of the previous `N_PREV` keyframes, nearest first, and their validity.
 
     Samples are in scene order then time order, so the j-th previous frame of sample i is i - j
-    when it is in the same scene; otherwise pad with the scene's first frame, invalid (DESIGN §5.4).
+    when it is in the same scene; otherwise pad with the scene's first frame, invalid (docs/design.md#the-store-layout).
     Returns `(N, N_PREV) int32` and `(N, N_PREV) bool`.
     """
     n = len(scene_index)

@@ -1,4 +1,4 @@
-"""Box annotations and nuScenes-lidarseg labels of the synthetic world (DESIGN §5.5).
+"""Box annotations and nuScenes-lidarseg labels of the synthetic world (docs/design.md#labels-from-lidar).
 
 Box-annotated objects: every actor while it is on the road path, and every static object of a
 nuScenes box category (parked cars and motorcycles, barriers, cones, parked bicycles; nuScenes

@@ -354,7 +354,7 @@ class _Rays:
 
 def _masked(semantics: np.ndarray, rays: _Rays, grid: OccGrid) -> dict[str, np.ndarray]:
     """Occ3D-style labels of a key-ego grid: the semantics with the LiDAR mask of the rays and the
-    camera mask, which lies within it (DESIGN §5.3, docs/visibility.md)."""
+    camera mask, which lies within it (docs/design.md#visibility-masks, docs/visibility.md)."""
     lower = np.asarray(grid.lower, np.float64)
     mask_lidar = lidar_mask(semantics, rays.origins, rays.ends, lower, grid.voxel_size)
     mask_camera = camera_mask(semantics, mask_lidar, rays.K, rays.T_cam_from_keyego, rays.image_size, lower,

@@ -1,7 +1,7 @@
 """The synthetic sensor rigs (`occdata synth --rig`): nuScenes, Lyft Level 5 and MAN TruckScenes.
 
 nuscenes (the default): the calibration of nuScenes scene-0061 (v1.0-mini, vehicle n015), the
-calibrated_sensor records of the real fixture (DESIGN §12; a test checks them against
+calibrated_sensor records of the real fixture (the real keyframe the tests read; a test checks them against
 `shared/data/nuscenes-real`); intrinsics for 1600x900, scaled with the image size.
 lyft: the calibrated_sensor records of the real Lyft Level 5 keyframes (host-a101,
 `shared/data/lyft-real`): 7 cameras at 1920x1080, LIDAR_TOP and the two bumper LiDARs.

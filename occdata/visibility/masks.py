@@ -1,4 +1,4 @@
-"""Camera and LiDAR observation masks on the voxel grid, with Occ3D's meaning (DESIGN §5.3).
+"""Camera and LiDAR observation masks on the voxel grid, with Occ3D's meaning (docs/design.md#visibility-masks).
 
 Reusable pure kernels with numpy twins. A voxel grid is `(X, Y, Z)` with lower corner `lower (3,)
 float64` (metres, key ego) and cubic voxels of `voxel_size` metres.

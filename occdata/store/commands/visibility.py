@@ -1,4 +1,5 @@
-"""`occdata visibility`: Occ3D-style camera and LiDAR masks for a store (DESIGN §5.3, docs/visibility.md).
+"""`occdata visibility`: Occ3D-style camera and LiDAR masks for a store
+(docs/design.md#visibility-masks, docs/visibility.md).
 
 Occupancy comes from the stored semantics, so labelled samples are needed. The LiDAR rays are the
 keyframe points stored as depth targets (points inside some camera image), un-projected exactly
