@@ -71,11 +71,15 @@ def main() -> None:
 @click.option("--voxel-size", type=click.FloatRange(0.05, 2.0), default=None,
               help="Also write the truth on a custom Occ3D-style grid of this voxel size (m), in gts/occ3d-<size>m/.")
 @grid_range_option()
+@click.option("--image-masks", is_flag=True,
+              help="Also write each camera image's truth class ids (Occ3D ids, 255 = sky) as a PNG at its path "
+                   "under OUT/masks/ (samples/CAM_FRONT/x.jpg -> masks/samples/CAM_FRONT/x.png): the input of "
+                   "`occdata labels --image-masks OUT/masks`.")
 @progress_option()
 @friendly_errors
 def synth(out: str, scenes: int, samples: int, seed: int, rig_name: str, width: int | None, height: int | None,
           table_only_scenes: int, table_only_samples: int, grids: tuple[str, ...], voxel_size: float | None,
-          grid_range: tuple[float, ...] | None, progress: bool) -> None:
+          grid_range: tuple[float, ...] | None, image_masks: bool, progress: bool) -> None:
     """Write a synthetic nuScenes-format world with Occ3D labels and exact depth maps.
 
     nuscenes rig: tables (v1.0-mini), 6 ray-cast camera images, a 32-beam LiDAR sweep per keyframe
@@ -90,7 +94,7 @@ def synth(out: str, scenes: int, samples: int, seed: int, rig_name: str, width: 
     root = synthesize(SynthConfig(out=local_path(out, "--out"), scenes=scenes, samples=samples, seed=seed,
                                   width=width, height=height, progress=progress,
                                   table_only_scenes=table_only_scenes, table_only_samples=table_only_samples,
-                                  grids=specs, rig=rig_name))
+                                  grids=specs, rig=rig_name, image_masks=image_masks))
     extra = f" (+ {table_only_scenes} table-only scenes)" if table_only_scenes else ""
     click.echo(f"wrote {scenes} scenes x {samples} samples{extra} to {root}")
 
