@@ -1,0 +1,80 @@
+"""Ground from geometry, and the two-tier vote that image masks need.
+
+Without lidarseg and without masks every static point used to be one class (`others`). The scene's
+ground model (`occdata.labels.heights`: per 0.5 m column the lowest surface any keyframe slot saw,
+each slot's heights aligned first) splits off the ground: a static point within `clearance` m of its
+column's ground (after its own slot's height error is taken off) is **flat** and takes `flat_class`
+(one of Occ3D's 11-14 as a stand-in: the geometry cannot tell road from sidewalk or grass); the
+other static points keep `static_class`. Points of columns whose ground no keyframe saw stay static.
+
+The bottom voxel of a wall, a pole or a trunk holds its foot within `clearance` of the ground, and
+the ground beside it: geometry alone would call it flat. So after the vote a flat voxel whose voxel
+above is occupied by something else that is not flat is **covered** (`uncover`): it takes the most
+voted class of its non-flat points, or `static_class` when it has none. Overhangs lower than one voxel
+over the ground are rare; a tree's crown higher than that does not cover the grass under it.
+
+With image masks a point's class is either painted (tier 1: the masks, and a box's class) or
+geometric (tier 2: flat / static / dynamic, where no mask voted). Classes travel in one `uint8` as
+`c` (tier 1) or `n + c` (tier 2), `n` = 17 semantic classes; `tiered_majority` gives each voxel the
+majority of its tier-1 votes, and the majority of its tier-2 votes where it has none.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from occdata.labels.heights import GroundMap, HeightOffsets
+from occdata.labels.kernels import majority
+
+__all__ = ["fold_votes", "on_ground", "tiered_majority", "uncover"]
+
+
+def on_ground(points: np.ndarray, t_us: int, heights: HeightOffsets, ground: GroundMap,
+              clearance: float) -> np.ndarray:
+    """`(N,) bool`: which of a frame's `points (N, 3) float64` (global, taken at `t_us`) lie within
+    `clearance` m over the ground of their column, heights aligned (`heights.at(t_us)` taken off);
+    False where no slot saw that column's ground."""
+    pts = np.array(points, np.float64).reshape(-1, 3)
+    pts[:, 2] -= heights.at(t_us)
+    above = pts[:, 2] - ground.height_under(pts)
+    return np.nan_to_num(above, nan=np.inf) <= clearance
+
+
+def fold_votes(votes: list[np.ndarray], n: int) -> list[np.ndarray]:
+    """Two-tier vote keys (`voxel * 2n + c`, `c < 2n`) as plain ones (`voxel * n + c mod n`)."""
+    return [(k // (2 * n)) * n + (k % (2 * n)) % n for k in votes]
+
+
+def tiered_majority(votes: list[np.ndarray], shape: tuple[int, int, int], n: int,
+                    empty: int) -> tuple[np.ndarray, np.ndarray]:
+    """`(X, Y, Z) uint8` semantics from two-tier vote keys (`vote_voxels` with `2n` classes): per voxel
+    the most voted tier-1 class (`c < n`), else the most voted tier-2 class (`c - n`), ties to the lower
+    class; `empty` without votes. And `(X, Y, Z) bool`: the voxels that tier 2 decided."""
+    keys = np.concatenate([np.zeros(0, np.int64), *votes])
+    tier1 = (keys % (2 * n)) < n
+    none = 255  # not `empty`: tier-2 class n + c may equal it
+    first = majority([keys[tier1]], shape, 2 * n, none)
+    second = majority([keys[~tier1]], shape, 2 * n, none)
+    by_geometry = (first == none) & (second != none)
+    out = np.where(first != none, first, np.where(by_geometry, second.astype(np.int64) - n, empty))
+    return out.astype(np.uint8), by_geometry
+
+
+def uncover(semantics: np.ndarray, votes: list[np.ndarray], n: int, flat_class: int, static_class: int,
+            empty: int, region: np.ndarray | None = None) -> np.ndarray:
+    """`semantics (X, Y, Z) uint8` (z up) with each covered flat voxel (module docstring; within
+    `region (X, Y, Z) bool` when given) given the most voted class of its other votes (`votes`: plain
+    `vote_voxels` keys, `n` classes), `static_class` without any."""
+    above = np.zeros(semantics.shape, bool)
+    above[:, :, :-1] = (semantics[:, :, 1:] != empty) & (semantics[:, :, 1:] != flat_class)
+    covered = (semantics == flat_class) & above
+    if region is not None:
+        covered &= region
+    if not covered.any():
+        return semantics
+    keys = np.concatenate([np.zeros(0, np.int64), *votes])
+    keep = covered.reshape(-1)[keys // n] & (keys % n != flat_class)
+    other = majority([keys[keep]], semantics.shape, n, empty)
+    out = semantics.copy()
+    out[covered] = np.where(other[covered] == empty, static_class, other[covered])
+    return out

@@ -1,0 +1,172 @@
+"""Classes from 2D masks and ground from geometry (`occdata labels --image-masks`, the flat class): the
+kernels against their numpy twins, hand-worked occlusion and votes, the mask files' validation."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from reference.labels_paint import depth_buffer_reference, visible_reference
+
+from occdata.errors import OccDataError
+from occdata.formats.imagemasks import IGNORE, MaskClasses, load_mask_classes, mask_path, read_mask
+from occdata.labels.flat import fold_votes, on_ground, tiered_majority, uncover
+from occdata.labels.heights import GroundMap, HeightOffsets
+from occdata.labels.kernels import NO_LABEL, vote_voxels
+from occdata.labels.paint import ImageMasks, depth_buffer, paint_camera, visible_points
+
+N = 17  # Occ3D's semantic classes
+FREE = 17
+
+
+# ------------------------------------------------------------------------------------------------
+# numba == numpy twin
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize(("seed", "radius"), [(0, 0), (1, 1), (2, 2)])
+def test_paint_kernels_match_twins(seed: int, radius: int) -> None:
+    rng = np.random.default_rng(seed)
+    n_u, n_v, n = 13, 9, 400
+    cu, cv = rng.integers(0, n_u, n), rng.integers(0, n_v, n)
+    depth = rng.uniform(1.0, 40.0, n)
+    buf = depth_buffer(cu, cv, depth, n_u, n_v)
+    ref = depth_buffer_reference(cu, cv, depth, n_u, n_v)
+    np.testing.assert_array_equal(buf, ref)
+    assert np.isinf(buf).any() or n >= n_u * n_v  # some cells are empty or all are filled
+    got = visible_points(cu, cv, depth, buf, radius, 0.3, 0.05)
+    np.testing.assert_array_equal(got, visible_reference(cu, cv, depth, buf, radius, 0.3, 0.05))
+    assert got.any() and not got.all()
+
+
+# ------------------------------------------------------------------------------------------------
+# hand-worked occlusion: camera at the origin looking along +z, f = 100 px, 200 x 100 image
+# ------------------------------------------------------------------------------------------------
+K = np.array([[100.0, 0.0, 99.5], [0.0, 100.0, 49.5], [0.0, 0.0, 1.0]])
+
+
+def _mask() -> np.ndarray:
+    mask = np.full((100, 200), 15, np.uint8)  # manmade everywhere ...
+    mask[:, 150:] = IGNORE  # ... but the right quarter, whose id maps to no class
+    return mask
+
+
+def test_point_behind_a_wall_casts_no_vote() -> None:
+    # A wall at z = 5 m across x in [-1, 1] (pixels 80..119), a 10 cm grid of its points; one point behind
+    # it at z = 10 (pixel 99.5 + 100 * 0.2 / 10 = 101.5 -> 102), one beside it at x = 3, z = 10 (pixel 129.5).
+    xs = np.arange(-1.0, 1.01, 0.1)
+    ys = np.arange(-0.5, 0.51, 0.1)
+    wall = np.array([[x, y, 5.0] for x in xs for y in ys])
+    behind, beside, right = [0.2, 0.0, 10.0], [3.0, 0.0, 10.0], [8.0, 0.0, 10.0]
+    pts = np.vstack([wall, [behind, beside, right, [0.0, 0.0, -3.0]]])
+    cls = paint_camera(pts, K, _mask(), ImageMasks(Path(".")))
+    assert (cls[: len(wall)] == 15).all()  # the wall is the visible surface
+    assert cls[len(wall)] == NO_LABEL  # hidden by the wall: 5 m deeper than its neighbourhood
+    assert cls[len(wall) + 1] == 15  # beside the wall: nothing nearer around pixel 130
+    assert cls[len(wall) + 2] == NO_LABEL  # pixel 179.5: an ignored id
+    assert cls[len(wall) + 3] == NO_LABEL  # behind the camera
+
+
+def test_tolerance_keeps_a_slanted_surface() -> None:
+    # Two points 0.2 m apart in depth in one cell: both within 0.3 m + 5 % of the nearer one.
+    pts = np.array([[0.0, 0.0, 10.0], [0.01, 0.0, 10.2], [0.02, 0.0, 11.0]])
+    cls = paint_camera(pts, K, _mask(), ImageMasks(Path(".")))
+    assert cls.tolist() == [15, 15, NO_LABEL]  # 11.0 > 10 + 0.3 + 0.5
+
+
+# ------------------------------------------------------------------------------------------------
+# the two-tier vote, ties stated
+# ------------------------------------------------------------------------------------------------
+def _keys(voxel: int, classes: list[int], n: int) -> np.ndarray:
+    return np.array([voxel * n + c for c in classes], np.int64)
+
+
+def test_tiered_majority_by_hand() -> None:
+    shape = (1, 1, 4)
+    votes = [
+        _keys(0, [4, 4, 7, 7], 2 * N),  # tier-1 tie 4 : 7 -> the lower class, 4
+        _keys(1, [16, N + 0, N + 0, N + 0], 2 * N),  # one mask vote beats three geometric ones
+        _keys(2, [N + 11, N + 11, N + 11, N + 0], 2 * N),  # geometry alone: flat 3 : others 1
+    ]
+    sem, by_geometry = tiered_majority(votes, shape, N, FREE)
+    assert sem[0, 0].tolist() == [4, 16, 11, FREE]
+    assert by_geometry[0, 0].tolist() == [False, False, True, False]
+    folded = np.concatenate(fold_votes(votes, N))
+    assert sorted((folded % N).tolist()) == sorted([4, 4, 7, 7, 16, 0, 0, 0, 11, 11, 11, 0])
+    assert (folded // N).tolist() == [0] * 4 + [1] * 4 + [2] * 4
+
+
+def test_uncover_gives_a_walls_foot_its_class() -> None:
+    # Column 0: flat at z0 under a wall (15) at z1; its own votes 11 x3, 15 x2 -> 15.
+    # Column 1: flat at z0 under a pole, no other votes in z0 -> static class 0.
+    # Column 2: flat at z0, free above -> stays flat. Column 3: flat under flat -> stays.
+    sem = np.full((4, 1, 3), FREE, np.uint8)
+    sem[:, 0, 0] = 11
+    sem[0, 0, 1] = 15
+    sem[1, 0, 1] = 15
+    sem[3, 0, 1] = 11
+
+    def flat(i: int, k: int) -> int:
+        return (i * 3 + k) * N
+
+    votes = [np.array([flat(0, 0) + 11] * 3 + [flat(0, 0) + 15] * 2 + [flat(1, 0) + 11], np.int64)]
+    out = uncover(sem, votes, N, 11, 0, FREE)
+    assert out[:, 0, 0].tolist() == [15, 0, 11, 11]
+    assert (out[:, 0, 1:] == sem[:, 0, 1:]).all()
+
+
+def test_on_ground() -> None:
+    # One 0.5 m column at x, y in [0, 0.5) with ground at z = 0.1; a slot 0.05 m too high at t = 0.
+    ground = GroundMap(np.array([0], np.int64), np.array([0.1]), 0.5)
+    heights = HeightOffsets(np.array([0, 1_000_000], np.int64), np.array([0.05, 0.05]))
+    pts = np.array([[0.2, 0.2, 0.2], [0.2, 0.2, 0.4], [0.2, 0.2, 0.3], [3.0, 3.0, 0.1]])
+    # aligned heights over the ground: 0.05, 0.25, 0.15, no ground seen
+    assert on_ground(pts, 0, heights, ground, 0.2).tolist() == [True, False, True, False]
+
+
+def test_vote_voxels_carries_tier_two_classes() -> None:
+    pts = np.array([[0.1, 0.1, 0.1], [0.1, 0.1, 0.1]])
+    keys = vote_voxels(pts, np.array([N + 11, 4], np.uint8), np.eye(4), np.zeros(3), 0.4,
+                       np.array([1, 1, 1], np.int64), 2 * N)
+    sem, _ = tiered_majority([keys], (1, 1, 1), N, FREE)
+    assert sem.item() == 4
+
+
+# ------------------------------------------------------------------------------------------------
+# mask files
+# ------------------------------------------------------------------------------------------------
+def test_mask_path_layout() -> None:
+    got = mask_path(Path("/m"), "samples/CAM_FRONT/x.jpg")
+    assert got == Path("/m/samples/CAM_FRONT/x.png")
+
+
+def test_mask_classes_mapping_and_errors(tmp_path: Path) -> None:
+    good = tmp_path / "classes.json"
+    good.write_text(json.dumps({"0": "driveable_surface", "7": "car", "9": "ignore"}))
+    lut = load_mask_classes(good).lut
+    assert (lut[0], lut[7], lut[9], lut[3]) == (11, 4, IGNORE, IGNORE)
+    assert MaskClasses.occ3d().lut[:18].tolist() == [*range(17), IGNORE]
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"1": "road"}))
+    with pytest.raises(OccDataError, match="unknown class 'road'"):
+        load_mask_classes(bad)
+    bad.write_text(json.dumps({"300": "car"}))
+    with pytest.raises(OccDataError, match="not an integer 0..255"):
+        load_mask_classes(bad)
+    bad.write_text("[1, 2]")
+    with pytest.raises(OccDataError, match="expected a JSON object"):
+        load_mask_classes(bad)
+
+
+def test_read_mask_errors(tmp_path: Path) -> None:
+    path = tmp_path / "m.png"
+    with pytest.raises(OccDataError, match="is missing"):
+        read_mask(path, 8, 4, MaskClasses.occ3d())
+    cv2.imwrite(str(path), np.full((4, 8), 16, np.uint8))
+    assert (read_mask(path, 8, 4, MaskClasses.occ3d()) == 16).all()
+    with pytest.raises(OccDataError, match="is 8x4, its image 16x4"):
+        read_mask(path, 16, 4, MaskClasses.occ3d())
+    cv2.imwrite(str(path), np.zeros((4, 8, 3), np.uint8))
+    with pytest.raises(OccDataError, match="single-channel"):
+        read_mask(path, 8, 4, MaskClasses.occ3d())
