@@ -27,6 +27,7 @@ from cli.options import (
 from occdata.formats.gridspec import GRID_NAMES, GridSpec, grids_from_options
 
 if TYPE_CHECKING:
+    from occdata.labels.paint import ImageMasks
     from occdata.nuscenes.rig import RigChoice
     from occdata.nuscenes.splits import SplitChoice
     from occdata.runtime.cluster import ClusterConfig
@@ -234,6 +235,17 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
 @click.option("--static-class", type=click.IntRange(0, 16), default=0, show_default=True,
               help="Without lidarseg only: the Occ3D class given to every point outside a box (0 = others, "
                    "i.e. 'occupied, not an annotated object'). Recorded in labels.json.")
+@click.option("--ground-class", type=click.IntRange(0, 16), default=11, show_default=True,
+              help="Without lidarseg only: the Occ3D class of static points on the scene's ground, found from "
+                   "geometry (11 = driveable_surface, a stand-in for any flat ground). Equal to --static-class: "
+                   "the ground is not split off. Recorded in labels.json.")
+@click.option("--image-masks", "image_masks", default=None, metavar="DIR",
+              help="Classes from your own 2D masks where there is no lidarseg: one PNG of class ids per camera "
+                   "image at the image's path under DIR (samples/CAM_FRONT/x.jpg -> DIR/samples/CAM_FRONT/x.png); "
+                   "each LiDAR point takes the class of the pixel it projects to where it is the visible surface.")
+@click.option("--mask-classes", "mask_classes", default=None, metavar="FILE",
+              help="With --image-masks: a JSON object mapping your segmenter's ids to Occ3D class names or "
+                   "'ignore', e.g. {\"0\": \"driveable_surface\", \"13\": \"car\"}. Default: the ids are Occ3D's.")
 @click.option("--knn-radius", type=click.FloatRange(0.01, 5.0), default=0.5, show_default=True,
               help="Metres within which a sweep point takes the class of the nearest labelled keyframe point.")
 @click.option("--no-boxes", is_flag=True,
@@ -266,7 +278,8 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
 @progress_option()
 @friendly_errors
 def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], scenes: tuple[str, ...],
-           all_sweeps: bool, static_class: int, knn_radius: float, no_boxes: bool, boxes_mode: str,
+           all_sweeps: bool, static_class: int, ground_class: int, image_masks: str | None, mask_classes: str | None,
+           knn_radius: float, no_boxes: bool, boxes_mode: str,
            carve: bool | None, dynamic_class: int, densify: bool,
            grids: tuple[str, ...],
            voxel_size: float | None, grid_range: tuple[float, ...] | None, rig: RigChoice,
@@ -284,6 +297,7 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
 
     out_path = local_path(out, "--out")
     specs = grids_from_options(grids, voxel_size, grid_range)
+    masks = _image_masks(image_masks, mask_classes)
     with exit_on_interrupt(f"interrupted: finished scenes are kept in {out_path}; rerun with --resume to continue"):
         report = generate_labels(LabelsConfig(
             root=local_path(root, "--root"), out=out_path, version=version, splits=splits or None,
@@ -292,7 +306,7 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
                                  use_boxes=not no_boxes and boxes_mode == "auto", densify=densify,
                                  carve=carve if carve is not None else (True if boxes_mode == "none" else
                                                                         False if no_boxes else None),
-                                 dynamic_class=dynamic_class),
+                                 dynamic_class=dynamic_class, ground_class=ground_class, image_masks=masks),
             cluster=cluster, grids=specs, rig=rig, scene_splits=scene_splits,
         ))
     seg = "lidarseg classes" if report.with_lidarseg else f"no lidarseg: static points are class {static_class}"
@@ -303,6 +317,22 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
     click.echo(f"{out_path}: {report.scenes_done} scene(s) labelled, {report.scenes_skipped} already done, "
                f"{report.keyframes} keyframes ({seg}"
                f"{'; moving objects by free-space carving' if carved else ''}); manifest {report.manifest}")
+
+
+def _image_masks(folder: str | None, classes: str | None) -> ImageMasks | None:
+    """`--image-masks DIR` and `--mask-classes FILE` as `occdata.labels.paint.ImageMasks` (None: no masks)."""
+    from occdata.formats.imagemasks import MaskClasses, load_mask_classes
+    from occdata.labels.paint import ImageMasks
+
+    if folder is None:
+        if classes is not None:
+            raise click.UsageError("--mask-classes needs --image-masks")
+        return None
+    root = local_path(folder, "--image-masks")
+    if not root.is_dir():
+        raise click.UsageError(f"--image-masks {folder}: not a folder")
+    table = load_mask_classes(local_path(classes, "--mask-classes")) if classes else MaskClasses.occ3d()
+    return ImageMasks(root, table)
 
 
 @main.command("bev-gt")

@@ -13,7 +13,7 @@ from reference.labels_paint import depth_buffer_reference, visible_reference
 
 from occdata.errors import OccDataError
 from occdata.formats.imagemasks import IGNORE, MaskClasses, load_mask_classes, mask_path, read_mask
-from occdata.labels.flat import fold_votes, on_ground, tiered_majority, uncover
+from occdata.labels.flat import SceneGround, fold_votes, on_ground, tiered_majority, uncover
 from occdata.labels.heights import GroundMap, HeightOffsets
 from occdata.labels.kernels import NO_LABEL, vote_voxels
 from occdata.labels.paint import ImageMasks, depth_buffer, paint_camera, visible_points
@@ -117,12 +117,32 @@ def test_uncover_gives_a_walls_foot_its_class() -> None:
 
 
 def test_on_ground() -> None:
-    # One 0.5 m column at x, y in [0, 0.5) with ground at z = 0.1; a slot 0.05 m too high at t = 0.
-    ground = GroundMap(np.array([0], np.int64), np.array([0.1]), 0.5)
+    # One 0.5 m column at x, y in [0, 0.5) with ground at z = 0.1, its 2 m column at 0.3; a slot 0.05 m
+    # too high at t = 0. The 2 m map stands in where the 0.5 m one saw nothing (x = 1.2).
+    fine = GroundMap(np.array([0], np.int64), np.array([0.1]), 0.5)
+    coarse = GroundMap(np.array([0], np.int64), np.array([0.3]), 2.0)
     heights = HeightOffsets(np.array([0, 1_000_000], np.int64), np.array([0.05, 0.05]))
-    pts = np.array([[0.2, 0.2, 0.2], [0.2, 0.2, 0.4], [0.2, 0.2, 0.3], [3.0, 3.0, 0.1]])
-    # aligned heights over the ground: 0.05, 0.25, 0.15, no ground seen
-    assert on_ground(pts, 0, heights, ground, 0.2).tolist() == [True, False, True, False]
+    ground = SceneGround(heights, fine, coarse)
+    pts = np.array([[0.2, 0.2, 0.2], [0.2, 0.2, 0.4], [0.2, 0.2, 0.3], [1.2, 1.2, 0.4], [3.0, 3.0, 0.1]])
+    # aligned heights over the ground: 0.05, 0.25, 0.15 (0.5 m map), 0.05 (2 m map), no ground seen
+    assert on_ground(pts, 0, ground, 0.2).tolist() == [True, False, True, True, False]
+
+
+def test_scene_ground_fit() -> None:
+    # Two slots seeing a plane at z = 0 (the second 0.1 m too high) and a wall from z = 0 to 3 m at
+    # x = 10: every column's ground is the plane's height once the slot's error is taken off.
+    xs, ys = np.meshgrid(np.arange(0.05, 12.0, 0.25), np.arange(0.05, 4.0, 0.25))
+    plane = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], 1)
+    wall = np.array([[10.05, y, z] for y in np.arange(0.05, 4.0, 0.25) for z in np.arange(0.0, 3.0, 0.1)])
+    pts = np.vstack([plane, wall])
+    shifted = pts + [0.0, 0.0, 0.1]
+    heights = HeightOffsets(np.array([0, 500_000], np.int64), np.array([0.0, 0.1]))
+    ground = SceneGround.fit([(np.zeros(3), pts, 0), (np.zeros(3), shifted, 500_000)], heights)
+    z = ground.height_under(pts)
+    # The wall's columns too: their lowest surface is its foot (the mean of z = 0, 0.1, 0.2 and the plane).
+    assert np.abs(z[: len(plane)][plane[:, 0] < 9.9]).max() < 1e-9 and np.abs(z).max() < 0.1
+    # The wall's foot (z = 0, 0.1, 0.2) is within 0.2 m of it: flat points (`uncover` gives its voxel back).
+    assert on_ground(wall, 0, ground, 0.2).sum() == 3 * len(np.arange(0.05, 4.0, 0.25))
 
 
 def test_vote_voxels_carries_tier_two_classes() -> None:

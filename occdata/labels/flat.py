@@ -1,11 +1,16 @@
 """Ground from geometry, and the two-tier vote that image masks need.
 
 Without lidarseg and without masks every static point used to be one class (`others`). The scene's
-ground model (`occdata.labels.heights`: per 0.5 m column the lowest surface any keyframe slot saw,
-each slot's heights aligned first) splits off the ground: a static point within `clearance` m of its
-column's ground (after its own slot's height error is taken off) is **flat** and takes `flat_class`
-(one of Occ3D's 11-14 as a stand-in: the geometry cannot tell road from sidewalk or grass); the
-other static points keep `static_class`. Points of columns whose ground no keyframe saw stay static.
+ground model (`occdata.labels.heights`, as carving fits it: per column the lowest surface any keyframe
+slot saw, each slot's heights aligned first) splits off the ground: a static point within `clearance`
+m of its column's ground (after its own slot's height error is taken off) is **flat** and takes
+`flat_class` (one of Occ3D's 11-14 as a stand-in: the geometry cannot tell road from sidewalk or
+grass); the other static points keep `static_class`. For labels the model reaches as far as the
+LiDAR (`REACH`; carving keeps to 30 m) and keeps columns with a single point near their lowest, and
+where a 0.5 m column has no ground seen the 2 m column around it gives it (`SceneGround`): far off,
+a LiDAR's rings are metres apart. A column whose lowest surface stands more than `STEP` m over the
+lowest one within 3 m (2 m columns, the 3 x 3 around its own) saw no ground but a roof, a car or the
+upper part of a wall: it has none. Points of columns whose ground no slot saw stay static.
 
 The bottom voxel of a wall, a pole or a trunk holds its foot within `clearance` of the ground, and
 the ground beside it: geometry alone would call it flat. So after the vote a flat voxel whose voxel
@@ -21,21 +26,63 @@ majority of its tier-1 votes, and the majority of its tier-2 votes where it has 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
+
 import numpy as np
 
-from occdata.labels.heights import GroundMap, HeightOffsets
+from occdata.labels.heights import COLUMN_M, GroundMap, HeightOffsets, ground_cells, ground_map
 from occdata.labels.kernels import majority
 
-__all__ = ["fold_votes", "on_ground", "tiered_majority", "uncover"]
+__all__ = ["FLAT_CLASS", "FLAT_CLEARANCE", "SceneGround", "fold_votes", "on_ground", "tiered_majority", "uncover"]
+
+FLAT_CLASS = 11  # driveable_surface: the default stand-in for "the scene's ground"
+FLAT_CLEARANCE = 0.2  # m over the column's ground within which a static point is flat
+REACH = 80.0  # m from a slot's LiDAR within which its lowest surfaces count (the synthetic LiDAR's range)
+COARSE_M = 2.0  # m: the column that stands in where a 0.5 m column saw no ground
+STEP = 0.5  # m: the most a column's ground may stand over the lowest around it (kerbs, slopes)
 
 
-def on_ground(points: np.ndarray, t_us: int, heights: HeightOffsets, ground: GroundMap,
-              clearance: float) -> np.ndarray:
+@dataclass(frozen=True, eq=False)
+class SceneGround:
+    """A scene's ground for labels: the slots' height errors `heights`, and the lowest surface per 0.5 m
+    column (`fine`) and per 2 m column (`coarse`), in aligned heights."""
+
+    heights: HeightOffsets
+    fine: GroundMap
+    coarse: GroundMap
+
+    @classmethod
+    def fit(cls, slots: Sequence[tuple[np.ndarray, np.ndarray, int]], heights: HeightOffsets) -> SceneGround:
+        """From each keyframe slot's `(origin (3,), points (N, 3), t_us)` (global, off the ego) and the
+        slots' height errors (`occdata.labels.heights.height_offsets`)."""
+        dz = np.array([heights.at(t) for _, _, t in slots])
+        maps = [ground_map([ground_cells(p, o, cell, REACH, min_points=1) for o, p, _ in slots], dz, cell)
+                for cell in (COLUMN_M, COARSE_M)]
+        return cls(heights, *maps)
+
+    def height_under(self, points: np.ndarray) -> np.ndarray:
+        """`(N,) float64`: the ground height under each of `points (N, 3)` (aligned), NaN where unseen
+        (module docstring: the 0.5 m column's, else the 2 m column's, if not `STEP` over the lowest around)."""
+        points = np.asarray(points, np.float64).reshape(-1, 3)
+        z = self.fine.height_under(points)
+        gap = np.isnan(z)
+        z[gap] = self.coarse.height_under(points[gap])
+        lowest = np.full(len(points), np.inf)
+        for dx in (-COARSE_M, 0.0, COARSE_M):
+            for dy in (-COARSE_M, 0.0, COARSE_M):
+                around = self.coarse.height_under(points + [dx, dy, 0.0])
+                lowest = np.fmin(lowest, around)
+        z[z > lowest + STEP] = np.nan
+        return z
+
+
+def on_ground(points: np.ndarray, t_us: int, ground: SceneGround, clearance: float) -> np.ndarray:
     """`(N,) bool`: which of a frame's `points (N, 3) float64` (global, taken at `t_us`) lie within
-    `clearance` m over the ground of their column, heights aligned (`heights.at(t_us)` taken off);
-    False where no slot saw that column's ground."""
+    `clearance` m over the ground of their column, heights aligned (`ground.heights.at(t_us)` taken
+    off); False where no slot saw that column's ground."""
     pts = np.array(points, np.float64).reshape(-1, 3)
-    pts[:, 2] -= heights.at(t_us)
+    pts[:, 2] -= ground.heights.at(t_us)
     above = pts[:, 2] - ground.height_under(pts)
     return np.nan_to_num(above, nan=np.inf) <= clearance
 
@@ -64,17 +111,20 @@ def uncover(semantics: np.ndarray, votes: list[np.ndarray], n: int, flat_class: 
             empty: int, region: np.ndarray | None = None) -> np.ndarray:
     """`semantics (X, Y, Z) uint8` (z up) with each covered flat voxel (module docstring; within
     `region (X, Y, Z) bool` when given) given the most voted class of its other votes (`votes`: plain
-    `vote_voxels` keys, `n` classes), `static_class` without any."""
-    above = np.zeros(semantics.shape, bool)
-    above[:, :, :-1] = (semantics[:, :, 1:] != empty) & (semantics[:, :, 1:] != flat_class)
-    covered = (semantics == flat_class) & above
-    if region is not None:
-        covered &= region
-    if not covered.any():
-        return semantics
+    `vote_voxels` keys, `n` classes), `static_class` without any. A stack of flat voxels under
+    something is uncovered from the top down (one pass per voxel of the stack)."""
     keys = np.concatenate([np.zeros(0, np.int64), *votes])
-    keep = covered.reshape(-1)[keys // n] & (keys % n != flat_class)
-    other = majority([keys[keep]], semantics.shape, n, empty)
-    out = semantics.copy()
-    out[covered] = np.where(other[covered] == empty, static_class, other[covered])
+    out = semantics
+    for _ in range(semantics.shape[2]):
+        above = np.zeros(out.shape, bool)
+        above[:, :, :-1] = (out[:, :, 1:] != empty) & (out[:, :, 1:] != flat_class)
+        covered = (out == flat_class) & above
+        if region is not None:
+            covered &= region
+        if not covered.any():
+            break
+        keep = covered.reshape(-1)[keys // n] & (keys % n != flat_class)
+        other = majority([keys[keep]], out.shape, n, empty)
+        out = out.copy()
+        out[covered] = np.where(other[covered] == empty, static_class, other[covered])
     return out

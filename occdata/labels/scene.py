@@ -36,8 +36,18 @@ from occdata.formats.gridspec import GRID_PRESETS, GridSpec, LabelFrame
 from occdata.geometry import invert_rigid, transform_points
 from occdata.labels.carve import CarveGrid, CarveOptions, time_slots
 from occdata.labels.densify import densify
+from occdata.labels.flat import (
+    FLAT_CLASS,
+    FLAT_CLEARANCE,
+    SceneGround,
+    fold_votes,
+    on_ground,
+    tiered_majority,
+    uncover,
+)
 from occdata.labels.heights import GroundMap, HeightOffsets, ground_cells, ground_map, height_offsets
 from occdata.labels.kernels import NO_LABEL, NearestIndex, majority, points_in_boxes, vote_sources, vote_voxels
+from occdata.labels.paint import ImageMasks, Painter
 from occdata.nuscenes import LidarRecord, NuScenesDataset, SampleRecord, SceneRecord, load_lidar_points
 from occdata.nuscenes.annotations import Annotations, BoxRecord, boxes_for_lidar, moving_instances
 from occdata.nuscenes.lidarseg import DROP, OCC3D_FROM_LIDARSEG, read_lidarseg
@@ -69,7 +79,10 @@ class LabelOptions:
     carve: split the points outside boxes into static and dynamic by free-space carving (None: in
     the scenes without boxes only; True: also on top of boxes; False: never). With carve True and
     use_boxes False the boxes are withheld altogether (`--boxes none`). dynamic_class: the Occ3D class
-    of dynamic points without lidarseg; carve_options: the evidence rules (`occdata.labels.carve`)."""
+    of dynamic points without lidarseg; carve_options: the evidence rules (`occdata.labels.carve`).
+    ground_class: without lidarseg, the Occ3D class of static points on the scene's ground
+    (`occdata.labels.flat`; equal to static_class: no split). image_masks: classes from the user's 2D
+    masks where there is no lidarseg (`occdata.labels.paint`; None: none)."""
 
     lidar_sweeps: bool = False
     knn_radius: float = 0.5
@@ -82,6 +95,8 @@ class LabelOptions:
     carve: bool | None = None
     dynamic_class: int = 4
     carve_options: CarveOptions = CarveOptions()
+    ground_class: int = FLAT_CLASS
+    image_masks: ImageMasks | None = None
 
     def __post_init__(self) -> None:
         if not 0 < self.knn_radius <= 5:
@@ -94,6 +109,13 @@ class LabelOptions:
             raise ValueError(f"static_class must be an Occ3D class 0..{NUM_CLASSES - 2}")
         if not 0 <= self.dynamic_class < NUM_CLASSES - 1:
             raise ValueError(f"dynamic_class must be an Occ3D class 0..{NUM_CLASSES - 2}")
+        if not 0 <= self.ground_class < NUM_CLASSES - 1:
+            raise ValueError(f"ground_class must be an Occ3D class 0..{NUM_CLASSES - 2}")
+
+    @property
+    def splits_ground(self) -> bool:
+        """Whether static points on the ground take `ground_class` (without lidarseg; `occdata.labels.flat`)."""
+        return self.ground_class != self.static_class
 
     def carves(self, has_boxes: bool, keyframes: int = 2) -> bool:
         """Whether a scene with (`has_boxes`) or without boxes, of `keyframes` keyframes, is carved. By
@@ -148,6 +170,53 @@ class SceneCounts:
     mode: str = "boxes"
     dynamic_points: int = 0
     carve_voxels: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class _SceneClasses:
+    """Where a scene has no lidarseg, its points' classes from geometry and masks: on the scene's
+    `ground` (`heights` aligned; None: not split) `ground_class`, `static_class` elsewhere, each
+    replaced by its painted class where the user's masks give one (`painter`; then two tiers of votes,
+    `occdata.labels.flat`). `boxes_at(i, t)`: sample i's boxes at time t, for the painter."""
+
+    opts: LabelOptions
+    ground: SceneGround | None
+    painter: Painter | None
+
+    @property
+    def n(self) -> int:
+        """The classes a vote key holds: two tiers with masks."""
+        return (NUM_CLASSES - 1) * (2 if self.painter is not None else 1)
+
+    def of(self, points: np.ndarray, t_us: int, boxes: tuple[BoxRecord, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """`(N,) uint8` each: the class of each of a frame's `points (N, 3)` (global, at `t_us`; `boxes`:
+        the frame's) if it is static, and if it is dynamic."""
+        o = self.opts
+        static = np.full(len(points), o.static_class, np.uint8)
+        if self.ground is not None:
+            static[on_ground(points, t_us, self.ground, FLAT_CLEARANCE)] = o.ground_class
+        dynamic = np.full(len(points), o.dynamic_class, np.uint8)
+        if self.painter is None:
+            return static, dynamic
+        painted = self.painter.paint(points, t_us, boxes, _in_boxes(points, boxes, o) if boxes else None)
+        voted = painted != NO_LABEL
+        k = NUM_CLASSES - 1
+        return (np.where(voted, painted, static + k).astype(np.uint8),
+                np.where(voted, painted, dynamic + k).astype(np.uint8))
+
+    def semantics(self, votes: list[np.ndarray], shape: tuple[int, int, int]) -> tuple[np.ndarray, list[np.ndarray]]:
+        """A keyframe's `(X, Y, Z) uint8` semantics from its vote keys (`_votes` with `n` classes), covered
+        flat voxels uncovered; and the votes as plain keys (17 classes) for densification and flow."""
+        k = NUM_CLASSES - 1
+        region = None
+        if self.painter is not None:
+            semantics, region = tiered_majority(votes, shape, k, FREE_LABEL)
+            votes = fold_votes(votes, k)
+        else:
+            semantics = majority(votes, shape, k, FREE_LABEL)
+        if self.ground is not None:
+            semantics = uncover(semantics, votes, k, self.opts.ground_class, self.opts.static_class, FREE_LABEL, region)
+        return semantics, votes
 
 
 @dataclass
@@ -253,10 +322,13 @@ def _members(points: np.ndarray, cls: np.ndarray | None, boxes: tuple[BoxRecord,
 
 
 def _add_keyframe(cloud: _Cloud, points: np.ndarray, cls: np.ndarray | None, boxes: tuple[BoxRecord, ...],
-                  opts: LabelOptions, counts: SceneCounts, dynamic: np.ndarray | None = None, t_us: int = 0) -> None:
+                  opts: LabelOptions, counts: SceneCounts, dynamic: np.ndarray | None = None, t_us: int = 0,
+                  own: tuple[np.ndarray, np.ndarray] | None = None) -> None:
     """Split a keyframe's global points into static and per-instance (box frame) points with classes;
     with `dynamic (N,) bool` (carving) the points outside boxes marked there, less ground, buildings and
-    vegetation by lidarseg, are kept as frame `t_us`'s dynamic points instead of static ones."""
+    vegetation by lidarseg, are kept as frame `t_us`'s dynamic points instead of static ones. `own`
+    (without lidarseg): each point's class if static and if dynamic, `(N,) uint8` each (`_SceneClasses`;
+    None: `static_class` and `dynamic_class`)."""
     idx = _members(points, cls, boxes, opts)
     for b in np.unique(idx[idx >= 0]):
         sel = idx == b
@@ -270,12 +342,14 @@ def _add_keyframe(cloud: _Cloud, points: np.ndarray, cls: np.ndarray | None, box
     static = idx < 0
     if dynamic is not None:
         moving = static & dynamic & (True if cls is None else ~np.isin(cls, _STUFF))
-        c = cls[moving] if cls is not None else np.full(int(moving.sum()), opts.dynamic_class, np.uint8)
+        c = cls[moving] if cls is not None else own[1][moving] if own is not None else \
+            np.full(int(moving.sum()), opts.dynamic_class, np.uint8)
         cloud.add_dynamic(t_us, points[moving], c)
         counts.dynamic_points += int(moving.sum())
         idx = np.where(moving, -2, idx)  # neither static nor an instance's
         static = idx == -1
-    c = cls[static] if cls is not None else np.full(int(static.sum()), opts.static_class, np.uint8)
+    c = cls[static] if cls is not None else own[0][static] if own is not None else \
+        np.full(int(static.sum()), opts.static_class, np.uint8)
     cloud.add_static(points[static], c)
     counts.object_points += int((idx >= 0).sum()) if dynamic is not None else int((~static).sum())
     counts.static_points += int(static.sum())
@@ -283,7 +357,8 @@ def _add_keyframe(cloud: _Cloud, points: np.ndarray, cls: np.ndarray | None, box
 
 def _add_sweep(cloud: _Cloud, points: np.ndarray, boxes: tuple[BoxRecord, ...], static_index: NearestIndex | None,
                object_index: dict[str, NearestIndex], opts: LabelOptions, counts: SceneCounts,
-               dynamic: np.ndarray | None = None, t_us: int = 0, dynamic_index: NearestIndex | None = None) -> None:
+               dynamic: np.ndarray | None = None, t_us: int = 0, dynamic_index: NearestIndex | None = None,
+               own: tuple[np.ndarray, np.ndarray] | None = None) -> None:
     """A sweep's points: without lidarseg (`static_index` None) as a keyframe's; with it, each point
     takes the class of the nearest labelled keyframe point, of its box's instance (box frame) or of
     the static scene (global), whichever is nearer (an in-box point with neither in reach: the box's
@@ -294,7 +369,7 @@ def _add_sweep(cloud: _Cloud, points: np.ndarray, boxes: tuple[BoxRecord, ...], 
     static keyframe point of a mover's sweep point is often the road under it (its keyframe points are
     elsewhere then), which would keep the mover's low points static and smear them."""
     if static_index is None:
-        _add_keyframe(cloud, points, None, boxes, opts, counts, dynamic, t_us)
+        _add_keyframe(cloud, points, None, boxes, opts, counts, dynamic, t_us, own)
         return
     idx = _in_boxes(points, boxes if opts.use_boxes else (), opts)
     cls_s, d2_s = static_index.query(points)
@@ -344,15 +419,14 @@ def T_grid_from_keyego(sample: SampleRecord, spec: GridSpec) -> np.ndarray:
 
 
 def _votes(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tuple[BoxRecord, ...],
-           T_grid_from_global: np.ndarray, grid: OccGrid,
-           dynamic: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[list[np.ndarray], list[int]]:
+           T_grid_from_global: np.ndarray, grid: OccGrid, dynamic: tuple[np.ndarray, np.ndarray] | None = None,
+           n: int = NUM_CLASSES - 1) -> tuple[list[np.ndarray], list[int]]:
     """`vote_voxels` keys on `grid` of the static points (first; with them the keyframe's `dynamic`
     points, global, where they were then: they have no box, so no flow) and of each box's instance
     points placed at that box's pose (then one list per box with points), and the index in `boxes` of
-    each list after the first."""
+    each list after the first. `n`: the classes a key holds (34 with two tiers, `occdata.labels.flat`)."""
     shape = np.array(grid.shape, np.int64)
     lower = np.array(grid.lower, np.float64)
-    n = NUM_CLASSES - 1
     votes = [vote_voxels(static[0], static[1], T_grid_from_global, lower, grid.voxel_size, shape, n)]
     if dynamic is not None and len(dynamic[0]):
         votes[0] = np.concatenate([votes[0], vote_voxels(np.ascontiguousarray(dynamic[0]), dynamic[1],
@@ -444,15 +518,21 @@ def _grid_labels(static: tuple[np.ndarray, np.ndarray], cloud: _Cloud, boxes: tu
                  sample: SampleRecord, rays: Rays, spec: GridSpec,
                  masks: bool, v_global: np.ndarray | None = None,
                  static_rays: tuple[np.ndarray, np.ndarray] | None = None,
-                 dynamic: tuple[np.ndarray, np.ndarray] | None = None, solids: bool = True) -> dict[str, np.ndarray]:
+                 dynamic: tuple[np.ndarray, np.ndarray] | None = None, solids: bool = True,
+                 classes: _SceneClasses | None = None) -> dict[str, np.ndarray]:
     """One keyframe on one grid: `semantics` in Occ3D classes (17 = free) and, with `masks`, the masks;
     all `(X, Y, Z) uint8` in the grid's frame. With `v_global (B, 3)` (m/s, global, one row per box of
     `boxes`, NaN as 0) also `flow (X, Y, Z, 2) float32` (`_flow`). With `static_rays` (`_static_rays`),
     `_densify` the semantics before the masks (a voxel a box filled takes its flow). `dynamic`: the
-    keyframe's dynamic points and classes (carving; global)."""
+    keyframe's dynamic points and classes (carving; global). `classes`: the scene's ground and masks
+    (`_SceneClasses`; None: a plain majority)."""
     T = T_grid_from_keyego(sample, spec) @ invert_rigid(sample.T_global_from_keyego)
-    votes, box_of_vote = _votes(static, cloud, boxes, T, spec.grid, dynamic)
-    semantics = majority(votes, spec.grid.shape, NUM_CLASSES - 1, FREE_LABEL)
+    if classes is None:
+        votes, box_of_vote = _votes(static, cloud, boxes, T, spec.grid, dynamic)
+        semantics = majority(votes, spec.grid.shape, NUM_CLASSES - 1, FREE_LABEL)
+    else:
+        votes, box_of_vote = _votes(static, cloud, boxes, T, spec.grid, dynamic, classes.n)
+        semantics, votes = classes.semantics(votes, spec.grid.shape)
     filled_by = None
     if static_rays is not None:
         semantics, filled_by = _densify(semantics, votes, box_of_vote, boxes, rays, T, spec.grid, static_rays,
@@ -610,6 +690,54 @@ def _slot_ground(key_rays: dict[int, tuple[np.ndarray, np.ndarray]], frames: lis
     return heights, ground_map(cells, np.zeros(len(cells)) if heights is None else heights.dz)
 
 
+def _scene_classes(inputs: LabelSources, indices: list[int], opts: LabelOptions, carve_grid: CarveGrid | None,
+                   withheld: bool, should_stop: Callable[[], None]) -> _SceneClasses | None:
+    """The classes of a scene without lidarseg from its ground and the user's masks (`_SceneClasses`;
+    None when neither applies). The ground is carving's when the scene is carved, else fitted here from
+    the keyframes alike (`_slot_ground`: heights aligned)."""
+    if not opts.splits_ground and opts.image_masks is None:
+        return None
+    ground = _scene_ground(inputs, indices, carve_grid, should_stop) if opts.splits_ground else None
+    painter = None
+    if opts.image_masks is not None:
+        painter = Painter(inputs.dataset, opts.image_masks,
+                          None if withheld else lambda i, t: _boxes_near(inputs, i, t))
+    return _SceneClasses(opts, ground, painter)
+
+
+def _scene_ground(inputs: LabelSources, indices: list[int], carve_grid: CarveGrid | None,
+                  should_stop: Callable[[], None]) -> SceneGround:
+    """The scene's ground for labels (`SceneGround`) from its keyframe slots, heights aligned as carving
+    aligns them (carving's own offsets when the scene is carved)."""
+    frames = _frames(inputs.dataset, indices, False)
+    key_rays = {f: _off_ego_rays(rec) for f, (_, _, rec) in enumerate(frames)}
+    slots = time_slots([rec.timestamp for _, _, rec in frames])
+    heights = carve_grid.heights if carve_grid is not None else \
+        _slot_ground(key_rays, frames, slots, True, should_stop)[0] or HeightOffsets.zero()
+    per_slot = []
+    for slot in np.unique(slots):
+        members = np.flatnonzero(slots == slot)
+        per_slot.append((key_rays[members[0]][0], np.concatenate([key_rays[f][1] for f in members]),
+                         frames[members[0]][2].timestamp))
+    return SceneGround.fit(per_slot, heights)
+
+
+def _boxes_near(inputs: LabelSources, i: int, t_us: int) -> tuple[BoxRecord, ...]:
+    """Sample `i`'s boxes at `t_us` (a camera's time near it): interpolated towards its prev or its next."""
+    ds, ann = inputs.dataset, inputs.annotations
+    s = ds.samples[i]
+    try:
+        if t_us < s.timestamp and s.prev:
+            prev = ds.sample(s.prev)
+            return ann.boxes_at(s.token, prev.token, prev.timestamp, s.timestamp, t_us)
+        if t_us > s.timestamp and s.next:
+            nxt = ds.sample(s.next)
+            return ann.boxes_at(nxt.token, s.token, s.timestamp, nxt.timestamp, t_us)
+    except KeyError:  # a neighbour outside the scene's slice: the sample's own boxes
+        pass
+    return ann.boxes_at(s.token, "", 0, 0, t_us)
+
+
 def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
                 should_stop: Callable[[], None] = _no_stop, grids: tuple[GridSpec, ...] = (GRID_PRESETS["occ3d"],),
                 flow: bool | Collection[str] = False,
@@ -651,6 +779,10 @@ def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
     with_seg = False
     # lidarseg labels the reference LiDAR alone: with it, the other LiDARs' keyframes are labelled as sweeps.
     seg_tree = bool(inputs.lidarseg) and inputs.lidarseg_lut is not None
+    classes = None if seg_tree else _scene_classes(inputs, indices, opts, carve_grid, withheld, should_stop)
+
+    def own(points: np.ndarray, rec: LidarRecord, boxes: tuple[BoxRecord, ...]) -> tuple[np.ndarray, np.ndarray] | None:
+        return None if classes is None else classes.of(points, rec.timestamp, boxes)
     later: list[tuple[int, int, LidarRecord]] = []
     for i in indices:  # pass 1: keyframes, the labelled references
         should_stop()  # Ctrl-C / SIGTERM of an in-process run: stop between frames
@@ -669,8 +801,10 @@ def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
             counts.points += len(points)
             counts.dropped_ego += int((~off_ego).sum())
             counts.dropped_class += int((off_ego & ~keep).sum())
-            _add_keyframe(cloud, points[keep], None if cls is None else cls[keep], boxes_of(i, k, rec), opts, counts,
-                          moving(points[keep], cls is not None, rec.timestamp), rec.timestamp)
+            boxes = boxes_of(i, k, rec)
+            _add_keyframe(cloud, points[keep], None if cls is None else cls[keep], boxes, opts, counts,
+                          moving(points[keep], cls is not None, rec.timestamp), rec.timestamp,
+                          None if cls is not None else own(points[keep], rec, boxes))
     sweeps = later + [f for f in _frames(ds, indices, True) if f[2] not in ds.samples[f[0]].lidars] \
         if opts.lidar_sweeps else later
     if sweeps:  # pass 2: sweeps, labelled from the keyframes
@@ -687,8 +821,10 @@ def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
             counts.frames += 1
             counts.points += len(points)
             counts.dropped_ego += int((~off_ego).sum())
-            _add_sweep(cloud, points[off_ego], boxes_of(i, k, rec), static_index, object_index or {}, opts, counts,
-                       moving(points[off_ego], False, rec.timestamp), rec.timestamp, dynamic_index)
+            boxes = boxes_of(i, k, rec)
+            _add_sweep(cloud, points[off_ego], boxes, static_index, object_index or {}, opts, counts,
+                       moving(points[off_ego], False, rec.timestamp), rec.timestamp, dynamic_index,
+                       None if with_seg else own(points[off_ego], rec, boxes))
     counts.instances = len(cloud.obj_pts)
     static = cloud.static()
     static = (np.ascontiguousarray(static[0]), np.ascontiguousarray(static[1]))
@@ -713,7 +849,8 @@ def label_scene(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions,
             any_flow = any(g.name in flow_names for g in members)
             shared = _grid_labels(static, cloud, boxes, s, rays[s.token], members[0],
                                   any(g.masks for g in members), v_global[n] if any_flow else None,
-                                  static_rays=more, dynamic=dynamic, solids=seg_tree)
+                                  static_rays=more, dynamic=dynamic, solids=seg_tree,
+                                  classes=None if with_seg else classes)
             for spec in members:
                 keep = {"semantics", *(("mask_lidar", "mask_camera") if spec.masks else ()),
                         *(("flow",) if spec.name in flow_names else ())}
