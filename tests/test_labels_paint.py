@@ -13,7 +13,7 @@ from reference.labels_paint import depth_buffer_reference, visible_reference
 
 from occdata.errors import OccDataError
 from occdata.formats.imagemasks import IGNORE, MaskClasses, load_mask_classes, mask_path, read_mask
-from occdata.labels.flat import SceneGround, fold_votes, on_ground, tiered_majority, uncover
+from occdata.labels.flat import SceneGround, fill_flat, fold_votes, on_ground, tiered_majority, uncover
 from occdata.labels.heights import GroundMap, HeightOffsets
 from occdata.labels.kernels import NO_LABEL, vote_voxels
 from occdata.labels.paint import ImageMasks, depth_buffer, paint_camera, visible_points
@@ -98,22 +98,24 @@ def test_tiered_majority_by_hand() -> None:
 
 
 def test_uncover_gives_a_walls_foot_its_class() -> None:
-    # Column 0: flat at z0 under a wall (15) at z1; its own votes 11 x3, 15 x2 -> 15.
-    # Column 1: flat at z0 under a pole, no other votes in z0 -> static class 0.
+    # Column 0: flat at z0 under a wall (15) at z1; its own votes 11 x3, 0 x1, 16 x1: the other votes
+    #   tie 0 : 16 -> the lower class, 0 (not the wall above: its own points decide).
+    # Column 1: flat at z0 under a car (4), no other votes in z0 -> the class above, 4.
     # Column 2: flat at z0, free above -> stays flat. Column 3: flat under flat -> stays.
-    sem = np.full((4, 1, 3), FREE, np.uint8)
+    # Column 4: flat at z0 and z1 under a pole (15) at z2, no other votes -> 15 from the top down.
+    sem = np.full((5, 1, 3), FREE, np.uint8)
     sem[:, 0, 0] = 11
-    sem[0, 0, 1] = 15
-    sem[1, 0, 1] = 15
-    sem[3, 0, 1] = 11
+    sem[0, 0, 1], sem[1, 0, 1], sem[3, 0, 1] = 15, 4, 11
+    sem[4, 0, 1], sem[4, 0, 2] = 11, 15
 
-    def flat(i: int, k: int) -> int:
-        return (i * 3 + k) * N
+    def key(i: int, k: int, c: int) -> int:
+        return (i * 3 + k) * N + c
 
-    votes = [np.array([flat(0, 0) + 11] * 3 + [flat(0, 0) + 15] * 2 + [flat(1, 0) + 11], np.int64)]
-    out = uncover(sem, votes, N, 11, 0, FREE)
-    assert out[:, 0, 0].tolist() == [15, 0, 11, 11]
-    assert (out[:, 0, 1:] == sem[:, 0, 1:]).all()
+    votes = [np.array([key(0, 0, 11)] * 3 + [key(0, 0, 0), key(0, 0, 16), key(1, 0, 11)], np.int64)]
+    out = uncover(sem, votes, N, 11, FREE)
+    assert out[:, 0, 0].tolist() == [0, 4, 11, 11, 15]
+    assert out[4, 0].tolist() == [15, 15, 15]
+    assert (out[:4, 0, 1:] == sem[:4, 0, 1:]).all()
 
 
 def test_on_ground() -> None:
@@ -190,3 +192,23 @@ def test_read_mask_errors(tmp_path: Path) -> None:
     cv2.imwrite(str(path), np.zeros((4, 8, 3), np.uint8))
     with pytest.raises(OccDataError, match="single-channel"):
         read_mask(path, 8, 4, MaskClasses.occ3d())
+
+
+def test_fill_flat_takes_the_masks_ground_next_to_it() -> None:
+    # Layer z1 of a 7 x 1 strip: x0-x1 painted sidewalk (13), x2 painted road (11), x3-x6 flat by geometry
+    # (11). Within 2 voxels: x3 sees 13 x1 (x1), 11 x1 (x2) -> tie to the lower class, 11; x4 sees only
+    # x2's 11 -> 11; x5, x6 see no painted voxel -> stay. A geometric non-flat voxel is never touched.
+    sem = np.full((7, 1, 3), FREE, np.uint8)
+    sem[:, 0, 1] = [13, 13, 11, 11, 11, 11, 11]
+    by_geometry = np.zeros(sem.shape, bool)
+    by_geometry[3:, 0, 1] = True
+    out = fill_flat(sem, by_geometry, 11)
+    assert out[:, 0, 1].tolist() == [13, 13, 11, 11, 11, 11, 11]
+    sem[2, 0, 1] = 13  # now x3 sees 13 x2, x4 sees 13 x1 (x2), x5 none
+    out = fill_flat(sem, by_geometry, 11)
+    assert out[:, 0, 1].tolist() == [13, 13, 13, 13, 13, 11, 11]
+    sem[6, 0, 0] = 14  # one layer down counts too: x6 now sees painted terrain below it (and x5 too)
+    sem[4, 0, 2] = 0  # a geometric `others` voxel is never touched
+    by_geometry[4, 0, 2] = True
+    out = fill_flat(sem, by_geometry, 11)
+    assert out[:, 0, 1].tolist() == [13, 13, 13, 13, 13, 14, 14] and out[4, 0, 2] == 0

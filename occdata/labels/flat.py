@@ -12,16 +12,22 @@ a LiDAR's rings are metres apart. A column whose lowest surface stands more than
 lowest one within 3 m (2 m columns, the 3 x 3 around its own) saw no ground but a roof, a car or the
 upper part of a wall: it has none. Points of columns whose ground no slot saw stay static.
 
-The bottom voxel of a wall, a pole or a trunk holds its foot within `clearance` of the ground, and
-the ground beside it: geometry alone would call it flat. So after the vote a flat voxel whose voxel
-above is occupied by something else that is not flat is **covered** (`uncover`): it takes the most
-voted class of its non-flat points, or `static_class` when it has none. Overhangs lower than one voxel
-over the ground are rare; a tree's crown higher than that does not cover the grass under it.
+The bottom voxel of a wall, a pole, a trunk or a car holds its foot within `clearance` of the ground,
+and the ground beside it: geometry alone (and a mask, whose road runs under the car's edge) would call
+it flat. So after the vote a flat voxel whose voxel above is occupied by something that is not flat is
+**covered** (`uncover`): it takes the most voted class of its other points, or, with none, the class of
+the voxel above (what stands on it reaches down to the ground, as Occ3D's voxels of an object touch
+it). Overhangs lower than one voxel over the ground are rare; a tree's crown higher than that does not
+cover the grass under it.
 
 With image masks a point's class is either painted (tier 1: the masks, and a box's class) or
 geometric (tier 2: flat / static / dynamic, where no mask voted). Classes travel in one `uint8` as
 `c` (tier 1) or `n + c` (tier 2), `n` = 17 semantic classes; `tiered_majority` gives each voxel the
-majority of its tier-1 votes, and the majority of its tier-2 votes where it has none.
+majority of its tier-1 votes, and the majority of its tier-2 votes where it has none. A voxel that
+geometry alone called flat then takes the most common flat class (Occ3D's 11-14) of the voxels around
+it that masks decided (`fill_flat`: within `FILL` voxels across, one up or down), when there are any:
+far off or at a grazing angle the occlusion test rejects most ground points, and the road, sidewalk
+or grass there is the one the masks saw next to it.
 """
 
 from __future__ import annotations
@@ -29,17 +35,20 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from occdata.labels.heights import COLUMN_M, GroundMap, HeightOffsets, ground_cells, ground_map
 from occdata.labels.kernels import majority
 
-__all__ = ["FLAT_CLASS", "FLAT_CLEARANCE", "SceneGround", "fold_votes", "on_ground", "tiered_majority", "uncover"]
+__all__ = ["FLAT_CLASS", "FLAT_CLEARANCE", "SceneGround", "fill_flat", "fold_votes", "on_ground", "tiered_majority",
+           "uncover"]
 
 FLAT_CLASS = 11  # driveable_surface: the default stand-in for "the scene's ground"
 FLAT_CLEARANCE = 0.2  # m over the column's ground within which a static point is flat
 REACH = 80.0  # m from a slot's LiDAR within which its lowest surfaces count (the synthetic LiDAR's range)
 COARSE_M = 2.0  # m: the column that stands in where a 0.5 m column saw no ground
+FILL = 2  # voxels across within which `fill_flat` looks for a flat class the masks gave
 STEP = 0.5  # m: the most a column's ground may stand over the lowest around it (kerbs, slopes)
 
 
@@ -107,12 +116,38 @@ def tiered_majority(votes: list[np.ndarray], shape: tuple[int, int, int], n: int
     return out.astype(np.uint8), by_geometry
 
 
-def uncover(semantics: np.ndarray, votes: list[np.ndarray], n: int, flat_class: int, static_class: int,
-            empty: int, region: np.ndarray | None = None) -> np.ndarray:
+def fill_flat(semantics: np.ndarray, by_geometry: np.ndarray, flat_class: int,
+              flat_classes: tuple[int, ...] = (11, 12, 13, 14), radius: int = FILL) -> np.ndarray:
+    """`semantics (X, Y, Z) uint8` with each voxel of `by_geometry (X, Y, Z) bool` (tier 2) that holds
+    `flat_class` given the most common of `flat_classes` among the other voxels within `radius` in x
+    and y and 1 in z (ties to the lower class); unchanged where there is none."""
+    target = by_geometry & (semantics == flat_class)
+    if not target.any():
+        return semantics
+    painted = ~by_geometry
+    counts = np.zeros((len(flat_classes), *semantics.shape), np.float32)
+    size = (2 * radius + 1, 2 * radius + 1)
+    for c, cls in enumerate(flat_classes):
+        layer = (painted & (semantics == cls)).astype(np.float32)
+        across = np.stack([cv2.boxFilter(layer[:, :, z], -1, size, normalize=False,
+                                         borderType=cv2.BORDER_CONSTANT) for z in range(layer.shape[2])], 2)
+        counts[c] = across
+        counts[c, :, :, 1:] += across[:, :, :-1]
+        counts[c, :, :, :-1] += across[:, :, 1:]
+    best = np.argmax(counts, axis=0)
+    found = counts.max(axis=0) > 0
+    out = semantics.copy()
+    fill = target & found
+    out[fill] = np.asarray(flat_classes, np.uint8)[best[fill]]
+    return out
+
+
+def uncover(semantics: np.ndarray, votes: list[np.ndarray], n: int, flat_class: int, empty: int,
+            region: np.ndarray | None = None) -> np.ndarray:
     """`semantics (X, Y, Z) uint8` (z up) with each covered flat voxel (module docstring; within
     `region (X, Y, Z) bool` when given) given the most voted class of its other votes (`votes`: plain
-    `vote_voxels` keys, `n` classes), `static_class` without any. A stack of flat voxels under
-    something is uncovered from the top down (one pass per voxel of the stack)."""
+    `vote_voxels` keys, `n` classes), the class of the voxel above without any. A stack of flat voxels
+    under something is uncovered from the top down (one pass per voxel of the stack)."""
     keys = np.concatenate([np.zeros(0, np.int64), *votes])
     out = semantics
     for _ in range(semantics.shape[2]):
@@ -125,6 +160,8 @@ def uncover(semantics: np.ndarray, votes: list[np.ndarray], n: int, flat_class: 
             break
         keep = covered.reshape(-1)[keys // n] & (keys % n != flat_class)
         other = majority([keys[keep]], out.shape, n, empty)
+        up = np.full(out.shape, empty, np.uint8)
+        up[:, :, :-1] = out[:, :, 1:]
         out = out.copy()
-        out[covered] = np.where(other[covered] == empty, static_class, other[covered])
+        out[covered] = np.where(other[covered] == empty, up[covered], other[covered])
     return out

@@ -40,6 +40,7 @@ from occdata.labels.flat import (
     FLAT_CLASS,
     FLAT_CLEARANCE,
     SceneGround,
+    fill_flat,
     fold_votes,
     on_ground,
     tiered_majority,
@@ -208,14 +209,14 @@ class _SceneClasses:
         """A keyframe's `(X, Y, Z) uint8` semantics from its vote keys (`_votes` with `n` classes), covered
         flat voxels uncovered; and the votes as plain keys (17 classes) for densification and flow."""
         k = NUM_CLASSES - 1
-        region = None
         if self.painter is not None:
-            semantics, region = tiered_majority(votes, shape, k, FREE_LABEL)
+            semantics, by_geometry = tiered_majority(votes, shape, k, FREE_LABEL)
+            semantics = fill_flat(semantics, by_geometry, self.opts.ground_class)
             votes = fold_votes(votes, k)
         else:
             semantics = majority(votes, shape, k, FREE_LABEL)
         if self.ground is not None:
-            semantics = uncover(semantics, votes, k, self.opts.ground_class, self.opts.static_class, FREE_LABEL, region)
+            semantics = uncover(semantics, votes, k, self.opts.ground_class, FREE_LABEL)
         return semantics, votes
 
 
