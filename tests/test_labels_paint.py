@@ -4,6 +4,7 @@ kernels against their numpy twins, hand-worked occlusion and votes, the mask fil
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -212,3 +213,77 @@ def test_fill_flat_takes_the_masks_ground_next_to_it() -> None:
     by_geometry[4, 0, 2] = True
     out = fill_flat(sem, by_geometry, 11)
     assert out[:, 0, 1].tolist() == [13, 13, 13, 13, 13, 14, 14] and out[4, 0, 2] == 0
+
+
+# ------------------------------------------------------------------------------------------------
+# end to end: a small synthetic world with its truth masks, lidarseg dropped
+# ------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def world(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """1 scene x 3 keyframes at 192x108 with `--image-masks`, its lidarseg table removed."""
+    from occdata.synth import SynthConfig, synthesize
+
+    root = synthesize(SynthConfig(out=tmp_path_factory.mktemp("paint") / "world", scenes=1, samples=3, seed=5,
+                                  width=192, height=108, progress=False, image_masks=True))
+    (root / "v1.0-mini" / "lidarseg.json").unlink()
+    return root
+
+
+def _labels(root: Path, out: Path, *extra: str) -> tuple[list[np.ndarray], list[np.ndarray], dict]:
+    from click.testing import CliRunner
+
+    from cli.occdata_cli import main
+
+    r = CliRunner().invoke(main, ["labels", "--root", str(root), "--out", str(out), "--no-progress", "--workers", "1",
+                                  *extra])
+    assert r.exit_code == 0, r.output
+    from occdata.nuscenes import load_nuscenes
+
+    gen, truth = [], []
+    for s in load_nuscenes(root, None).samples:
+        with np.load(out / s.scene_name / s.token / "labels.npz", allow_pickle=False) as z:
+            gen.append(z["semantics"])
+        with np.load(root / "gts" / s.scene_name / s.token / "labels.npz", allow_pickle=False) as z:
+            truth.append(z["semantics"])
+    return gen, truth, json.loads((out / "labels.json").read_text())
+
+
+def _accuracy(gen: list[np.ndarray], truth: list[np.ndarray]) -> float:
+    both = [(g != FREE) & (t != FREE) for g, t in zip(gen, truth, strict=True)]
+    same = sum(int((b & (g == t)).sum()) for b, g, t in zip(both, gen, truth, strict=True))
+    return same / sum(int(b.sum()) for b in both)
+
+
+@pytest.mark.slow
+def test_masks_and_ground_on_a_synthetic_world(world: Path, tmp_path: Path) -> None:
+    plain, truth, _ = _labels(world, tmp_path / "plain", "--ground-class", "0")
+    ground, _, meta_g = _labels(world, tmp_path / "ground")
+    painted, _, meta_p = _labels(world, tmp_path / "masks", "--image-masks", str(world / "masks"))
+    flat = [np.isin(t, [11, 12, 13, 14]) & (g != FREE) for g, t in zip(ground, truth, strict=True)]
+    found = sum(int((f & np.isin(g, [11])).sum()) for f, g in zip(flat, ground, strict=True))
+    assert found / sum(int(f.sum()) for f in flat) > 0.85  # the ground from geometry alone
+    # The box path's old labels: the boxes' categories (1-10), every other point `others`.
+    assert set(np.unique(np.concatenate([p.ravel() for p in plain])).tolist()) <= {*range(11), FREE}
+    assert _accuracy(painted, truth) > 0.85 > 0.5 > _accuracy(ground, truth) > _accuracy(plain, truth)
+    assert {13, 15, 16} <= set(np.unique(np.concatenate([p.ravel() for p in painted])).tolist())
+    assert meta_g["options"]["ground_class"] == 11 and "flat ground" in meta_g["classes"]
+    assert meta_p["options"]["image_masks"]["classes"] == "Occ3D ids" and "image masks" in meta_p["classes"]
+
+
+def test_image_mask_errors_are_one_line(world: Path, tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from cli.occdata_cli import main
+
+    masks = tmp_path / "masks"
+    shutil.copytree(world / "masks", masks)
+    victim = sorted(masks.rglob("*.png"))[0]
+    victim.unlink()
+    r = CliRunner().invoke(main, ["labels", "--root", str(world), "--out", str(tmp_path / "a"), "--no-progress",
+                                  "--workers", "1", "--image-masks", str(masks)])
+    assert r.exit_code != 0 and f"image mask {victim} is missing" in r.output and "Traceback" not in r.output
+    table = tmp_path / "classes.json"
+    table.write_text(json.dumps({"3": "lorry"}))
+    r = CliRunner().invoke(main, ["labels", "--root", str(world), "--out", str(tmp_path / "b"), "--no-progress",
+                                  "--image-masks", str(world / "masks"), "--mask-classes", str(table)])
+    assert r.exit_code != 0 and "unknown class 'lorry'" in r.output and "Traceback" not in r.output
