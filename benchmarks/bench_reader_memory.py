@@ -70,7 +70,7 @@ def _run_command(spec: dict[str, Any], client: Any) -> None:
         from occdata.labels import LabelOptions, LabelsConfig, generate_labels
 
         generate_labels(LabelsConfig(root=root, out=out, splits=SPLITS, progress=False,
-                                     options=LabelOptions(lidar_sweeps=True)), client)
+                                     options=LabelOptions(all_sweeps=True)), client)
     else:
         from occdata.nuscenes.summary import scan_tree
 

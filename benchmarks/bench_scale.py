@@ -199,7 +199,7 @@ def labels_job(world: World, tmp: Path) -> Job:
     from occdata.labels import LabelOptions, LabelsConfig, generate_labels
 
     def run(tag: str, client: Any, workers: int, scenes: tuple[str, ...] | None = None) -> int:
-        cfg = LabelsConfig(root=world.root, out=tmp / tag, options=LabelOptions(lidar_sweeps=True), progress=False,
+        cfg = LabelsConfig(root=world.root, out=tmp / tag, options=LabelOptions(all_sweeps=True), progress=False,
                            scenes=scenes, cluster=ClusterConfig(workers=workers))
         return generate_labels(cfg, client=client).keyframes
 

@@ -120,7 +120,7 @@ def main() -> None:
     world = synthesize(SynthConfig(out=args.out / "world", scenes=args.scenes, samples=args.samples, seed=args.seed,
                                    width=320, height=180, progress=False))
     gen = args.out / "labels"
-    generate_labels(LabelsConfig(root=world, out=gen, options=LabelOptions(lidar_sweeps=True), progress=False,
+    generate_labels(LabelsConfig(root=world, out=gen, options=LabelOptions(all_sweeps=True), progress=False,
                                  grids=(GRID_PRESETS["occ3d"], SPEC)))
     n = write_truth_tree(world, args.out / "truth", args.seed, args.samples)
     for name, gts in (("truth", args.out / "truth"), ("self", gen / "openocc-v2")):

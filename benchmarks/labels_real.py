@@ -23,8 +23,8 @@ import numpy as np
 from benchmarks.common import SHARED_DATA, write_json
 from benchmarks.provenance import REPO, machine
 from occdata.geometry import invert_rigid
+from occdata.labels.boxes import box_class
 from occdata.labels.fidelity import moving_containment
-from occdata.labels.scene import box_class
 from occdata.nuscenes import load_nuscenes
 from occdata.nuscenes.annotations import load_annotations
 from occdata.view.render import prediction_picture

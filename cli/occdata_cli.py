@@ -302,7 +302,7 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
         report = generate_labels(LabelsConfig(
             root=local_path(root, "--root"), out=out_path, version=version, splits=splits or None,
             scenes=scenes or None, resume=resume, progress=progress,
-            options=LabelOptions(lidar_sweeps=all_sweeps, static_class=static_class, knn_radius=knn_radius,
+            options=LabelOptions(all_sweeps=all_sweeps, static_class=static_class, knn_radius=knn_radius,
                                  use_boxes=not no_boxes and boxes_mode == "auto", densify=densify,
                                  carve=carve if carve is not None else (True if boxes_mode == "none" else
                                                                         False if no_boxes else None),

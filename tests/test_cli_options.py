@@ -139,12 +139,12 @@ def test_labels_all_sweeps_and_its_old_spelling(monkeypatch: pytest.MonkeyPatch,
                                                 old: list[str]) -> None:
     base = ["labels", "--root", str(tmp_path), "--out", str(tmp_path / "o")]
     cfg, err = _call(monkeypatch, occdata_main, base + new, "occdata.labels.generate_labels")
-    assert cfg.options.lidar_sweeps is True and err == ""
+    assert cfg.options.all_sweeps is True and err == ""
     cfg, err = _call(monkeypatch, occdata_main, base + old, "occdata.labels.generate_labels")
-    assert cfg.options.lidar_sweeps is True
+    assert cfg.options.all_sweeps is True
     assert err == "note: --lidar-sweeps is now --all-sweeps (the old spelling still works, for a while)\n"
     cfg, err = _call(monkeypatch, occdata_main, base, "occdata.labels.generate_labels")
-    assert cfg.options.lidar_sweeps is False and err == ""
+    assert cfg.options.all_sweeps is False and err == ""
 
 
 def _called_kwargs(monkeypatch: pytest.MonkeyPatch, group: click.Group, args: list[str],

@@ -20,8 +20,11 @@ from conftest import REAL_SEQ, missing_fixture
 from occdata.constants import FREE_LABEL, NUM_CLASSES
 from occdata.formats.gridspec import GRID_PRESETS
 from occdata.geometry import invert_rigid, points_in_box, transform_points
+from occdata.labels.boxes import box_class, held_static
+from occdata.labels.flow import voxel_flow
 from occdata.labels.kernels import majority, vote_sources
-from occdata.labels.scene import LabelOptions, _flow, _held_static, box_class, label_scene
+from occdata.labels.options import LabelOptions
+from occdata.labels.scene import label_scene
 from occdata.nuscenes.annotations import Annotations, BoxRecord, box_velocity, load_annotations
 
 needs_devkit = pytest.mark.skipif(
@@ -119,7 +122,7 @@ def test_flow_rotates_the_ground_velocity_into_the_grid() -> None:
     yaw = np.pi / 2  # grid x = global y
     R_grid_from_global = np.array([[np.cos(yaw), np.sin(yaw), 0], [-np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
     v_global = np.array([[9.0, 9.0, 9.0], [3.0, 1.0, 5.0], [0.0, -2.0, 0.0]])  # box 0 has no points here
-    flow = _flow(votes, [1, 2], sem, v_global, R_grid_from_global)
+    flow = voxel_flow(votes, [1, 2], sem, v_global, R_grid_from_global)
     assert flow.shape == (2, 2, 2, 2) and flow.dtype == np.float32
     f = flow.reshape(-1, 2)
     np.testing.assert_allclose(f[1], [1.0, -3.0], atol=1e-6)
@@ -170,7 +173,7 @@ def real_flow_check(inputs, labels: dict) -> dict[str, int]:  # noqa: ANN001
     vel = inputs.annotations.box_velocities()
     reach = 0.1 + np.sqrt(3) * grid.voxel_size / 2
     keyframe_boxes = [inputs.annotations.boxes_by_sample.get(s.token, ()) for s in inputs.dataset.samples]
-    held = _held_static(keyframe_boxes, LabelOptions().hold_static)
+    held = held_static(keyframe_boxes, LabelOptions().hold_static)
     n = {"held_by_one": 0, "equal": 0, "flowing": 0, "flowing_unexplained": 0}
     for s, annotated, parked in zip(inputs.dataset.samples, keyframe_boxes, held, strict=True):
         sem, flow = labels[s.token]["semantics"], labels[s.token]["flow"]
@@ -260,7 +263,7 @@ def synth_flow(tmp_path_factory: pytest.TempPathFactory):  # noqa: ANN201
     from occdata.synth import SynthConfig, synthesize
 
     root = synthesize(SynthConfig(out=tmp_path_factory.mktemp("flow") / "world", progress=False, **SYNTH))
-    opts = LabelOptions(lidar_sweeps=True)
+    opts = LabelOptions(all_sweeps=True)
     inputs, _ = load_inputs(LabelsConfig(root=root, out=tmp_path_factory.mktemp("o"), options=opts, progress=False))
     scene = inputs.dataset.scenes[0]
     labels, _ = label_scene(inputs.for_scene(scene), scene, opts, flow=True)

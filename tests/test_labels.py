@@ -20,8 +20,8 @@ import pytest
 
 from occdata.errors import OccDataError
 from occdata.labels import LabelOptions, LabelsConfig, generate_labels
+from occdata.labels.boxes import box_class
 from occdata.labels.fidelity import Fidelity
-from occdata.labels.scene import box_class
 from occdata.labels.score import score_tree
 from occdata.nuscenes import load_nuscenes
 from occdata.nuscenes.annotations import load_annotations
@@ -44,10 +44,10 @@ def generated(world: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str
     boxes + sweeps + densify."""
     base = tmp_path_factory.mktemp("gen")
     out = {}
-    for name, opts in {"ours": LabelOptions(lidar_sweeps=True),
-                       "control": LabelOptions(lidar_sweeps=True, use_boxes=False),
+    for name, opts in {"ours": LabelOptions(all_sweeps=True),
+                       "control": LabelOptions(all_sweeps=True, use_boxes=False),
                        "keyframes": LabelOptions(),
-                       "dense": LabelOptions(lidar_sweeps=True, densify=True)}.items():
+                       "dense": LabelOptions(all_sweeps=True, densify=True)}.items():
         out[name] = base / name
         generate_labels(LabelsConfig(root=world, out=out[name], options=opts, progress=False))
     return out
@@ -95,7 +95,7 @@ def test_densify_raises_recall_keeps_precision(world: Path, generated: dict[str,
     manifest = json.loads((generated["dense"] / "labels.json").read_text())
     assert manifest["options"]["densify"] is True
     with pytest.raises(OccDataError, match="other settings"):
-        generate_labels(LabelsConfig(root=world, out=generated["dense"], options=LabelOptions(lidar_sweeps=True),
+        generate_labels(LabelsConfig(root=world, out=generated["dense"], options=LabelOptions(all_sweeps=True),
                                      resume=True, progress=False))
 
 
@@ -111,7 +111,7 @@ def test_layout_manifest_and_build_reads_it(world: Path, generated: dict[str, Pa
                 assert z[k].dtype == np.uint8 and z[k].shape == (200, 200, 16)
             assert (z["mask_camera"] <= z["mask_lidar"]).all()
     manifest = json.loads((gen / "labels.json").read_text())
-    assert manifest["lidarseg"] is True and manifest["options"]["lidar_sweeps"] is True
+    assert manifest["lidarseg"] is True and manifest["options"]["all_sweeps"] is True
     assert manifest["totals"]["keyframes"] == len(ds.samples)
     report = build_store(BuildConfig(root=world, out=tmp_path / "gen.zarr", gts=gen, labels_required=True,
                                      progress=False))
@@ -131,7 +131,18 @@ def test_same_input_same_bytes_and_resume(world: Path, generated: dict[str, Path
     report = generate_labels(LabelsConfig(root=world, out=out, options=LabelOptions(), resume=True, progress=False))
     assert report.scenes_done == 0 and report.scenes_skipped == 1
     with pytest.raises(OccDataError, match="other settings"):
-        generate_labels(LabelsConfig(root=world, out=out, options=LabelOptions(lidar_sweeps=True), resume=True,
+        generate_labels(LabelsConfig(root=world, out=out, options=LabelOptions(all_sweeps=True), resume=True,
+                                     progress=False))
+    # A record written when the option was named `lidar_sweeps` is continued as if written as `all_sweeps`.
+    for path in (out / ".scenes").glob("*.json"):
+        record = json.loads(path.read_text())
+        opts = record["settings"]["options"]
+        opts["lidar_sweeps"] = opts.pop("all_sweeps")
+        path.write_text(json.dumps(record))
+    report = generate_labels(LabelsConfig(root=world, out=out, options=LabelOptions(), resume=True, progress=False))
+    assert report.scenes_skipped == 1
+    with pytest.raises(OccDataError, match="other settings"):
+        generate_labels(LabelsConfig(root=world, out=out, options=LabelOptions(all_sweeps=True), resume=True,
                                      progress=False))
 
 
@@ -249,7 +260,7 @@ def test_build_then_train_on_generated_labels(world: Path, generated: dict[str, 
 def test_parked_instances_are_held_where_annotation_stops() -> None:
     """Hand-made tracks: a parked car annotated at keyframes 0-1 of 4 is drawn at keyframes 2-3 with
     its keyframe-1 box; a car that drives 5 m is not held; hold_static 0 holds nothing."""
-    from occdata.labels.scene import _held_static
+    from occdata.labels.boxes import held_static
     from occdata.nuscenes.annotations import BoxRecord
 
     def box(tok: str, inst: str, x: float) -> BoxRecord:
@@ -258,9 +269,9 @@ def test_parked_instances_are_held_where_annotation_stops() -> None:
 
     frames = [(box("a0", "park", 0.0), box("m0", "move", 10.0)), (box("a1", "park", 0.05), box("m1", "move", 15.0)),
               (), ()]
-    held = _held_static(frames, 1.0)
+    held = held_static(frames, 1.0)
     assert [[b.token for b in h] for h in held] == [[], [], ["a1"], ["a1"]]
-    assert _held_static(frames, 0.0) == [(), (), (), ()]
+    assert held_static(frames, 0.0) == [(), (), (), ()]
 
 
 def test_two_dask_workers_write_the_same_bytes(synth_root: Path, tmp_path: Path) -> None:

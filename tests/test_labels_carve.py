@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -14,7 +15,8 @@ from reference.labels_carve import carve_reference, dynamic_reference
 
 from occdata.errors import OccDataError
 from occdata.labels import LabelOptions, LabelsConfig, generate_labels
-from occdata.labels.carve import CarveGrid, CarveOptions, dynamic_points, time_slots
+from occdata.labels.carve import MAX_SLOTS, CarveGrid, CarveOptions, dynamic_points, sweep_slots
+from occdata.labels.carving import sweep_keys
 from occdata.labels.score import score_tree
 from occdata.nuscenes import load_nuscenes
 
@@ -47,6 +49,31 @@ def test_carve_matches_twin(seed: int, near: int) -> None:
         np.testing.assert_array_equal(
             dynamic_points(pts, grid.lower, opts.voxel_size, grid.shape, grid.hits, grid.crossed, min_frames, ratio),
             dynamic_reference(pts, grid.lower, opts.voxel_size, grid.shape, hits, crossed, min_frames, ratio))
+
+
+def test_carve_matches_twin_over_hundreds_of_slots() -> None:
+    """300 slots, each a wall return in one voxel and two random rays across a small grid: the counts
+    pass 255 (where uint8 counters stopped) and the kernels still agree with the twin, which never caps."""
+    rng = np.random.default_rng(7)
+    opts = CarveOptions(voxel_size=0.5, margin=0.3, graze_max=1.0, graze_height=0.2, near=0)
+    lo, hi = np.array([0.0, 0.0, 0.0]), np.array([3.0, 2.0, 1.0])
+    grid = CarveGrid(lo, hi, opts)
+    slots = []
+    for s in range(300):
+        wall = np.array([2.75, 1.25, 0.25]) + rng.uniform(-0.2, 0.2, 3)
+        frames = [(np.array([-2.0, 1.0, 0.5]) + rng.uniform(-0.5, 0.5, 3),
+                   np.vstack([wall, rng.uniform([2.5, 0.0, 0.0], [3.0, 2.0, 1.0], (2, 3))]))]
+        slots.append(frames)
+        grid.add_slot(s, frames)
+    hits, crossed = carve_reference(slots, grid.lower, opts.voxel_size, grid.shape, opts.margin, opts.graze_max,
+                                    opts.graze_height, 0)
+    assert hits.max() > 255 and crossed.max() > 255, "the counts must pass uint8's 255 for this to mean anything"
+    np.testing.assert_array_equal(grid.hits, hits)
+    np.testing.assert_array_equal(grid.crossed, crossed)
+    pts = rng.uniform(lo, hi, (300, 3))
+    np.testing.assert_array_equal(
+        grid.dynamic(pts), dynamic_reference(pts, grid.lower, opts.voxel_size, grid.shape, hits, crossed,
+                                             opts.min_frames, opts.ratio))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -124,13 +151,71 @@ def test_rays_along_their_own_returns_are_no_evidence() -> None:
         assert g.dynamic(wall0).tolist() == [expect], near
 
 
-def test_time_slots_group_lidars_fired_together() -> None:
-    assert time_slots([0, 200_000, 3_000, 400_000, 205_000]).tolist() == [0, 1, 0, 2, 1]
+def test_hundreds_of_slots_never_saturate() -> None:
+    """A wall point returned by 400 slots and crossed by 260 others (level rays past it to x = 38 m; their
+    last 5 m, `graze_max`, are no evidence) is static: 260 < 400. Counters that stopped at 255 read
+    255 >= 255 and turned it dynamic. The mirror case, a mover's point returned by 260 slots and
+    crossed by 400, is dynamic."""
+    origin = np.array([0.0, 0.0, 1.0])
+    point, beyond = np.array([[30.0, 0.0, 1.0]]), np.array([[38.0, 0.0, 1.0]])
+    i = tuple(np.floor((point[0] - _grid().lower) / OPTS.voxel_size).astype(int))
+    for n_hit, n_cross, expect in ((400, 260, False), (260, 400, True)):
+        g = _grid()
+        for s in range(n_hit + n_cross):
+            g.add_slot(s, [(origin, point if s < n_hit else beyond)])
+        assert (int(g.hits[i]), int(g.crossed[i])) == (n_hit, n_cross)
+        assert g.dynamic(point).tolist() == [expect]
+    with pytest.raises(ValueError, match="given twice"):
+        g.add_slot(MAX_SLOTS, [])
+
+
+def _frames(lidar_offsets_us: tuple[int, ...], samples: int, sweeps: int, period_us: int) -> list:
+    """`scene_frames`-like frames (sample, LiDAR, record with a timestamp): keyframes 500 ms apart, then
+    each LiDAR's `sweeps` sweeps before each keyframe, `period_us` apart; LiDAR k fires `lidar_offsets_us[k]`
+    after the first."""
+    key = [(i, k, SimpleNamespace(timestamp=500_000 * i + dt)) for i in range(samples)
+           for k, dt in enumerate(lidar_offsets_us)]
+    sweep = [(i, k, SimpleNamespace(timestamp=500_000 * i + dt - n * period_us)) for i in range(samples)
+             for k, dt in enumerate(lidar_offsets_us) for n in range(1, sweeps + 1)]
+    return key + sweep
+
+
+def test_lidars_30_ms_apart_make_one_slot_per_sweep() -> None:
+    """Two LiDARs, the second firing 30 ms after the first, at 10 Hz: each keyframe's two frames are one
+    slot, and so is each pair of n-th sweeps; two sweeps of one LiDAR never share one. Slots are
+    numbered in time order."""
+    frames = _frames((0, 30_000), samples=2, sweeps=2, period_us=100_000)
+    slots = sweep_slots(sweep_keys(frames, 4), [rec.timestamp for _, _, rec in frames])
+    by_time = sorted(zip([rec.timestamp for _, _, rec in frames], slots.tolist(), strict=True))
+    assert [s for _, s in by_time] == [0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 5, 5]
+    assert sweep_keys(frames, 4)[:4] == [(0, 0), (0, 0), (1, 0), (1, 0)]
+    # one LiDAR at 20 Hz (nuScenes): every frame its own slot, as before
+    single = _frames((0,), samples=2, sweeps=9, period_us=50_000)
+    assert len(set(sweep_slots(sweep_keys(single, 2), [r.timestamp for _, _, r in single]).tolist())) == 20
+
+
+def test_a_lidar_30_ms_late_does_not_carve_what_its_sweep_mate_hit() -> None:
+    """A wall at x = 30 m returned by LiDAR A at two keyframes; LiDAR B, 30 ms later in the same keyframes,
+    sees past it (its ray ends at 38 m). As one slot per keyframe (`sweep_keys`) B's crossing is no evidence
+    (its slot hit the voxel): static. As one slot per frame (a 10 ms window splits them) it is crossed by
+    two slots and hit by two: dynamic."""
+    frames = _frames((0, 30_000), samples=2, sweeps=0, period_us=100_000)
+    rays = {0: (np.array([0.0, 0.0, 1.0]), np.array([[30.0, 0.0, 1.0]])),
+            1: (np.array([0.0, 0.0, 1.0]), np.array([[38.0, 0.0, 1.0]]))}
+    wall = rays[0][1]
+    for slots, expect in ((sweep_slots(sweep_keys(frames, 4), [r.timestamp for _, _, r in frames]), False),
+                          (np.arange(len(frames)), True)):
+        g = _grid()
+        for s in np.unique(slots):
+            g.add_slot(int(s), [rays[frames[f][1]] for f in np.flatnonzero(slots == s)])
+        assert g.dynamic(wall).tolist() == [expect]
 
 
 def test_carve_options_validated() -> None:
     with pytest.raises(ValueError, match="margins"):
         CarveOptions(margin=2.0, graze_max=1.0)
+    with pytest.raises(ValueError, match="min_frames"):
+        CarveOptions(min_frames=MAX_SLOTS + 1)
     with pytest.raises(ValueError, match="dynamic_class"):
         LabelOptions(dynamic_class=17)
 

@@ -129,12 +129,12 @@ def test_real_scene_keyframes_agree_in_height_once_aligned(real_seq_root: Path) 
     """Real scene-0916 (41 keyframes, poses at z = 0): keyframes 10-40 m apart disagree by about a third
     of a metre about the ground both saw (measured: 0.33-0.37 m median); after the fitted offsets, by
     about 2-3 cm. Each pair's disagreement is the median over their shared ground columns."""
-    from occdata.labels.scene import _frame_points
+    from occdata.labels.frames import frame_points
     from occdata.nuscenes import load_nuscenes
 
     ds = load_nuscenes(real_seq_root, None)
     recs = sorted((s.lidar for s in ds.samples), key=lambda r: r.timestamp)
-    clouds = [_frame_points(r) for r in recs]
+    clouds = [frame_points(r) for r in recs]
     cells = [ground_cells(p[off], o) for p, o, off in clouds]
     origins = np.array([o for _, o, _ in clouds])
     fit = height_offsets(cells, origins, [r.timestamp for r in recs])

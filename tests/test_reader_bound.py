@@ -67,7 +67,7 @@ class _Spy:
 def _labels(tree: Path, out: Path, monkeypatch: pytest.MonkeyPatch, client: Any = None) -> _Spy:
     spy = _Spy(labels_generate.run_tasks, tree / "v1.0-mini")
     monkeypatch.setattr(labels_generate, "run_tasks", spy)
-    generate_labels(LabelsConfig(root=tree, out=out, splits=SPLITS, options=LabelOptions(lidar_sweeps=True),
+    generate_labels(LabelsConfig(root=tree, out=out, splits=SPLITS, options=LabelOptions(all_sweeps=True),
                                  progress=False), client)
     monkeypatch.undo()
     return spy
@@ -94,7 +94,7 @@ def test_labels_tasks_run_without_the_tables_and_do_not_grow(trees, tmp_path, mo
     assert len(spies[SMALL].sizes) == len(spies[LARGE].sizes) == 2
     assert max(spies[LARGE].sizes) <= max(spies[SMALL].sizes) + 64, (spies[SMALL].sizes, spies[LARGE].sizes)
     generate_labels(LabelsConfig(root=trees[SMALL], out=tmp_path / "plain", splits=SPLITS,
-                                 options=LabelOptions(lidar_sweeps=True), progress=False))
+                                 options=LabelOptions(all_sweeps=True), progress=False))
     plain = _files(tmp_path / "plain")
     assert any(k.endswith("labels.npz") for k in plain)
     assert _files(tmp_path / f"gen{SMALL}") == plain
@@ -128,7 +128,7 @@ def test_scene_slice_gives_every_sweep_the_boxes_of_the_whole_tree(trees) -> Non
     """A slice holds one scene's samples, boxes and lidarseg paths, and the boxes at every LiDAR sweep
     (keyframes and the interpolated sweeps between them) are those the full dataset gives."""
     inputs, _ = load_inputs(LabelsConfig(root=trees[LARGE], out=Path("unused"), splits=SPLITS,
-                                         options=LabelOptions(lidar_sweeps=True)))
+                                         options=LabelOptions(all_sweeps=True)))
     ds = inputs.dataset
     assert len(ds.scenes) == 2
     for scene in ds.scenes:
@@ -176,7 +176,7 @@ def test_real_scene_slice_ships_its_boxes_and_sweeps(real_seq_root) -> None:
     every LiDAR sweep the devkit-exact boxes of the full read, and pickles to well under a MB per
     keyframe's worth of rows."""
     inputs, _ = load_inputs(LabelsConfig(root=real_seq_root, out=Path("unused"),
-                                         options=LabelOptions(lidar_sweeps=True)))
+                                         options=LabelOptions(all_sweeps=True)))
     (scene,) = inputs.dataset.scenes
     part = inputs.for_scene(scene)
     ds = inputs.dataset

@@ -1,6 +1,6 @@
 """Occ3D-style occupancy labels generated from LiDAR, 3D boxes and (optionally) lidarseg (DESIGN §5.5)."""
 
 from occdata.labels.generate import LabelsConfig, LabelsReport, generate_labels
-from occdata.labels.scene import LabelOptions
+from occdata.labels.options import LabelOptions
 
 __all__ = ["LabelOptions", "LabelsConfig", "LabelsReport", "generate_labels"]

@@ -5,8 +5,9 @@ rays passed through its place; the static scene is aggregated over time, a dynam
 at its own time (`occdata.labels.scene`). Evidence lives on a carve grid: an axis-aligned grid in the
 global frame (`CarveGrid`, `voxel_size` metres, covering every keyframe's label grids), with per voxel
 
-- `hits`: the number of **time slots** (frames fired at the same time: a keyframe's LiDARs) with a
-  return in the voxel;
+- `hits`: the number of **time slots** with a return in the voxel. A slot is one sweep of the rig,
+  named by the sample_data its frames are (`sweep_slots`): a keyframe's LiDARs together, and the n-th
+  sweep before that keyframe of each LiDAR together, however far apart the LiDARs fire;
 - `crossed`: the number of time slots whose rays crossed the voxel **as evidence**, which leaves out
   1. the part of each ray within `graze` metres before its return, `graze = clamp(graze_height /
      |sin(elevation)|, margin, graze_max)`: a ray descending onto the ground at a grazing angle runs
@@ -30,13 +31,15 @@ A point within `ground_clearance` of the scene's ground (the lowest surface any 
 voxel the ground only grazes (its points at the voxel's bottom) is crossed by rays that pass a few
 centimetres over the road on their way to lower ground farther off.
 
-Counts saturate at 255. Grids are `(X, Y, Z)`; `lower (3,) float64` the lower corner in global. Every
+Counts are exact: `uint16`, and a scene takes at most `MAX_SLOTS` (65,535) slots, each counted at
+most once per voxel, so no count saturates (a 20 s scene with every sweep of a 20 Hz LiDAR has about
+400; 65,535 are 55 minutes of it). Grids are `(X, Y, Z)`; `lower (3,) float64` the lower corner in global. Every
 numba kernel here has a plain numpy twin in tests/reference/labels_carve.py, and a test that they agree.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Hashable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,10 +50,13 @@ from occdata.labels.densify import FREE_MARGIN
 from occdata.labels.heights import GroundMap, HeightOffsets
 from occdata.sensors.raycast import segment_advance, segment_setup
 
-__all__ = ["CarveGrid", "CarveOptions", "carve_rays", "dynamic_points", "mark_hits", "mark_near", "time_slots"]
+__all__ = ["MAX_SLOTS", "CarveGrid", "CarveOptions", "carve_rays", "dynamic_points", "mark_hits", "mark_near",
+           "sweep_slots"]
 
-# Above this many carve voxels (6 bytes each) a scene is refused rather than swapping.
+# Above this many carve voxels (8 bytes each) a scene is refused rather than swapping.
 MAX_VOXELS = 400_000_000
+# The most time slots a scene may have: the counts' dtype holds this many, so none saturates.
+MAX_SLOTS = int(np.iinfo(np.uint16).max)
 _NONE = -1  # stamp of a voxel no slot has touched
 
 
@@ -89,8 +95,8 @@ class CarveOptions:
     def __post_init__(self) -> None:
         if not 0.05 <= self.voxel_size <= 2.0:
             raise ValueError("carve voxel_size must be in [0.05, 2] m")
-        if not 1 <= self.min_frames <= 255:
-            raise ValueError("carve min_frames must be in [1, 255]")
+        if not 1 <= self.min_frames <= MAX_SLOTS:
+            raise ValueError(f"carve min_frames must be in [1, {MAX_SLOTS}]")
         if not 0 < self.ratio <= 100 or not 0 < self.ratio_seg <= 100:
             raise ValueError("carve ratio must be in (0, 100]")
         if not 0 <= self.margin <= self.graze_max <= 50:
@@ -117,7 +123,7 @@ def _voxel_of(point: np.ndarray, lower: np.ndarray, voxel_size: float) -> tuple[
 @njit(cache=True)
 def mark_hits(points: np.ndarray, lower: np.ndarray, voxel_size: float, shape: np.ndarray, slot: int,
               hits: np.ndarray, stamp: np.ndarray) -> None:
-    """Count time slot `slot` once in `hits` (X, Y, Z) uint8 for each voxel holding a point of
+    """Count time slot `slot` once in `hits` (X, Y, Z) uint16 for each voxel holding a point of
     `points (N, 3) float64` (global); `stamp (X, Y, Z) int32` becomes `2 * slot` there (in place)."""
     for n in range(points.shape[0]):
         i, j, k = _voxel_of(points[n], lower, voxel_size)
@@ -125,8 +131,7 @@ def mark_hits(points: np.ndarray, lower: np.ndarray, voxel_size: float, shape: n
             continue
         if stamp[i, j, k] != 2 * slot:
             stamp[i, j, k] = 2 * slot
-            if hits[i, j, k] < 255:
-                hits[i, j, k] += 1
+            hits[i, j, k] += 1  # at most MAX_SLOTS slots (`CarveGrid.add_slot`): never wraps
 
 
 @njit(cache=True)
@@ -148,7 +153,7 @@ def mark_near(points: np.ndarray, lower: np.ndarray, voxel_size: float, shape: n
 def carve_rays(origins: np.ndarray, endpoints: np.ndarray, lower: np.ndarray, voxel_size: float,
                shape: np.ndarray, slot: int, margin: float, graze_max: float, graze_height: float,
                crossed: np.ndarray, stamp: np.ndarray) -> None:
-    """Count time slot `slot` once in `crossed (X, Y, Z) uint8` for each voxel its rays `origins (N, 3)
+    """Count time slot `slot` once in `crossed (X, Y, Z) uint16` for each voxel its rays `origins (N, 3)
     -> endpoints (N, 3)` (float64, global) cross as evidence (module docstring: the last `graze`
     metres and the return's voxel left out, and voxels where `stamp == 2 * slot`, i.e. this slot has a
     return there or near, skipped). The slot's hits must be marked first (`mark_hits`, `mark_near`);
@@ -175,8 +180,7 @@ def carve_rays(origins: np.ndarray, endpoints: np.ndarray, lower: np.ndarray, vo
             i, j, k = idx[0], idx[1], idx[2]
             if stamp[i, j, k] != 2 * slot and stamp[i, j, k] != 2 * slot + 1:
                 stamp[i, j, k] = 2 * slot + 1
-                if crossed[i, j, k] < 255:
-                    crossed[i, j, k] += 1
+                crossed[i, j, k] += 1  # as `mark_hits`: never wraps
             if segment_advance(idx, step, t_next, t_delta, shape) > t_end:
                 break
 
@@ -196,21 +200,19 @@ def dynamic_points(points: np.ndarray, lower: np.ndarray, voxel_size: float, sha
     return out
 
 
-def time_slots(timestamps_us: Sequence[int], tolerance_us: int = 10_000) -> np.ndarray:
-    """`(F,) int64` slot of each frame: frames within `tolerance_us` of a slot's first frame (in time
-    order) share it, so a keyframe's LiDARs, fired together, are one time."""
+def sweep_slots(keys: Sequence[Hashable], timestamps_us: Sequence[int]) -> np.ndarray:
+    """`(F,) int64` slot of each frame: frames of equal `keys` (one sweep of the rig, e.g. a keyframe's
+    LiDARs: `occdata.labels.carving.sweep_keys`) share one, whatever their times; slots are numbered
+    in the time order of their first frames (ties: first given first)."""
     t = np.asarray(timestamps_us, np.int64)
-    out = np.empty(len(t), np.int64)
-    slot, start = -1, None
+    first: dict[Hashable, int] = {}
     for f in np.argsort(t, kind="stable"):
-        if start is None or t[f] - start > tolerance_us:
-            slot, start = slot + 1, t[f]
-        out[f] = slot
-    return out
+        first.setdefault(keys[f], len(first))
+    return np.array([first[k] for k in keys], np.int64).reshape(len(keys))
 
 
 class CarveGrid:
-    """The evidence of one scene (module docstring): `hits`, `crossed` `(X, Y, Z) uint8` and a stamp,
+    """The evidence of one scene (module docstring): `hits`, `crossed` `(X, Y, Z) uint16` and a stamp,
     on the axis-aligned global box `[lo, hi]` (m) at `opts.voxel_size`, grown in height by the largest
     of `heights` (each frame's height error, `occdata.labels.heights`; zero: none); `ground`: the
     scene's ground map in aligned heights (None: no ground rule). Feed every time
@@ -229,8 +231,8 @@ class CarveGrid:
         if n > MAX_VOXELS:
             raise OccDataError(f"carve grid of {n:,} voxels ({self.shape.tolist()}) is too large for this scene's "
                                f"extent; use a larger carve voxel than {opts.voxel_size} m")
-        self.hits = np.zeros(tuple(self.shape), np.uint8)
-        self.crossed = np.zeros(tuple(self.shape), np.uint8)
+        self.hits = np.zeros(tuple(self.shape), np.uint16)
+        self.crossed = np.zeros(tuple(self.shape), np.uint16)
         self.stamp = np.full(tuple(self.shape), _NONE, np.int32)
         self._slots: set[int] = set()
 
@@ -244,8 +246,8 @@ class CarveGrid:
                  t_us: int = 0) -> None:
         """One time slot's frames, taken at `t_us`: `(origin (3,), points (N, 3))` float64 in global,
         points off the ego; `thin`: cast every `ray_stride`-th ray only (sweeps)."""
-        if slot in self._slots or slot < 0:
-            raise ValueError(f"time slot {slot} given twice (or negative)")
+        if slot in self._slots or not 0 <= slot < MAX_SLOTS:
+            raise ValueError(f"time slot {slot} given twice (or not in [0, {MAX_SLOTS}))")
         self._slots.add(slot)
         rays = [(self._aligned(o, t_us)[0], self._aligned(p, t_us)) for o, p in rays]
         v = float(self.opts.voxel_size)

@@ -73,21 +73,6 @@ def seen_free(origins: np.ndarray, endpoints: np.ndarray, lower: np.ndarray, vox
     return out
 
 
-def _segment_hits_boxes(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Whether segment a->b meets each closed box `lo, hi (M, 3)`: `(M,) bool` (slab test)."""
-    d = b - a
-    t0, t1 = np.zeros(len(lo)), np.ones(len(lo))
-    for k in range(3):
-        if abs(d[k]) < 1e-15:
-            inside = (a[k] >= lo[:, k]) & (a[k] <= hi[:, k])
-            t1 = np.where(inside, t1, -1.0)
-            continue
-        ta, tb = (lo[:, k] - a[k]) / d[k], (hi[:, k] - a[k]) / d[k]
-        t0 = np.maximum(t0, np.minimum(ta, tb))
-        t1 = np.minimum(t1, np.maximum(ta, tb))
-    return t0 <= t1
-
-
 @njit(cache=True)
 def fill_boxes(semantics: np.ndarray, free: np.ndarray, T_box_from_grid: np.ndarray, half_size: np.ndarray,
                lower: np.ndarray, voxel_size: float) -> np.ndarray:

@@ -27,7 +27,8 @@ from occdata.fileio import remove_stale_temps, write_atomic
 from occdata.formats.gridfiles import LAYOUT_FILES, LabelSite, write_grid_label
 from occdata.formats.gridspec import GRID_PRESETS, GridSpec, LabelLayout
 from occdata.labels.flat import FLAT_CLEARANCE
-from occdata.labels.scene import LabelOptions, LabelSources, SceneCounts, label_scene
+from occdata.labels.options import LabelOptions, LabelSources, SceneCounts
+from occdata.labels.scene import label_scene
 from occdata.nuscenes import NuScenesDataset, SampleRecord, find_version, load_nuscenes, validate_sample
 from occdata.nuscenes.annotations import load_annotations
 from occdata.nuscenes.lidarseg import lidarseg_index_names, load_lidarseg_index, occ3d_lut
@@ -40,8 +41,8 @@ from occdata.runtime.tasks import StopCheck, no_stop
 __all__ = ["ALGORITHM_VERSION", "LabelsConfig", "LabelsReport", "SceneJob", "generate_labels", "load_inputs",
            "run_scene", "scene_modes", "scene_record_path"]
 
-# Bumped whenever the labels a given input produces change.
-ALGORITHM_VERSION = 1
+# Bumped whenever the labels a given input produces change (2: carving's counts exact, slots by sweep).
+ALGORITHM_VERSION = 2
 _RECORDS = ".scenes"
 
 
@@ -96,7 +97,7 @@ def scene_record_path(out: Path, scene: str) -> Path:
 def load_inputs(cfg: LabelsConfig) -> tuple[LabelSources, str]:
     """The tables (with sweeps when used), boxes and lidarseg of `cfg.root`; and the version read."""
     version = find_version(cfg.root, cfg.version)
-    ds = load_nuscenes(cfg.root, version, sweeps=cfg.options.lidar_sweeps, rig=cfg.rig,
+    ds = load_nuscenes(cfg.root, version, sweeps=cfg.options.all_sweeps, rig=cfg.rig,
                        splits=cfg.scene_splits).select(cfg.splits)
     if cfg.scenes is not None:
         missing = sorted(set(cfg.scenes) - {sc.name for sc in ds.scenes})
@@ -134,6 +135,7 @@ def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool,
                   modes: dict[str, str] | None = None, rig: Rig | None = None) -> dict[str, Any]:
     masks = cfg.options.image_masks
     opts = dataclasses.asdict(dataclasses.replace(cfg.options, image_masks=None))
+    del opts["image_masks"]  # recorded only when given, in words: a run without masks keeps its bytes
     if masks is not None:
         opts["image_masks"] = masks.describe()
     if with_seg:  # lidarseg gives the ground its class: a lidarseg tree's manifest keeps its bytes
@@ -192,7 +194,9 @@ def _carving_words(o: LabelOptions, with_seg: bool, carved: list[str]) -> dict[s
            "that moved' (a car, a cyclist, a pedestrian alike); the tree has no lidarseg to say which")
     return {
         "scenes": carved,
-        "rule": (f"a point outside every box is dynamic when at least {c.min_frames} other time slots' LiDAR rays "
+        "rule": ("a time slot is one sweep of the rig (a keyframe's LiDARs together, the n-th sweep before it of each "
+                 f"LiDAR together); a point outside every box is dynamic when at least {c.min_frames} other time "
+                 "slots' LiDAR rays "
                  f"crossed its {c.voxel_size} m voxel (global frame), and at least {c.ratio:g} times as many slots "
                  f"as had a return there ({c.ratio_seg:g} times for points with a lidarseg class); a ray's last "
                  f"clamp({c.graze_height} m / |sin elevation|, {c.margin}, {c.graze_max}) m before its return and "
@@ -238,9 +242,20 @@ def _check_out(cfg: LabelsConfig, header: dict[str, Any]) -> None:
         raise OccDataError(f"{cfg.out} already holds labels of {len(records)} scene(s); pass --resume to "
                            "continue, or choose another --out")
     for path in records:
-        old = json.loads(path.read_text()).get("settings")
+        old = _current_names(json.loads(path.read_text()).get("settings"))
         if old != _settings(header):
             raise OccDataError(f"{path} was written with other settings ({old}); use another --out")
+
+
+# Options renamed since records were first written (old -> new): a resumed run reads either name.
+_RENAMED_OPTIONS = {"lidar_sweeps": "all_sweeps"}
+
+
+def _current_names(settings: Any) -> Any:
+    """A record's `settings` with its options under their current names (`_RENAMED_OPTIONS`)."""
+    if not isinstance(settings, dict) or not isinstance(settings.get("options"), dict):
+        return settings
+    return {**settings, "options": {_RENAMED_OPTIONS.get(k, k): v for k, v in settings["options"].items()}}
 
 
 def _settings(header: dict[str, Any]) -> dict[str, Any]:

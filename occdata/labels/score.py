@@ -12,8 +12,8 @@ from occdata.formats.gridfiles import read_grid_label
 from occdata.formats.gridspec import GRID_PRESETS, GridSpec, LabelFrame, LabelLayout
 from occdata.formats.occ3d import label_path, read_label
 from occdata.geometry import invert_rigid
+from occdata.labels.boxes import box_class
 from occdata.labels.fidelity import Fidelity, score_scene
-from occdata.labels.scene import box_class
 from occdata.nuscenes import load_nuscenes
 from occdata.nuscenes.annotations import load_annotations
 

@@ -189,20 +189,6 @@ def count_occluders(
     return out
 
 
-def _segment_hits_boxes(a: np.ndarray, b: np.ndarray, box_lo: np.ndarray, box_hi: np.ndarray) -> np.ndarray:
-    """Whether segment a->b intersects each closed box `(M, 3)`; `(M,) bool` (slab test)."""
-    d = b - a
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ta = (box_lo - a) / d
-        tb = (box_hi - a) / d
-    t_lo = np.where(np.abs(d) < 1e-15, -np.inf, np.minimum(ta, tb))
-    t_hi = np.where(np.abs(d) < 1e-15, np.inf, np.maximum(ta, tb))
-    par_out = (np.abs(d) < 1e-15) & ((a < box_lo) | (a > box_hi))
-    t0 = np.maximum(t_lo.max(axis=1), 0.0)
-    t1 = np.minimum(t_hi.min(axis=1), 1.0)
-    return (t0 <= t1) & ~par_out.any(axis=1)
-
-
 def _deep_inside(objects: np.ndarray, depth: int) -> np.ndarray:
     """`(X, Y, Z) bool`: object voxels whose L-inf distance to every non-object voxel (outside the grid
     counts as non-object) exceeds `depth`, i.e. `objects` eroded `depth` times by the 3x3x3 cube."""

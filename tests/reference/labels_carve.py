@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from occdata.labels.densify import _segment_hits_boxes
+from reference.segments import segment_hits_boxes
 
 __all__ = ["carve_reference", "dynamic_reference"]
 
@@ -50,7 +50,7 @@ def carve_reference(slots: list[list[tuple[np.ndarray, np.ndarray]]], lower: np.
                 graze = max(graze, margin)
                 if length <= graze:
                     continue
-                meets = _segment_hits_boxes(a, a + (e - a) * (1 - graze / length), lo, lo + voxel_size)
+                meets = segment_hits_boxes(a, a + (e - a) * (1 - graze / length), lo, lo + voxel_size)
                 end = np.floor((e - lower) / voxel_size).astype(np.int64)
                 meets &= ~(cells == end).all(axis=1)
                 cross |= meets

@@ -7,7 +7,7 @@ import numpy as np
 
 from occdata.constants import FREE_LABEL, NUM_CLASSES
 from occdata.geometry import points_in_box
-from occdata.labels.densify import _segment_hits_boxes
+from reference.segments import segment_hits_boxes
 
 __all__ = ["seen_free_reference", "fill_boxes_reference", "fill_behind_reference", "close_holes_reference"]
 
@@ -23,7 +23,7 @@ def seen_free_reference(origins: np.ndarray, endpoints: np.ndarray, lower: np.nd
         length = np.linalg.norm(e - a)
         if length <= margin:
             continue
-        hit = _segment_hits_boxes(a, a + (e - a) * (1 - margin / length), lo, lo + voxel_size)
+        hit = segment_hits_boxes(a, a + (e - a) * (1 - margin / length), lo, lo + voxel_size)
         end = np.floor((e - lower) / voxel_size).astype(np.int64)
         hit &= ~(grid == end).all(axis=1)
         out |= hit

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from occdata.visibility.masks import MAX_OCCLUDERS, _camera_mask, _segment_hits_boxes
+from occdata.visibility.masks import MAX_OCCLUDERS, _camera_mask
+from reference.segments import segment_hits_boxes
 
 __all__ = ["clearance_map_reference", "count_occluders_reference", "camera_mask_reference", "lidar_ray_mask_reference"]
 
@@ -48,7 +49,7 @@ def count_occluders_reference(
     out = np.full(len(targets), -1, np.int64)
     for n in np.flatnonzero(inside):
         others = ~(occ_idx == targets[n]).all(axis=1)
-        hits = int(_segment_hits_boxes(cam, centres[n], lo[others], hi[others]).sum())
+        hits = int(segment_hits_boxes(cam, centres[n], lo[others], hi[others]).sum())
         out[n] = min(hits, cap + 1)
     return out
 
@@ -72,5 +73,5 @@ def lidar_ray_mask_reference(
     hi = lo + voxel_size
     out = np.zeros(len(grid), np.uint8)
     for a, b in zip(origins, endpoints, strict=True):
-        out |= _segment_hits_boxes(np.asarray(a, np.float64), np.asarray(b, np.float64), lo, hi).astype(np.uint8)
+        out |= segment_hits_boxes(np.asarray(a, np.float64), np.asarray(b, np.float64), lo, hi).astype(np.uint8)
     return out.reshape(tuple(shape))
