@@ -309,7 +309,10 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
                                  dynamic_class=dynamic_class, ground_class=ground_class, image_masks=masks),
             cluster=cluster, grids=specs, rig=rig, scene_splits=scene_splits,
         ))
-    seg = "lidarseg classes" if report.with_lidarseg else f"no lidarseg: static points are class {static_class}"
+    seg = "lidarseg classes" if report.with_lidarseg else (
+        f"no lidarseg: static points are class {static_class}"
+        + (f", on the ground {ground_class}" if ground_class != static_class else "")
+        + ("; classes from the image masks where they see a point" if masks is not None else ""))
     carved = sorted(name for name, mode in report.modes.items() if "carve" in mode)
     if carved and len(carved) < len(report.modes):
         click.echo(f"carved (no boxes, or --carve): {len(carved)} of {len(report.modes)} scenes: "
