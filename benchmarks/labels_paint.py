@@ -7,8 +7,9 @@ The world (`occdata synth --image-masks`) is labelled without lidarseg and with 
 - `plain`: the old labels (`--ground-class 0`): every static point `others`;
 - `ground`: ground from geometry (the default, class 11);
 - `masks`: `--image-masks` with the truth masks;
-- `masks-degraded`: with the masks degraded as a segmenter errs (each image shifted by up to
-  `--shift` px in x and y, so every boundary moves, and `--wrong` of its pixels given a random class);
+- `masks-shift<s>`: with the masks degraded as a segmenter errs (each image shifted by up to `s` px in
+  x and y, for each `s` of `--shifts`, so every boundary moves, and `--wrong` of its pixels given a
+  random class); the images are 320 px wide, so 1 px here is 5 px of a 1600 px nuScenes image;
 - and the box path without lidarseg, without and with the clean masks (`boxes`, `boxes+masks`): the
   cost of painting against the box path.
 
@@ -111,10 +112,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--samples", type=int, default=12)
     ap.add_argument("--seed", type=int, default=11)
-    ap.add_argument("--shift", type=int, default=2, help="px: the degraded masks' largest boundary shift")
+    ap.add_argument("--shifts", default="1,2", help="px: the degraded masks' largest boundary shifts, one run each")
     ap.add_argument("--wrong", type=float, default=0.03, help="the degraded masks' share of wrong pixels")
     ap.add_argument("--no-sweeps", dest="sweeps", action="store_false")
-    ap.add_argument("--variants", default="plain,ground,masks,masks-degraded,boxes,boxes+masks")
+    ap.add_argument("--variants", default=None, help="default: plain,ground,masks,masks-shift<s>...,boxes,boxes+masks")
     ap.add_argument("--keep", type=Path, default=None, help="work folder to keep (default: a temporary one)")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
@@ -126,20 +127,22 @@ def main() -> None:
     if not (root / "v1.0-mini").is_dir():
         synthesize(SynthConfig(out=root, scenes=1, samples=a.samples, seed=a.seed, width=320, height=180,
                                progress=False, image_masks=True))
-    if not (work / "masks_degraded").is_dir():
-        degrade(root / "masks", work / "masks_degraded", a.shift, a.wrong, a.seed)
+    shifts = [int(x) for x in a.shifts.split(",")]
+    for shift in shifts:
+        if not (work / f"masks_shift{shift}").is_dir():
+            degrade(root / "masks", work / f"masks_shift{shift}", shift, a.wrong, a.seed)
     src = _noseg_copy(root, work)
     sweeps = ["--all-sweeps"] if a.sweeps else []
     variants = {
         "plain": ["--boxes", "none", "--ground-class", "0"],
         "ground": ["--boxes", "none"],
         "masks": ["--boxes", "none", "--image-masks", str(root / "masks")],
-        "masks-degraded": ["--boxes", "none", "--image-masks", str(work / "masks_degraded")],
+        **{f"masks-shift{s}": ["--boxes", "none", "--image-masks", str(work / f"masks_shift{s}")] for s in shifts},
         "boxes": [],
         "boxes+masks": ["--image-masks", str(root / "masks")],
     }
     rows: dict[str, dict[str, object]] = {}
-    for name in a.variants.split(","):
+    for name in (a.variants.split(",") if a.variants else variants):
         out = work / f"gen_{name}"
         shutil.rmtree(out, ignore_errors=True)
         cost = generate(src, out, [*sweeps, *variants[name]])
@@ -151,7 +154,7 @@ def main() -> None:
         rows["boxes+masks"]["painting_cpu_seconds_per_keyframe"] = (
             rows["boxes+masks"]["cpu_seconds_per_keyframe"] - rows["boxes"]["cpu_seconds_per_keyframe"])
     result = {"machine": machine(), "world": {"samples": a.samples, "seed": a.seed, "sweeps": a.sweeps,
-                                              "size": [320, 180], "shift_px": a.shift, "wrong": a.wrong},
+                                              "size": [320, 180], "shifts_px": shifts, "wrong": a.wrong},
               "rows": rows}
     if a.json:
         write_json(result, a.json, indent=1)
