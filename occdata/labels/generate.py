@@ -178,7 +178,8 @@ def _static_words(o: LabelOptions) -> str:
         words += (f"; a point within {FLAT_CLEARANCE} m over the scene's ground (the lowest surface any keyframe saw "
                   f"in its 0.5 m column, heights aligned): class {o.ground_class} ({CLASS_NAMES[o.ground_class]}), "
                   "a stand-in meaning 'flat ground' (road, sidewalk and terrain alike: geometry cannot tell them "
-                  "apart); a flat voxel under a voxel of something else takes its other points' class")
+                  "apart); a flat voxel under a voxel of something else takes its other points' class, or the "
+                  "class above")
     if o.image_masks is not None:
         words += ("; where the user's image masks give a class (--image-masks: each point projected into the camera "
                   "nearest in time, where it is the visible surface), a voxel takes the majority of its points' "

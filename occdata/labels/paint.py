@@ -134,6 +134,7 @@ class Painter:
         self.boxes_at = boxes_at
         self._cache: OrderedDict[str, np.ndarray] = OrderedDict()
         self._size = cache
+        self._boxes: dict[tuple[int, int], dict[str, BoxRecord]] = {}  # (sample, camera time) -> instance -> box
         self.channels = sorted({c.channel for s in self.samples for c in s.cameras})
 
     def _mask(self, cam: CameraRecord) -> np.ndarray:
@@ -179,7 +180,10 @@ class Painter:
         there (an instance with no box then stays)."""
         if box_index is None or self.boxes_at is None or not boxes or not (box_index >= 0).any():
             return points
-        later = {b.instance_token: b for b in self.boxes_at(sample_index, t_cam)}
+        key = (sample_index, t_cam)  # one camera serves every frame nearest to it: interpolate once
+        if key not in self._boxes:
+            self._boxes[key] = {b.instance_token: b for b in self.boxes_at(sample_index, t_cam)}
+        later = self._boxes[key]
         out = np.array(points, np.float64)
         for b in np.unique(box_index[box_index >= 0]):
             then = later.get(boxes[b].instance_token)
