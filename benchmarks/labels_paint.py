@@ -126,7 +126,7 @@ def main() -> None:
     root = work / "world"
     if not (root / "v1.0-mini").is_dir():
         synthesize(SynthConfig(out=root, scenes=1, samples=a.samples, seed=a.seed, width=320, height=180,
-                               progress=False, image_masks=True))
+                               progress=False, image_masks=root / "masks"))
     shifts = [int(x) for x in a.shifts.split(",")]
     for shift in shifts:
         if not (work / f"masks_shift{shift}").is_dir():

@@ -72,15 +72,20 @@ def main() -> None:
 @click.option("--voxel-size", type=click.FloatRange(0.05, 2.0), default=None,
               help="Also write the truth on a custom Occ3D-style grid of this voxel size (m), in gts/occ3d-<size>m/.")
 @grid_range_option()
-@click.option("--image-masks", is_flag=True,
+@click.option("--uncompensated", is_flag=True,
+              help="The LiDARs spin over one period, each point taken from the ego pose of its own time and "
+                   "stamped with it (.pcd rigs: --rig truckscenes): clouds not motion-compensated, as `occdata "
+                   "labels --deskew` corrects.")
+@click.option("--image-masks", "image_masks", is_flag=False, flag_value="", default=None, metavar="[DIR]",
               help="Also write each camera image's truth class ids (Occ3D ids, 255 = sky) as a PNG at its path "
-                   "under OUT/masks/ (samples/CAM_FRONT/x.jpg -> masks/samples/CAM_FRONT/x.png): the input of "
-                   "`occdata labels --image-masks OUT/masks`.")
+                   "under DIR (default OUT/masks: samples/CAM_FRONT/x.jpg -> OUT/masks/samples/CAM_FRONT/x.png): "
+                   "the input of `occdata labels --image-masks DIR`.")
 @progress_option()
 @friendly_errors
 def synth(out: str, scenes: int, samples: int, seed: int, rig_name: str, width: int | None, height: int | None,
           table_only_scenes: int, table_only_samples: int, grids: tuple[str, ...], voxel_size: float | None,
-          grid_range: tuple[float, ...] | None, image_masks: bool, progress: bool) -> None:
+          grid_range: tuple[float, ...] | None, uncompensated: bool, image_masks: str | None,
+          progress: bool) -> None:
     """Write a synthetic nuScenes-format world with Occ3D labels and exact depth maps.
 
     nuscenes rig: tables (v1.0-mini), 6 ray-cast camera images, a 32-beam LiDAR sweep per keyframe
@@ -95,7 +100,9 @@ def synth(out: str, scenes: int, samples: int, seed: int, rig_name: str, width: 
     root = synthesize(SynthConfig(out=local_path(out, "--out"), scenes=scenes, samples=samples, seed=seed,
                                   width=width, height=height, progress=progress,
                                   table_only_scenes=table_only_scenes, table_only_samples=table_only_samples,
-                                  grids=specs, rig=rig_name, image_masks=image_masks))
+                                  grids=specs, rig=rig_name, uncompensated=uncompensated,
+                                  image_masks=None if image_masks is None else
+                                  local_path(image_masks or str(Path(out) / "masks"), "--image-masks")))
     extra = f" (+ {table_only_scenes} table-only scenes)" if table_only_scenes else ""
     click.echo(f"wrote {scenes} scenes x {samples} samples{extra} to {root}")
 
@@ -259,6 +266,9 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
 @click.option("--dynamic-class", type=click.IntRange(0, 16), default=4, show_default=True,
               help="Without lidarseg, the Occ3D class of points found dynamic by carving (4 = car, a stand-in for "
                    "'something that moved'). Recorded in labels.json.")
+@click.option("--deskew", is_flag=True,
+              help="Place each LiDAR point by the ego pose of its own time where the point file has per-point "
+                   "times (.pcd 'timestamp'), for clouds not motion-compensated already (docs/rigs.md).")
 @click.option("--densify", is_flag=True,
               help="Fill what surfaces imply where no LiDAR ray saw free space: objects' boxes, a few voxels "
                    "behind buildings and vegetation, holes in surfaces (docs/labels.md, 'Densification').")
@@ -280,7 +290,7 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
 def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], scenes: tuple[str, ...],
            all_sweeps: bool, static_class: int, ground_class: int, image_masks: str | None, mask_classes: str | None,
            knn_radius: float, no_boxes: bool, boxes_mode: str,
-           carve: bool | None, dynamic_class: int, densify: bool,
+           carve: bool | None, dynamic_class: int, deskew: bool, densify: bool,
            grids: tuple[str, ...],
            voxel_size: float | None, grid_range: tuple[float, ...] | None, rig: RigChoice,
            scene_splits: SplitChoice, cluster: ClusterConfig, resume: bool, progress: bool) -> None:
@@ -306,7 +316,8 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
                                  use_boxes=not no_boxes and boxes_mode == "auto", densify=densify,
                                  carve=carve if carve is not None else (True if boxes_mode == "none" else
                                                                         False if no_boxes else None),
-                                 dynamic_class=dynamic_class, ground_class=ground_class, image_masks=masks),
+                                 dynamic_class=dynamic_class, deskew=deskew, ground_class=ground_class,
+                                 image_masks=masks),
             cluster=cluster, grids=specs, rig=rig, scene_splits=scene_splits,
         ))
     seg = "lidarseg classes" if report.with_lidarseg else (

@@ -133,17 +133,14 @@ def test_same_input_same_bytes_and_resume(world: Path, generated: dict[str, Path
     with pytest.raises(OccDataError, match="other settings"):
         generate_labels(LabelsConfig(root=world, out=out, options=LabelOptions(all_sweeps=True), resume=True,
                                      progress=False))
-    # A record written when the option was named `lidar_sweeps` is continued as if written as `all_sweeps`.
+    # A record of algorithm version 1 (its option still named `lidar_sweeps`) is not continued: one line.
     for path in (out / ".scenes").glob("*.json"):
         record = json.loads(path.read_text())
-        opts = record["settings"]["options"]
-        opts["lidar_sweeps"] = opts.pop("all_sweeps")
+        record["settings"]["algorithm_version"] = 1
+        record["settings"]["options"]["lidar_sweeps"] = record["settings"]["options"].pop("all_sweeps")
         path.write_text(json.dumps(record))
-    report = generate_labels(LabelsConfig(root=world, out=out, options=LabelOptions(), resume=True, progress=False))
-    assert report.scenes_skipped == 1
-    with pytest.raises(OccDataError, match="other settings"):
-        generate_labels(LabelsConfig(root=world, out=out, options=LabelOptions(all_sweeps=True), resume=True,
-                                     progress=False))
+    with pytest.raises(OccDataError, match="was written with other settings"):
+        generate_labels(LabelsConfig(root=world, out=out, options=LabelOptions(), resume=True, progress=False))
 
 
 def _copy_tables(world: Path, dst: Path) -> Path:

@@ -220,13 +220,19 @@ def test_fill_flat_takes_the_masks_ground_next_to_it() -> None:
 # ------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def world(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """1 scene x 3 keyframes at 192x108 with `--image-masks`, its lidarseg table removed."""
+    """1 scene x 3 keyframes at 192x108 with its image masks beside it, its lidarseg table removed."""
     from occdata.synth import SynthConfig, synthesize
 
-    root = synthesize(SynthConfig(out=tmp_path_factory.mktemp("paint") / "world", scenes=1, samples=3, seed=5,
-                                  width=192, height=108, progress=False, image_masks=True))
+    folder = tmp_path_factory.mktemp("paint")
+    root = synthesize(SynthConfig(out=folder / "world", scenes=1, samples=3, seed=5, width=192, height=108,
+                                  progress=False, image_masks=folder / "masks"))
     (root / "v1.0-mini" / "lidarseg.json").unlink()
     return root
+
+
+def _masks(world: Path) -> Path:
+    """The world's masks (`synth --image-masks`: written beside it)."""
+    return world.parent / "masks"
 
 
 def _labels(root: Path, out: Path, *extra: str) -> tuple[list[np.ndarray], list[np.ndarray], dict]:
@@ -258,7 +264,7 @@ def _accuracy(gen: list[np.ndarray], truth: list[np.ndarray]) -> float:
 def test_masks_and_ground_on_a_synthetic_world(world: Path, tmp_path: Path) -> None:
     plain, truth, _ = _labels(world, tmp_path / "plain", "--ground-class", "0")
     ground, _, meta_g = _labels(world, tmp_path / "ground")
-    painted, _, meta_p = _labels(world, tmp_path / "masks", "--image-masks", str(world / "masks"))
+    painted, _, meta_p = _labels(world, tmp_path / "masks", "--image-masks", str(_masks(world)))
     flat = [np.isin(t, [11, 12, 13, 14]) & (g != FREE) for g, t in zip(ground, truth, strict=True)]
     found = sum(int((f & np.isin(g, [11])).sum()) for f, g in zip(flat, ground, strict=True))
     assert found / sum(int(f.sum()) for f in flat) > 0.85  # the ground from geometry alone
@@ -276,7 +282,7 @@ def test_image_mask_errors_are_one_line(world: Path, tmp_path: Path) -> None:
     from cli.occdata_cli import main
 
     masks = tmp_path / "masks"
-    shutil.copytree(world / "masks", masks)
+    shutil.copytree(_masks(world), masks)
     victim = sorted(masks.rglob("*.png"))[0]
     victim.unlink()
     r = CliRunner().invoke(main, ["labels", "--root", str(world), "--out", str(tmp_path / "a"), "--no-progress",
@@ -285,5 +291,5 @@ def test_image_mask_errors_are_one_line(world: Path, tmp_path: Path) -> None:
     table = tmp_path / "classes.json"
     table.write_text(json.dumps({"3": "lorry"}))
     r = CliRunner().invoke(main, ["labels", "--root", str(world), "--out", str(tmp_path / "b"), "--no-progress",
-                                  "--image-masks", str(world / "masks"), "--mask-classes", str(table)])
+                                  "--image-masks", str(_masks(world)), "--mask-classes", str(table)])
     assert r.exit_code != 0 and "unknown class 'lorry'" in r.output and "Traceback" not in r.output

@@ -14,6 +14,7 @@ from occdata.errors import OccDataError
 from occdata.formats.gridspec import GridSpec
 from occdata.geometry import invert_rigid, transform_points
 from occdata.labels.carve import MAX_SLOTS, CarveGrid, CarveOptions, sweep_slots
+from occdata.labels.deskew import PoseTrack
 from occdata.labels.frames import Frame, T_grid_from_keyego, off_ego_rays
 from occdata.labels.heights import GroundMap, HeightOffsets, ground_cells, ground_map, height_offsets
 from occdata.nuscenes import SampleRecord
@@ -53,12 +54,13 @@ def sweep_keys(frames: list[Frame], keyframe_frames: int) -> list[tuple[int, int
 
 
 def carve_scene(frames: list[Frame], keyframe_frames: int, lo: np.ndarray, hi: np.ndarray,
-                opts: CarveOptions, should_stop: Callable[[], None]) -> CarveGrid:
+                opts: CarveOptions, should_stop: Callable[[], None], track: PoseTrack | None = None) -> CarveGrid:
     """The scene's free-space evidence (`occdata.labels.carve`): every frame's rays, from its own LiDAR,
     counted once per time slot (`sweep_keys`: a keyframe's LiDARs are one); `frames` as `scene_frames` gives them,
     the first `keyframe_frames` the keyframes' (the sweeps' rays are thinned, `CarveOptions.ray_stride`).
     The keyframes' ground comes first: the slots' height errors (`opts.align_heights`) and the ground map;
-    the keyframes' points are then read once for both (a scene's keyframes: tens of MB)."""
+    the keyframes' points are then read once for both (a scene's keyframes: tens of MB). `track`: place
+    points by their own times (`frame_points`)."""
     slots = sweep_slots(sweep_keys(frames, keyframe_frames), [rec.timestamp for _, _, rec in frames])
     if len(slots) and slots.max() >= MAX_SLOTS:
         raise OccDataError(f"{int(slots.max()) + 1:,} LiDAR sweeps in one scene: carving counts at most {MAX_SLOTS:,}; "
@@ -66,13 +68,13 @@ def carve_scene(frames: list[Frame], keyframe_frames: int, lo: np.ndarray, hi: n
     key_rays: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     heights = ground = None
     if opts.align_heights or opts.ground_clearance > 0:
-        key_rays = {f: off_ego_rays(frames[f][2]) for f in range(keyframe_frames)}
+        key_rays = {f: off_ego_rays(frames[f][2], track) for f in range(keyframe_frames)}
         heights, ground = _slot_ground(key_rays, frames, slots, opts.align_heights, should_stop)
     grid = CarveGrid(lo, hi, opts, heights, ground)
     for slot in np.unique(slots):
         should_stop()
         members = np.flatnonzero(slots == slot)
-        rays = [key_rays.pop(f) if f in key_rays else off_ego_rays(frames[f][2]) for f in members]
+        rays = [key_rays.pop(f) if f in key_rays else off_ego_rays(frames[f][2], track) for f in members]
         grid.add_slot(int(slot), rays, thin=bool(members.max() >= keyframe_frames),
                       t_us=frames[members[0]][2].timestamp)
     return grid

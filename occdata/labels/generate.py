@@ -143,6 +143,8 @@ def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool,
     carved = sorted(name for name, mode in (modes or {}).items() if "carve" in mode)
     if not carved:
         opts = {k: v for k, v in opts.items() if k not in _CARVE_KEYS}
+    if not opts["deskew"]:  # recorded when on only: the manifests from before it keep their bytes
+        del opts["deskew"]
     static = _static_words(cfg.options)
     header = {
         "generator": "occdata labels",
@@ -243,20 +245,9 @@ def _check_out(cfg: LabelsConfig, header: dict[str, Any]) -> None:
         raise OccDataError(f"{cfg.out} already holds labels of {len(records)} scene(s); pass --resume to "
                            "continue, or choose another --out")
     for path in records:
-        old = _current_names(json.loads(path.read_text()).get("settings"))
+        old = json.loads(path.read_text()).get("settings")
         if old != _settings(header):
             raise OccDataError(f"{path} was written with other settings ({old}); use another --out")
-
-
-# Options renamed since records were first written (old -> new): a resumed run reads either name.
-_RENAMED_OPTIONS = {"lidar_sweeps": "all_sweeps"}
-
-
-def _current_names(settings: Any) -> Any:
-    """A record's `settings` with its options under their current names (`_RENAMED_OPTIONS`)."""
-    if not isinstance(settings, dict) or not isinstance(settings.get("options"), dict):
-        return settings
-    return {**settings, "options": {_RENAMED_OPTIONS.get(k, k): v for k, v in settings["options"].items()}}
 
 
 def _settings(header: dict[str, Any]) -> dict[str, Any]:

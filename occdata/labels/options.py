@@ -39,7 +39,9 @@ class LabelOptions:
     of dynamic points without lidarseg; carve_options: the evidence rules (`occdata.labels.carve`).
     ground_class: without lidarseg, the Occ3D class of static points on the scene's ground
     (`occdata.labels.flat`; equal to static_class: no split). image_masks: classes from the user's 2D
-    masks where there is no lidarseg (`occdata.labels.paint`; None: none)."""
+    masks where there is no lidarseg (`occdata.labels.paint`; None: none).
+    deskew: place each point of a file with per-point times by the ego pose of its own time
+    (`occdata.labels.deskew`; for clouds not motion-compensated already)."""
 
     all_sweeps: bool = False
     knn_radius: float = 0.5
@@ -54,6 +56,7 @@ class LabelOptions:
     carve_options: CarveOptions = CarveOptions()
     ground_class: int = FLAT_CLASS
     image_masks: ImageMasks | None = None
+    deskew: bool = False
 
     def __post_init__(self) -> None:
         if not 0 < self.knn_radius <= 5:

@@ -30,8 +30,9 @@ from occdata.labels.boxes import frame_boxes, held_static
 from occdata.labels.carve import CarveGrid
 from occdata.labels.carving import carve_region, carve_scene
 from occdata.labels.cloud import Cloud, add_keyframe, add_sweep, keyframe_classes
+from occdata.labels.deskew import PoseTrack
 from occdata.labels.flow import box_velocities
-from occdata.labels.frames import Frame, Rays, frame_points, scene_frames
+from occdata.labels.frames import Frame, Rays, frame_points, scene_frames, scene_track
 from occdata.labels.kernels import NearestIndex
 from occdata.labels.keyframe import grid_labels, static_rays
 from occdata.labels.options import LabelOptions, LabelSources, SceneCounts
@@ -52,7 +53,8 @@ def _no_stop() -> None:
 @dataclass
 class _Scene:
     """A scene being labelled: its samples (`indices` into the dataset), what its boxes are used for
-    (`withheld`: none at all, `--boxes none`), its carve grid (None: not carved) and its counts."""
+    (`withheld`: none at all, `--boxes none`), its carve grid (None: not carved), its counts, and its
+    ego poses when points are placed by their own times (`LabelOptions.deskew`; else None)."""
 
     inputs: LabelSources
     opts: LabelOptions
@@ -61,6 +63,7 @@ class _Scene:
     withheld: bool
     carve_grid: CarveGrid | None
     should_stop: Callable[[], None]
+    track: PoseTrack | None = None
     classes: SceneClasses | None = None  # without lidarseg: the ground's and the masks' classes
 
     def own(self, points: np.ndarray, t_us: int, boxes: tuple[BoxRecord, ...]) -> tuple[np.ndarray, np.ndarray] | None:
@@ -103,6 +106,7 @@ def _start(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions, grids: 
     has_boxes = any(inputs.annotations.boxes_by_sample.get(t) for t in scene.sample_tokens)
     carving = opts.carves(has_boxes, len(indices))
     counts.mode = opts.mode(has_boxes, len(indices))
+    track = scene_track(ds, indices) if opts.deskew else None
     carve_grid = None
     if carving:
         if len(indices) < 2:
@@ -111,11 +115,11 @@ def _start(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions, grids: 
         frames = scene_frames(ds, indices, opts.all_sweeps)
         n_key = sum(len(ds.samples[i].lidars) for i in indices)
         carve_grid = carve_scene(frames, n_key, *carve_region([ds.samples[i] for i in indices], grids),
-                                 opts.carve_options, should_stop)
+                                 opts.carve_options, should_stop, track)
         counts.carve_voxels = int(np.prod(carve_grid.shape))
     withheld = carving and not opts.use_boxes  # --boxes none: the boxes give nothing, not even classes
     classes = None if inputs.segmented else scene_classes(inputs, indices, opts, carve_grid, withheld, should_stop)
-    return _Scene(inputs, opts, indices, counts, withheld, carve_grid, should_stop, classes)
+    return _Scene(inputs, opts, indices, counts, withheld, carve_grid, should_stop, track, classes)
 
 
 def _gather_keyframes(sc: _Scene) -> tuple[Cloud, dict[str, Rays], list[Frame], bool]:
@@ -132,7 +136,7 @@ def _gather_keyframes(sc: _Scene) -> tuple[Cloud, dict[str, Rays], list[Frame], 
         s = ds.samples[i]
         rays[s.token] = []
         for k, rec in enumerate(s.lidars):
-            points, origin, off_ego = frame_points(rec)
+            points, origin, off_ego = frame_points(rec, sc.track)
             rays[s.token].append((origin, points[off_ego]))
             if k > 0 and sc.inputs.segmented:
                 deferred.append((i, k, rec))
@@ -167,7 +171,7 @@ def _gather_sweeps(sc: _Scene, cloud: Cloud, deferred: list[Frame], with_seg: bo
             dynamic_index = NearestIndex.build(*cloud.dynamic(), radius)
     for i, k, rec in sweeps:
         sc.should_stop()
-        points, _, off_ego = frame_points(rec)
+        points, _, off_ego = frame_points(rec, sc.track)
         sc.counts.add_frame(len(points), int((~off_ego).sum()))
         boxes = sc.boxes(i, k, rec)
         add_sweep(cloud, points[off_ego], boxes, static_index, object_index or {}, sc.opts, sc.counts,

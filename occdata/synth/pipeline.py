@@ -52,6 +52,7 @@ __all__ = [
     "render_camera",
     "render_lidar",
     "scene_world",
+    "spun_returns",
     "synthesize",
 ]
 
@@ -87,7 +88,8 @@ class SynthConfig:
     table_only_samples: int = 40  # keyframes per table-only scene (nuScenes: 34,149 / 850 = 40.2)
     grids: tuple[GridSpec, ...] = ()  # more truth grids, gts/<grid>/ in their layouts (occ3d's is always written)
     rig: str = "nuscenes"  # a key of occdata.synth.rig.RIGS
-    image_masks: bool = False  # also masks/<image path>.png: each image's truth class ids (uint8, 255 sky)
+    uncompensated: bool = False  # LiDARs spin over one period, each point at its own time (pcd rigs)
+    image_masks: Path | None = None  # also <dir>/<image path>.png: each image's truth class ids (uint8, 255 sky)
 
 
 @dataclass(frozen=True, eq=False)
@@ -169,7 +171,37 @@ def lidar_returns(
     """Spin the LiDAR once at one instant; returns the returns `(N, 5) float32`: x, y, z (lidar frame),
     intensity (0-255, class reflectivity x incidence cosine), ring index; and the Occ3D class
     `(N,) int` of the surface each return hit."""
-    dirs_lidar, ring = lidar_directions(spec)
+    return _returns(world, wg, T_global_from_lidar, *lidar_directions(spec))[:2]
+
+
+SPIN_SECTORS = 36  # a spinning LiDAR's turn is cast in this many azimuth sectors, each at its own time
+
+
+def spun_returns(world: SceneWorld, wg: WorldGrid, T_ego_from_lidar: np.ndarray, t_us: int, spin_us: int,
+                 spec: LidarSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`lidar_returns` of a LiDAR turning over `spin_us` centred on `t_us`: azimuth sector m of
+    `SPIN_SECTORS` fires at its own time t_m from the ego pose then (actors stay at `t_us`), and its
+    points are in the LiDAR frame of t_m, as an uncompensated LiDAR reports them. Returns the points
+    `(N, 5) float32`, classes `(N,)`, times `(N,) int64` us, and the truth: points and ray origins
+    `(N, 3) float64` in global."""
+    dirs, ring = lidar_directions(spec)
+    sector = np.minimum((np.mod(np.arctan2(dirs[:, 1], dirs[:, 0]), 2 * np.pi) / (2 * np.pi) * SPIN_SECTORS)
+                        .astype(np.int64), SPIN_SECTORS - 1)
+    parts = []
+    for m in range(SPIN_SECTORS):
+        t_m = t_us - spin_us // 2 + (2 * m + 1) * spin_us // (2 * SPIN_SECTORS)
+        T_global_from_lidar = ego_transform(world, t_m) @ T_ego_from_lidar
+        sel = sector == m
+        points, cls, points_global = _returns(world, wg, T_global_from_lidar, dirs[sel], ring[sel])
+        parts.append((points, cls, np.full(len(points), t_m, np.int64), points_global,
+                      np.broadcast_to(T_global_from_lidar[:3, 3], points_global.shape)))
+    return tuple(np.concatenate([p[n] for p in parts]) for n in range(5))  # type: ignore[return-value]
+
+
+def _returns(world: SceneWorld, wg: WorldGrid, T_global_from_lidar: np.ndarray, dirs_lidar: np.ndarray,
+             ring: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The returns of rays `dirs_lidar (N, 3)` (rings `ring (N,)`) from the LiDAR at `T_global_from_lidar`:
+    as `lidar_returns`, plus the points in global `(M, 3) float64`."""
     dirs_global = dirs_lidar @ T_global_from_lidar[:3, :3].T
     origin_global = T_global_from_lidar[:3, 3].copy()
     t, hit = wg.cast(origin_global, dirs_global, LIDAR_MAX_RANGE)
@@ -181,7 +213,8 @@ def lidar_returns(
     cos_inc = np.abs((normals_global * dirs_global).sum(axis=1))
     intensity = 255.0 * _REFLECTIVITY[cls] * (0.3 + 0.7 * cos_inc)
     points_lidar = t[:, None] * dirs_lidar  # unit directions: t is the range
-    return np.concatenate([points_lidar, intensity[:, None], ring[:, None]], axis=1).astype(np.float32), cls
+    points = np.concatenate([points_lidar, intensity[:, None], ring[:, None]], axis=1).astype(np.float32)
+    return points, cls, points_global
 
 
 def render_lidar(world: SceneWorld, wg: WorldGrid, T_global_from_lidar: np.ndarray,
@@ -190,17 +223,18 @@ def render_lidar(world: SceneWorld, wg: WorldGrid, T_global_from_lidar: np.ndarr
     return lidar_returns(world, wg, T_global_from_lidar, spec)[0]
 
 
-def point_file_bytes(rig: SynthRig, points: np.ndarray, t_us: int) -> bytes:
+def point_file_bytes(rig: SynthRig, points: np.ndarray, t_us: int, times: np.ndarray | None = None) -> bytes:
     """A sweep's file: raw float32 x 5 (`.pcd.bin`, `.bin`), or a binary PCD with x, y, z, intensity and a
-    uint64 `timestamp` per point (TruckScenes' fields). The synthetic LiDAR spins at one instant, so
-    every point carries the sweep's timestamp."""
+    uint64 `timestamp` per point (TruckScenes' fields): `times (N,)` (a spin, `spun_returns`), else the
+    sweep's timestamp for every point (a LiDAR spinning at one instant)."""
     if rig.point_format == "raw5":
         return points.tobytes()
     import io
 
     import pypcd4
 
-    cols = [points[:, 0], points[:, 1], points[:, 2], points[:, 3], np.full(len(points), t_us, np.uint64)]
+    stamps = np.full(len(points), t_us, np.uint64) if times is None else np.asarray(times, np.uint64)
+    cols = [points[:, 0], points[:, 1], points[:, 2], points[:, 3], stamps]
     pc = pypcd4.PointCloud.from_points(cols, ("x", "y", "z", "intensity", "timestamp"),
                                        (np.float32,) * 4 + (np.uint64,))
     buf = io.BytesIO()
@@ -240,13 +274,14 @@ class SensorFrame:
 
 def _render_keyframe(
     out: Path, world: SceneWorld, scene_name: str, t_lidar: int, sd_tokens: dict[str, str], width: int, height: int,
-    extra_lidar_times: tuple[int, ...] = (), rig: SynthRig = NUSCENES, masks: bool = False,
+    extra_lidar_times: tuple[int, ...] = (), rig: SynthRig = NUSCENES, masks: Path | None = None,
 ) -> tuple[list[SensorFrame], dict[str, np.ndarray], KeyframeLidar, _Rays]:
     """Render and write the rig's camera images (+ depth maps) and every LiDAR's sweep of the keyframe
     at `t_lidar` (the reference LiDAR's timestamp); returns the written frames, the Occ3D labels (key
     ego = ego at `t_lidar`), the reference sweep with its per-point lidarseg labels and the rays behind
     the masks (every LiDAR's keyframe sweep). `mask_lidar` also counts the reference LiDAR's returns
-    of sweeps at `extra_lidar_times` (not written). `masks`: also each image's class ids (`mask_path`)."""
+    of sweeps at `extra_lidar_times` (not written). `masks`: also each image's class ids under that
+    folder (`mask_path`)."""
     T_global_from_keyego = ego_transform(world, t_lidar)
     T_keyego_from_global = invert_rigid(T_global_from_keyego)
     wg_lidar = WorldGrid.build(world, t_lidar)
@@ -267,11 +302,11 @@ def _render_keyframe(
         if not ok:
             raise OccDataError(f"JPEG encoding failed for {rel}")
         write_atomic(out / rel, jpg.tobytes())
-        if masks:
+        if masks is not None:
             ok, png = cv2.imencode(".png", classes)
             if not ok:
                 raise OccDataError(f"PNG encoding failed for the mask of {rel}")
-            write_atomic(mask_path(out / "masks", rel), png.tobytes())
+            write_atomic(mask_path(masks, rel), png.tobytes())
         write_atomic(out / "depth" / f"{sd_tokens[ch]}.npy", _npy_bytes(depth))
         cam_K.append(K)
         cam_T.append(invert_rigid(T_keyego_from_global @ T_global_from_sensor))
@@ -284,11 +319,18 @@ def _render_keyframe(
         T_global_from_sensor = T_global_from_ego @ lidar.calib.T_ego_from_sensor
         rel = rig.sensor_file(scene_name, ch, ts, key=True)
         wg = wg_lidar if ts == t_lidar else WorldGrid.build(world, ts)
-        points, cls = lidar_returns(world, wg, T_global_from_sensor, lidar)
-        write_atomic(out / rel, point_file_bytes(rig, points, ts))
         T_keyego_from_lidar = T_keyego_from_global @ T_global_from_sensor
-        origins.append(np.broadcast_to(T_keyego_from_lidar[:3, 3], (len(points), 3)))
-        ends.append(transform_points(T_keyego_from_lidar, points[:, :3]))
+        if rig.spin_us:  # the truth's rays from where each sector's points were taken
+            points, cls, times, ends_global, origins_global = spun_returns(
+                world, wg, lidar.calib.T_ego_from_sensor, ts, rig.spin_us, lidar)
+            write_atomic(out / rel, point_file_bytes(rig, points, ts, times))
+            origins.append(transform_points(T_keyego_from_global, origins_global))
+            ends.append(transform_points(T_keyego_from_global, ends_global))
+        else:
+            points, cls = lidar_returns(world, wg, T_global_from_sensor, lidar)
+            write_atomic(out / rel, point_file_bytes(rig, points, ts))
+            origins.append(np.broadcast_to(T_keyego_from_lidar[:3, 3], (len(points), 3)))
+            ends.append(transform_points(T_keyego_from_lidar, points[:, :3]))
         if n == 0:
             key_lidar = KeyframeLidar(points, LIDARSEG_FROM_OCC3D[cls], T_global_from_sensor)
             # Like Occ3D, aggregate neighbouring sweeps (their returns only: a ray's free space is
@@ -394,9 +436,14 @@ def _write_sweep(out: Path, world: SceneWorld, scene_name: str, t_us: int, rig: 
                  ) -> SensorFrame:
     """Render and write one non-keyframe sweep of `lidar` (actors at `t_us`) under sweeps/."""
     T_global_from_ego = ego_transform(world, t_us)
+    rel = rig.sensor_file(scene_name, lidar.channel, t_us, key=False)
+    if rig.spin_us:
+        points, _, times, _, _ = spun_returns(world, WorldGrid.build(world, t_us), lidar.calib.T_ego_from_sensor, t_us,
+                                              rig.spin_us, lidar)
+        write_atomic(out / rel, point_file_bytes(rig, points, t_us, times))
+        return SensorFrame(lidar.channel, int(t_us), rel, T_global_from_ego)
     points = render_lidar(world, WorldGrid.build(world, t_us), T_global_from_ego @ lidar.calib.T_ego_from_sensor,
                           lidar)
-    rel = rig.sensor_file(scene_name, lidar.channel, t_us, key=False)
     write_atomic(out / rel, point_file_bytes(rig, points, t_us))
     return SensorFrame(lidar.channel, int(t_us), rel, T_global_from_ego)
 
@@ -454,7 +501,7 @@ class _Scene:
     link: dict[str, tuple[str, str]]
     grids: tuple[GridSpec, ...] = ()
     rig: SynthRig = NUSCENES
-    masks: bool = False
+    masks: Path | None = None
 
 
 def _keyframe_sample_data(sc: _Scene, f: Any, k: int) -> dict[str, Any]:
@@ -657,6 +704,11 @@ def synthesize(config: SynthConfig) -> Path:
     if config.rig not in RIGS:
         raise OccDataError(f"--rig {config.rig!r}: not one of {', '.join(RIGS)}")
     rig = RIGS[config.rig]
+    if config.uncompensated:
+        if rig.point_format != "pcd":
+            raise OccDataError(f"--uncompensated needs per-point times: the {rig.name} rig writes no .pcd files "
+                               "(use --rig truckscenes)")
+        rig = dataclasses.replace(rig, spin_us=rig.sweep_period_us)
     width, height = config.width or rig.native_size[0], config.height or rig.native_size[1]
     if config.scenes < 1 or config.samples < 1:
         raise OccDataError("--scenes and --samples must be >= 1")

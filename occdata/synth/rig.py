@@ -141,7 +141,9 @@ class SynthRig:
     per-point `timestamp`, as truckscenes-devkit reads). `float_timestamps`: microseconds written as JSON
     floats (Lyft); `nan_lidar_size`: NaN width/height on LiDAR rows (Lyft); `ego_motion`: the
     `ego_motion_cabin` / `ego_motion_chassis` tables (TruckScenes); `global_offset`: added to every
-    global x, y (TruckScenes' UTM-like coordinates); `tables`: the tables written besides lidarseg.
+    global x, y (TruckScenes' UTM-like coordinates); `tables`: the tables written besides lidarseg;
+    `spin_us`: the LiDARs spin over this long, each azimuth sector from the ego pose of its own time,
+    and a "pcd" file gives each point that time (an uncompensated cloud); 0: a sweep at one instant.
     """
 
     name: str
@@ -160,6 +162,7 @@ class SynthRig:
     ego_motion: bool = False
     global_offset: tuple[float, float] = (0.0, 0.0)
     tables: tuple[str, ...] = ()
+    spin_us: int = 0
 
     def __post_init__(self) -> None:
         names = [c.channel for c in self.cameras] + [lidar.channel for lidar in self.lidars]
@@ -169,6 +172,8 @@ class SynthRig:
             raise ValueError(f"rig {self.name}: the LiDAR period must divide the keyframe period")
         if self.layout not in ("nuscenes", "lyft", "truckscenes") or self.point_format not in ("raw5", "pcd"):
             raise ValueError(f"rig {self.name}: unknown layout {self.layout!r} or point format {self.point_format!r}")
+        if self.spin_us and (self.point_format != "pcd" or not 0 < self.spin_us <= self.sweep_period_us):
+            raise ValueError(f"rig {self.name}: a spin needs per-point times (pcd files) and at most one LiDAR period")
 
     @property
     def reference(self) -> LidarSpec:
