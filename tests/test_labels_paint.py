@@ -99,24 +99,27 @@ def test_tiered_majority_by_hand() -> None:
 
 
 def test_uncover_gives_a_walls_foot_its_class() -> None:
-    # Column 0: flat at z0 under a wall (15) at z1; its own votes 11 x3, 0 x1, 16 x1: the other votes
+    # Columns of 4 voxels; something covers a flat voxel when the 2 voxels above it are not flat.
+    # Column 0: flat at z0 under a wall (15) at z1-z2; its own votes 11 x3, 0 x1, 16 x1: the other votes
     #   tie 0 : 16 -> the lower class, 0 (not the wall above: its own points decide).
-    # Column 1: flat at z0 under a car (4), no other votes in z0 -> the class above, 4.
+    # Column 1: flat at z0 under a car (4) at z1-z2, no other votes in z0 -> the class above, 4.
     # Column 2: flat at z0, free above -> stays flat. Column 3: flat under flat -> stays.
-    # Column 4: flat at z0 and z1 under a pole (15) at z2, no other votes -> 15 from the top down.
-    sem = np.full((5, 1, 3), FREE, np.uint8)
+    # Column 4: flat at z0 and z1 under a pole (15) at z2-z3, no other votes -> 15 from the top down.
+    # Column 5: flat at z0 under one voxel of others (ground noise), free above it -> stays flat.
+    sem = np.full((6, 1, 4), FREE, np.uint8)
     sem[:, 0, 0] = 11
-    sem[0, 0, 1], sem[1, 0, 1], sem[3, 0, 1] = 15, 4, 11
-    sem[4, 0, 1], sem[4, 0, 2] = 11, 15
+    sem[0, 0, 1:3], sem[1, 0, 1:3], sem[3, 0, 1] = 15, 4, 11
+    sem[4, 0, 1], sem[4, 0, 2:4] = 11, 15
+    sem[5, 0, 1] = 0
 
     def key(i: int, k: int, c: int) -> int:
-        return (i * 3 + k) * N + c
+        return (i * 4 + k) * N + c
 
     votes = [np.array([key(0, 0, 11)] * 3 + [key(0, 0, 0), key(0, 0, 16), key(1, 0, 11)], np.int64)]
     out = uncover(sem, votes, N, 11, FREE)
-    assert out[:, 0, 0].tolist() == [0, 4, 11, 11, 15]
-    assert out[4, 0].tolist() == [15, 15, 15]
-    assert (out[:4, 0, 1:] == sem[:4, 0, 1:]).all()
+    assert out[:, 0, 0].tolist() == [0, 4, 11, 11, 15, 11]
+    assert out[4, 0].tolist() == [15, 15, 15, 15]
+    assert (np.delete(out, 4, axis=0)[:, 0, 1:] == np.delete(sem, 4, axis=0)[:, 0, 1:]).all()
 
 
 def test_on_ground() -> None:
@@ -293,3 +296,15 @@ def test_image_mask_errors_are_one_line(world: Path, tmp_path: Path) -> None:
     r = CliRunner().invoke(main, ["labels", "--root", str(world), "--out", str(tmp_path / "b"), "--no-progress",
                                   "--image-masks", str(_masks(world)), "--mask-classes", str(table)])
     assert r.exit_code != 0 and "unknown class 'lorry'" in r.output and "Traceback" not in r.output
+
+
+def test_one_badly_aligned_slot_does_not_sink_the_ground() -> None:
+    # Three slots see a plane at z = 0; the third one 0.4 m too low, its height error unknown (0). The
+    # median of the three per column is the plane; carving's lowest surface would be -0.4 m.
+    xs, ys = np.meshgrid(np.arange(0.05, 6.0, 0.25), np.arange(0.05, 6.0, 0.25))
+    plane = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], 1)
+    heights = HeightOffsets(np.array([0, 1, 2], np.int64), np.zeros(3))
+    slots = [(np.zeros(3), plane, 0), (np.zeros(3), plane, 1), (np.zeros(3), plane - [0.0, 0.0, 0.4], 2)]
+    ground = SceneGround.fit(slots, heights)
+    assert np.abs(ground.height_under(plane)).max() < 1e-9
+    assert on_ground(plane + [0.0, 0.0, 0.1], 0, ground, 0.2).all()

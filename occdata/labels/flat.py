@@ -14,11 +14,11 @@ upper part of a wall: it has none. Points of columns whose ground no slot saw st
 
 The bottom voxel of a wall, a pole, a trunk or a car holds its foot within `clearance` of the ground,
 and the ground beside it: geometry alone (and a mask, whose road runs under the car's edge) would call
-it flat. So after the vote a flat voxel whose voxel above is occupied by something that is not flat is
-**covered** (`uncover`): it takes the most voted class of its other points, or, with none, the class of
-the voxel above (what stands on it reaches down to the ground, as Occ3D's voxels of an object touch
-it). Overhangs lower than one voxel over the ground are rare; a tree's crown higher than that does not
-cover the grass under it.
+it flat. So after the vote a flat voxel is **covered** (`uncover`) when the `COVER` voxels above it are
+occupied by something not flat (one voxel of `others` on the ground is more likely its own noise): it
+takes the most voted class of its other points, or, with none, the class of the voxel above (what
+stands on it reaches down to the ground, as Occ3D's voxels of an object touch it). Overhangs lower
+than one voxel over the ground are rare; a tree's crown higher than that does not cover the grass.
 
 With image masks a point's class is either painted (tier 1: the masks, and a box's class) or
 geometric (tier 2: flat / static / dynamic, where no mask voted). Classes travel in one `uint8` as
@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from occdata.labels.heights import COLUMN_M, GroundMap, HeightOffsets, ground_cells, ground_map
+from occdata.labels.heights import COLUMN_M, GroundMap, HeightOffsets, ground_cells
 from occdata.labels.kernels import majority
 
 __all__ = ["FLAT_CLASS", "FLAT_CLEARANCE", "SceneGround", "fill_flat", "fold_votes", "on_ground", "tiered_majority",
@@ -49,6 +49,7 @@ FLAT_CLEARANCE = 0.2  # m over the column's ground within which a static point i
 REACH = 80.0  # m from a slot's LiDAR within which its lowest surfaces count (the synthetic LiDAR's range)
 COARSE_M = 2.0  # m: the column that stands in where a 0.5 m column saw no ground
 FILL = 2  # voxels across within which `fill_flat` looks for a flat class the masks gave
+COVER = 2  # voxels: how tall what stands on a flat voxel must be to cover it (a 1-voxel lump is ground noise)
 STEP = 0.5  # m: the most a column's ground may stand over the lowest around it (kerbs, slopes)
 
 
@@ -66,7 +67,7 @@ class SceneGround:
         """From each keyframe slot's `(origin (3,), points (N, 3), t_us)` (global, off the ego) and the
         slots' height errors (`occdata.labels.heights.height_offsets`)."""
         dz = np.array([heights.at(t) for _, _, t in slots])
-        maps = [ground_map([ground_cells(p, o, cell, REACH, min_points=1) for o, p, _ in slots], dz, cell)
+        maps = [_median_map([ground_cells(p, o, cell, REACH, min_points=1) for o, p, _ in slots], dz, cell)
                 for cell in (COLUMN_M, COARSE_M)]
         return cls(heights, *maps)
 
@@ -84,6 +85,21 @@ class SceneGround:
                 lowest = np.fmin(lowest, around)
         z[z > lowest + STEP] = np.nan
         return z
+
+
+def _median_map(cells: Sequence[tuple[np.ndarray, np.ndarray]], dz: np.ndarray, cell: float) -> GroundMap:
+    """Per column, the median over the slots that saw its ground of their lowest surface there, each less
+    its slot's height error (the lower middle one of an even count). Carving's map takes the lowest
+    (`occdata.labels.heights.ground_map`): for labels one badly aligned slot must not sink a column's
+    ground under the road that every other slot saw (real scene-0916: 0.4 m under it near the ego)."""
+    keys = np.concatenate([k for k, _ in cells]) if cells else np.zeros(0, np.int64)
+    z = np.concatenate([h - d for (_, h), d in zip(cells, dz, strict=True)]) if cells else np.zeros(0)
+    order = np.lexsort((z, keys))
+    keys, z = keys[order], z[order]
+    first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]]) if len(keys) else np.zeros(0, np.int64)
+    size = np.diff(np.r_[first, len(keys)])
+    middle = first + (size - 1) // 2
+    return GroundMap(keys[first], z[middle], cell)
 
 
 def on_ground(points: np.ndarray, t_us: int, ground: SceneGround, clearance: float) -> np.ndarray:
@@ -151,8 +167,10 @@ def uncover(semantics: np.ndarray, votes: list[np.ndarray], n: int, flat_class: 
     keys = np.concatenate([np.zeros(0, np.int64), *votes])
     out = semantics
     for _ in range(semantics.shape[2]):
-        above = np.zeros(out.shape, bool)
-        above[:, :, :-1] = (out[:, :, 1:] != empty) & (out[:, :, 1:] != flat_class)
+        standing = (out != empty) & (out != flat_class)
+        above = np.zeros(out.shape, bool)  # something at least COVER voxels tall stands on the voxel
+        above[:, :, :-COVER] = np.logical_and.reduce([standing[:, :, d:out.shape[2] - COVER + d]
+                                                      for d in range(1, COVER + 1)])
         covered = (out == flat_class) & above
         if region is not None:
             covered &= region
