@@ -4,10 +4,10 @@ maintained `pypcd4` library, as MAN TruckScenes' devkit reads its sweeps.
 Our point layout is nuScenes' `.pcd.bin` one: `(N, 5) float32` x, y, z, intensity, ring (lidar
 frame). A PCD file names its fields; x, y, z are required, `intensity` and `ring` are taken when
 present and are 0 otherwise. A `timestamp` field (TruckScenes: each point's own time, in
-microseconds like the tables) is kept as `PcdPoints.timestamps` for callers that want it; the
-build and the labels do not use it (they treat a sweep as taken at its sample_data timestamp, as
-for nuScenes' files, which have no per-point times). Problems are one line naming the file and
-the field or point.
+microseconds like the tables) is kept as `PcdPoints.timestamps`: `occdata labels --deskew` places
+each point by the ego pose of its time (`occdata.labels.deskew`); the build does not use it (it takes
+a sweep at its sample_data timestamp, as for nuScenes' files, which have no per-point times).
+Problems are one line naming the file and the field or point.
 """
 
 from __future__ import annotations
