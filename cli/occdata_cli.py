@@ -31,6 +31,7 @@ from occdata.formats.gridspec import GRID_NAMES, GridSpec, grids_from_options
 from occdata.text import plural
 
 if TYPE_CHECKING:
+    from occdata.labels.paint import ImageMasks
     from occdata.nuscenes.rig import RigChoice
     from occdata.nuscenes.splits import SplitChoice
     from occdata.runtime.cluster import ClusterConfig
@@ -79,11 +80,16 @@ def main() -> None:
               help="The LiDARs spin over one period, each point taken from the ego pose of its own time and "
                    "stamped with it (.pcd rigs: --rig truckscenes): clouds not motion-compensated, as `occdata "
                    "labels --deskew` corrects.")
+@click.option("--image-masks", "image_masks", is_flag=False, flag_value="", default=None, metavar="[DIR]",
+              help="Also write each camera image's truth class ids (Occ3D ids, 255 = sky) as a PNG at its path "
+                   "under DIR (default OUT/masks: samples/CAM_FRONT/x.jpg -> OUT/masks/samples/CAM_FRONT/x.png): "
+                   "the input of `occdata labels --image-masks DIR`.")
 @progress_option()
 @friendly_errors
 def synth(out: str, scenes: int, samples: int, seed: int, rig_name: str, width: int | None, height: int | None,
           table_only_scenes: int, table_only_samples: int, grids: tuple[str, ...], voxel_size: float | None,
-          grid_range: tuple[float, ...] | None, uncompensated: bool, progress: bool) -> None:
+          grid_range: tuple[float, ...] | None, uncompensated: bool, image_masks: str | None,
+          progress: bool) -> None:
     """Write a synthetic nuScenes-format world with Occ3D labels and exact depth maps.
 
     nuscenes rig: tables (v1.0-mini), 6 ray-cast camera images, a 32-beam LiDAR sweep per keyframe
@@ -98,7 +104,9 @@ def synth(out: str, scenes: int, samples: int, seed: int, rig_name: str, width: 
     root = synthesize(SynthConfig(out=local_path(out, "--out"), scenes=scenes, samples=samples, seed=seed,
                                   width=width, height=height, progress=progress,
                                   table_only_scenes=table_only_scenes, table_only_samples=table_only_samples,
-                                  grids=specs, rig=rig_name, uncompensated=uncompensated))
+                                  grids=specs, rig=rig_name, uncompensated=uncompensated,
+                                  image_masks=None if image_masks is None else
+                                  local_path(image_masks or str(Path(out) / "masks"), "--image-masks")))
     extra = f" (+ {table_only_scenes} table-only scenes)" if table_only_scenes else ""
     click.echo(f"wrote {plural(scenes, 'scene')} x {plural(samples, 'sample')}{extra} to {root}")
 
@@ -242,6 +250,17 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
 @click.option("--static-class", type=click.IntRange(0, 16), default=0, show_default=True,
               help="Without lidarseg only: the Occ3D class given to every point outside a box (0 = others, "
                    "i.e. 'occupied, not an annotated object'). Recorded in labels.json.")
+@click.option("--ground-class", type=click.IntRange(0, 16), default=11, show_default=True,
+              help="Without lidarseg only: the Occ3D class of static points on the scene's ground, found from "
+                   "geometry (11 = driveable_surface, a stand-in for any flat ground). Equal to --static-class: "
+                   "the ground is not split off. Recorded in labels.json.")
+@click.option("--image-masks", "image_masks", default=None, metavar="DIR",
+              help="Classes from your own 2D masks where there is no lidarseg: one PNG of class ids per camera "
+                   "image at the image's path under DIR (samples/CAM_FRONT/x.jpg -> DIR/samples/CAM_FRONT/x.png); "
+                   "each LiDAR point takes the class of the pixel it projects to where it is the visible surface.")
+@click.option("--mask-classes", "mask_classes", default=None, metavar="FILE",
+              help="With --image-masks: a JSON object mapping your segmenter's ids to Occ3D class names or "
+                   "'ignore', e.g. {\"0\": \"driveable_surface\", \"13\": \"car\"}. Default: the ids are Occ3D's.")
 @click.option("--knn-radius", type=click.FloatRange(0.01, 5.0), default=0.5, show_default=True,
               help="Metres within which a sweep point takes the class of the nearest labelled keyframe point.")
 @click.option("--boxes", "boxes_mode", type=click.Choice(["auto", "none"]), default="auto", show_default=True,
@@ -277,7 +296,8 @@ def build(root: str, version: str | None, out: str, gts: str | None, grid_name: 
 @progress_option()
 @friendly_errors
 def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], scenes: tuple[str, ...],
-           all_sweeps: bool, static_class: int, knn_radius: float, boxes_mode: str,
+           all_sweeps: bool, static_class: int, ground_class: int, image_masks: str | None, mask_classes: str | None,
+           knn_radius: float, boxes_mode: str,
            carve: bool | None, dynamic_class: int, deskew: bool, densify: bool,
            grids: tuple[str, ...],
            voxel_size: float | None, grid_range: tuple[float, ...] | None, rig: RigChoice,
@@ -295,6 +315,7 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
 
     out_path = local_path(out, "--out")
     specs = grids_from_options(grids, voxel_size, grid_range)
+    masks = _image_masks(image_masks, mask_classes)
     with exit_on_interrupt(f"interrupted: finished scenes are kept in {out_path}; rerun with --resume to continue"):
         report = generate_labels(LabelsConfig(
             root=local_path(root, "--root"), out=out_path, version=version, splits=splits or None,
@@ -302,10 +323,14 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
             options=LabelOptions(all_sweeps=all_sweeps, static_class=static_class, knn_radius=knn_radius,
                                  use_boxes=boxes_mode == "auto", densify=densify,
                                  carve=carve if carve is not None else (True if boxes_mode == "none" else None),
-                                 dynamic_class=dynamic_class, deskew=deskew),
+                                 dynamic_class=dynamic_class, deskew=deskew, ground_class=ground_class,
+                                 image_masks=masks),
             cluster=cluster, grids=specs, rig=rig, scene_splits=scene_splits,
         ))
-    seg = "lidarseg classes" if report.with_lidarseg else f"no lidarseg: static points are class {static_class}"
+    seg = "lidarseg classes" if report.with_lidarseg else (
+        f"no lidarseg: static points are class {static_class}"
+        + (f", on the ground {ground_class}" if ground_class != static_class else "")
+        + ("; classes from the image masks where they see a point" if masks is not None else ""))
     carved = sorted(name for name, mode in report.modes.items() if "carve" in mode)
     if carved and len(carved) < len(report.modes):
         click.echo(f"carved (no boxes, or --carve): {len(carved)} of {len(report.modes)} scenes: "
@@ -313,6 +338,22 @@ def labels(root: str, version: str | None, out: str, splits: tuple[str, ...], sc
     click.echo(f"{out_path}: {plural(report.scenes_done, 'scene')} labelled, {report.scenes_skipped} already done, "
                f"{plural(report.keyframes, 'keyframe')} ({seg}"
                f"{'; moving objects by free-space carving' if carved else ''}); manifest {report.manifest}")
+
+
+def _image_masks(folder: str | None, classes: str | None) -> ImageMasks | None:
+    """`--image-masks DIR` and `--mask-classes FILE` as `occdata.labels.paint.ImageMasks` (None: no masks)."""
+    from occdata.formats.imagemasks import MaskClasses, load_mask_classes
+    from occdata.labels.paint import ImageMasks
+
+    if folder is None:
+        if classes is not None:
+            raise click.UsageError("--mask-classes needs --image-masks")
+        return None
+    root = local_path(folder, "--image-masks")
+    if not root.is_dir():
+        raise click.UsageError(f"--image-masks {folder}: not a folder")
+    table = load_mask_classes(local_path(classes, "--mask-classes")) if classes else MaskClasses.occ3d()
+    return ImageMasks(root, table)
 
 
 @main.command("bev-gt")

@@ -168,8 +168,10 @@ def test_without_lidarseg_static_class_is_stated(world: Path, tmp_path: Path) ->
         sem = z["semantics"]
     present = set(np.unique(sem).tolist())
     box_classes = {box_class(b) for b in ann.boxes_by_sample[tok]}
-    assert present <= box_classes | {15, 17}
-    assert 15 in present and present & box_classes
+    # The ground from geometry takes class 11 (driveable_surface, the default stand-in, stated too).
+    assert present <= box_classes | {11, 15, 17}
+    assert {11, 15} <= present and present & box_classes
+    assert "11 (driveable_surface)" in manifest["classes"] and "flat ground" in manifest["classes"]
 
 
 def test_bad_inputs_are_one_line(world: Path, tmp_path: Path) -> None:

@@ -348,7 +348,8 @@ def test_no_boxes_without_lidarseg_states_the_dynamic_class(world: Path, tmp_pat
     assert manifest["carving"]["dynamic"].endswith("the tree has no lidarseg to say which")
     assert "7 (pedestrian)" in manifest["carving"]["dynamic"]
     sem = [np.load(p)["semantics"] for p in sorted(out.rglob("labels.npz"))]
-    assert all(set(np.unique(s)) <= {0, 7, 17} for s in sem) and any((s == 7).any() for s in sem)
+    # 11: the ground from geometry (`--ground-class`, default driveable_surface)
+    assert all(set(np.unique(s)) <= {0, 7, 11, 17} for s in sem) and any((s == 7).any() for s in sem)
 
 
 # ------------------------------------------------------------------------------------------------

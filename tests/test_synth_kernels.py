@@ -97,12 +97,14 @@ def test_render_camera_kernel_matches_reference(seed: int) -> None:
     # Camera looking along +x (camera z -> global x, camera x -> -global y, camera y -> -global z).
     R = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
     origin = np.array([0.0, 0.0, 1.5])
-    rgb, depth = render.render_camera_kernel(np.linalg.inv(K), R, origin, 64, 36, 80.0, params, cs, items, ztop,
-                                             x0, y0, cell, nx, ny, 30.0, cls, style, codes, gx0, gy0, gcell,
-                                             variants, render.SUN_DIR)
-    rgb_ref, depth_ref = render_camera_reference(K, R, origin, 64, 36, 80.0, params, cls, style, codes, gx0,
-                                                        gy0, gcell, variants, render.SUN_DIR)
+    rgb, depth, classes = render.render_camera_kernel(np.linalg.inv(K), R, origin, 64, 36, 80.0, params, cs, items,
+                                                      ztop, x0, y0, cell, nx, ny, 30.0, cls, style, codes, gx0, gy0,
+                                                      gcell, variants, render.SUN_DIR)
+    rgb_ref, depth_ref, classes_ref = render_camera_reference(K, R, origin, 64, 36, 80.0, params, cls, style, codes,
+                                                              gx0, gy0, gcell, variants, render.SUN_DIR)
     np.testing.assert_allclose(depth, depth_ref, rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(classes, classes_ref)
+    assert ((classes == render.SKY_CLASS) == (depth == 0)).all() and len(np.unique(classes)) >= 3
     assert np.abs(rgb.astype(int) - rgb_ref.astype(int)).max() <= 1
     assert (depth == 0).any() and (depth > 0).any()
     assert len(np.unique(rgb.reshape(-1, 3), axis=0)) > 50  # textured, shaded, not flat colours

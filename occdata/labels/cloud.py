@@ -79,10 +79,13 @@ def keyframe_classes(inputs: LabelSources, rec: LidarRecord, n_points: int) -> n
 
 
 def add_keyframe(cloud: Cloud, points: np.ndarray, cls: np.ndarray | None, boxes: tuple[BoxRecord, ...],
-                 opts: LabelOptions, counts: SceneCounts, dynamic: np.ndarray | None = None, t_us: int = 0) -> None:
+                 opts: LabelOptions, counts: SceneCounts, dynamic: np.ndarray | None = None, t_us: int = 0,
+                 own: tuple[np.ndarray, np.ndarray] | None = None) -> None:
     """Split a keyframe's global points into static and per-instance (box frame) points with classes;
     with `dynamic (N,) bool` (carving) the points outside boxes marked there, less ground, buildings and
-    vegetation by lidarseg, are kept as frame `t_us`'s dynamic points instead of static ones."""
+    vegetation by lidarseg, are kept as frame `t_us`'s dynamic points instead of static ones. `own`
+    (without lidarseg): each point's class if static and if dynamic, `(N,) uint8` each
+    (`occdata.labels.semantics.SceneClasses.of`; None: `static_class` and `dynamic_class`)."""
     idx = members(points, cls, boxes, opts)
     for b in np.unique(idx[idx >= 0]):
         sel = idx == b
@@ -96,12 +99,14 @@ def add_keyframe(cloud: Cloud, points: np.ndarray, cls: np.ndarray | None, boxes
     static = idx < 0
     if dynamic is not None:
         moving = static & dynamic & (True if cls is None else ~np.isin(cls, STUFF))
-        c = cls[moving] if cls is not None else np.full(int(moving.sum()), opts.dynamic_class, np.uint8)
+        c = cls[moving] if cls is not None else own[1][moving] if own is not None else \
+            np.full(int(moving.sum()), opts.dynamic_class, np.uint8)
         cloud.add_dynamic(t_us, points[moving], c)
         counts.dynamic_points += int(moving.sum())
         idx = np.where(moving, -2, idx)  # neither static nor an instance's
         static = idx == -1
-    c = cls[static] if cls is not None else np.full(int(static.sum()), opts.static_class, np.uint8)
+    c = cls[static] if cls is not None else own[0][static] if own is not None else \
+        np.full(int(static.sum()), opts.static_class, np.uint8)
     cloud.add_static(points[static], c)
     counts.object_points += int((idx >= 0).sum()) if dynamic is not None else int((~static).sum())
     counts.static_points += int(static.sum())
@@ -109,7 +114,8 @@ def add_keyframe(cloud: Cloud, points: np.ndarray, cls: np.ndarray | None, boxes
 
 def add_sweep(cloud: Cloud, points: np.ndarray, boxes: tuple[BoxRecord, ...], static_index: NearestIndex | None,
               object_index: dict[str, NearestIndex], opts: LabelOptions, counts: SceneCounts,
-              dynamic: np.ndarray | None = None, t_us: int = 0, dynamic_index: NearestIndex | None = None) -> None:
+              dynamic: np.ndarray | None = None, t_us: int = 0, dynamic_index: NearestIndex | None = None,
+              own: tuple[np.ndarray, np.ndarray] | None = None) -> None:
     """A sweep's points: without lidarseg (`static_index` None) as a keyframe's; with it, each point
     takes the class of the nearest labelled keyframe point, of its box's instance (box frame) or of
     the static scene (global), whichever is nearer (an in-box point with neither in reach: the box's
@@ -120,7 +126,7 @@ def add_sweep(cloud: Cloud, points: np.ndarray, boxes: tuple[BoxRecord, ...], st
     static keyframe point of a mover's sweep point is often the road under it (its keyframe points are
     elsewhere then), which would keep the mover's low points static and smear them."""
     if static_index is None:
-        add_keyframe(cloud, points, None, boxes, opts, counts, dynamic, t_us)
+        add_keyframe(cloud, points, None, boxes, opts, counts, dynamic, t_us, own)
         return
     idx = in_boxes(points, boxes if opts.use_boxes else (), opts)
     cls_s, d2_s = static_index.query(points)

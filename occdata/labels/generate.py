@@ -26,6 +26,7 @@ from occdata.errors import OccDataError
 from occdata.fileio import remove_stale_temps, write_atomic
 from occdata.formats.gridfiles import LAYOUT_FILES, LabelSite, write_grid_label
 from occdata.formats.gridspec import GRID_PRESETS, GridSpec, LabelLayout
+from occdata.labels.flat import FLAT_CLEARANCE
 from occdata.labels.options import LabelOptions, LabelSources, SceneCounts
 from occdata.labels.scene import label_scene
 from occdata.nuscenes import NuScenesDataset, SampleRecord, find_version, load_nuscenes, validate_sample
@@ -132,14 +133,19 @@ def scene_modes(inputs: LabelSources, options: LabelOptions) -> dict[str, str]:
 
 def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool,
                   modes: dict[str, str] | None = None, rig: Rig | None = None) -> dict[str, Any]:
-    opts = dataclasses.asdict(cfg.options)
+    masks = cfg.options.image_masks
+    opts = dataclasses.asdict(dataclasses.replace(cfg.options, image_masks=None))
+    del opts["image_masks"]  # recorded only when given, in words: a run without masks keeps its bytes
+    if masks is not None:
+        opts["image_masks"] = masks.describe()
+    if with_seg:  # lidarseg gives the ground its class: a lidarseg tree's manifest keeps its bytes
+        del opts["ground_class"]
     carved = sorted(name for name, mode in (modes or {}).items() if "carve" in mode)
     if not carved:
         opts = {k: v for k, v in opts.items() if k not in _CARVE_KEYS}
     if not opts["deskew"]:  # recorded when on only: the manifests from before it keep their bytes
         del opts["deskew"]
-    static = (f"{opts['static_class']} ({CLASS_NAMES[opts['static_class']]}): every point outside a box; the "
-              "tree has no lidarseg, so this class says 'occupied, not an annotated object', not what it is")
+    static = _static_words(cfg.options)
     header = {
         "generator": "occdata labels",
         "algorithm_version": ALGORITHM_VERSION,
@@ -149,7 +155,7 @@ def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool,
         "lidarseg": with_seg,
         "classes": ("keyframe points: lidarseg mapped to Occ3D (noise, ego dropped); sweep points: nearest "
                     "labelled keyframe point" if with_seg else
-                    f"points in a box: the box's category; static points: class {static}"),
+                    f"points in a box: the box's category; {static}"),
         "layout": "<scene>/<sample_token>/labels.npz: semantics, mask_lidar, mask_camera; uint8 "
                   f"{GRID_PRESETS['occ3d'].shape}; {FREE_LABEL} = free",
         "grids": [{**spec.describe(), "folder": str(cfg.grid_root(spec).relative_to(cfg.out)),
@@ -163,6 +169,24 @@ def _options_dict(cfg: LabelsConfig, version: str, with_seg: bool,
     if cfg.scene_splits != SplitChoice():
         header["scene_splits"] = cfg.scene_splits.describe()
     return header
+
+
+def _static_words(o: LabelOptions) -> str:
+    """What the classes of points outside boxes mean without lidarseg, in words (labels.json)."""
+    others = (f"{o.static_class} ({CLASS_NAMES[o.static_class]}): every point outside a box; the tree has no "
+              "lidarseg, so this class says 'occupied, not an annotated object', not what it is")
+    words = f"static points: class {others}"
+    if o.splits_ground:
+        words += (f"; a point within {FLAT_CLEARANCE} m over the scene's ground (the lowest surface any keyframe saw "
+                  f"in its 0.5 m column, heights aligned): class {o.ground_class} ({CLASS_NAMES[o.ground_class]}), "
+                  "a stand-in meaning 'flat ground' (road, sidewalk and terrain alike: geometry cannot tell them "
+                  "apart); a flat voxel under a voxel of something else takes its other points' class, or the "
+                  "class above")
+    if o.image_masks is not None:
+        words += ("; where the user's image masks give a class (--image-masks: each point projected into the camera "
+                  "nearest in time, where it is the visible surface), a voxel takes the majority of its points' "
+                  "mask classes, the classes above only where no point of it has one")
+    return words
 
 
 def _carving_words(o: LabelOptions, with_seg: bool, carved: list[str]) -> dict[str, Any]:

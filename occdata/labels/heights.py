@@ -99,10 +99,11 @@ def ground_map(cells: Sequence[tuple[np.ndarray, np.ndarray]], dz: np.ndarray, c
 
 
 def ground_cells(points: np.ndarray, origin: np.ndarray, cell: float = COLUMN_M, reach: float = 30.0,
-                 band: float = 0.2) -> tuple[np.ndarray, np.ndarray]:
+                 band: float = 0.2, min_points: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """The lowest surface of each `cell`-m column of `points (N, 3) float64` (global) within `reach` m
     (horizontally) of `origin (3,)`: `(keys (M,) int64` sorted column keys, `z (M,) float64)`, the mean
-    height of the column's points within `band` m of its lowest; columns with one such point are left out."""
+    height of the column's points within `band` m of its lowest; columns with fewer such points than
+    `min_points` are left out."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     pts = pts[np.hypot(pts[:, 0] - origin[0], pts[:, 1] - origin[1]) <= reach]
     key = _column_keys(pts, cell)
@@ -116,7 +117,7 @@ def ground_cells(points: np.ndarray, origin: np.ndarray, cell: float = COLUMN_M,
     group = np.repeat(np.arange(len(first)), sizes)
     count = np.bincount(group, weights=near)
     total = np.bincount(group, weights=np.where(near, z, 0.0))
-    keep = count >= 2
+    keep = count >= min_points
     return key[first][keep], total[keep] / count[keep]
 
 

@@ -16,6 +16,7 @@ from occdata.labels.densify import densify
 from occdata.labels.flow import voxel_flow
 from occdata.labels.frames import Rays, T_grid_from_keyego, rays_in
 from occdata.labels.kernels import majority, vote_voxels
+from occdata.labels.semantics import SceneClasses
 from occdata.nuscenes import SampleRecord
 from occdata.nuscenes.annotations import BoxRecord
 from occdata.visibility import camera_mask, lidar_mask
@@ -27,15 +28,14 @@ STATIC_RAY_FRAMES = 8
 
 
 def votes(static: tuple[np.ndarray, np.ndarray], cloud: Cloud, boxes: tuple[BoxRecord, ...],
-          T_grid_from_global: np.ndarray, grid: OccGrid,
-          dynamic: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[list[np.ndarray], list[int]]:
+          T_grid_from_global: np.ndarray, grid: OccGrid, dynamic: tuple[np.ndarray, np.ndarray] | None = None,
+          n: int = NUM_CLASSES - 1) -> tuple[list[np.ndarray], list[int]]:
     """`vote_voxels` keys on `grid` of the static points (first; with them the keyframe's `dynamic`
     points, global, where they were then: they have no box, so no flow) and of each box's instance
     points placed at that box's pose (then one list per box with points), and the index in `boxes` of
-    each list after the first."""
+    each list after the first. `n`: the classes a key holds (34 with two tiers, `occdata.labels.flat`)."""
     shape = np.array(grid.shape, np.int64)
     lower = np.array(grid.lower, np.float64)
-    n = NUM_CLASSES - 1
     out = [vote_voxels(static[0], static[1], T_grid_from_global, lower, grid.voxel_size, shape, n)]
     if dynamic is not None and len(dynamic[0]):
         out[0] = np.concatenate([out[0], vote_voxels(np.ascontiguousarray(dynamic[0]), dynamic[1],
@@ -106,15 +106,21 @@ def grid_labels(static: tuple[np.ndarray, np.ndarray], cloud: Cloud, boxes: tupl
                 sample: SampleRecord, rays: Rays, spec: GridSpec,
                 masks: bool, v_global: np.ndarray | None = None,
                 more_rays: tuple[np.ndarray, np.ndarray] | None = None,
-                dynamic: tuple[np.ndarray, np.ndarray] | None = None, solids: bool = True) -> dict[str, np.ndarray]:
+                dynamic: tuple[np.ndarray, np.ndarray] | None = None, solids: bool = True,
+                classes: SceneClasses | None = None) -> dict[str, np.ndarray]:
     """One keyframe on one grid: `semantics` in Occ3D classes (17 = free) and, with `masks`, the masks;
     all `(X, Y, Z) uint8` in the grid's frame. With `v_global (B, 3)` (m/s, global, one row per box of
     `boxes`, NaN as 0) also `flow (X, Y, Z, 2) float32` (`voxel_flow`). With `more_rays` (`static_rays`),
     `densify_keyframe` the semantics before the masks (a voxel a box filled takes its flow). `dynamic`: the
-    keyframe's dynamic points and classes (carving; global)."""
+    keyframe's dynamic points and classes (carving; global). `classes`: the ground and masks of a scene
+    without lidarseg (`occdata.labels.semantics`; None: a plain majority)."""
     T = T_grid_from_keyego(sample, spec) @ invert_rigid(sample.T_global_from_keyego)
-    vote_lists, box_of_vote = votes(static, cloud, boxes, T, spec.grid, dynamic)
-    semantics = majority(vote_lists, spec.grid.shape, NUM_CLASSES - 1, FREE_LABEL)
+    if classes is None:
+        vote_lists, box_of_vote = votes(static, cloud, boxes, T, spec.grid, dynamic)
+        semantics = majority(vote_lists, spec.grid.shape, NUM_CLASSES - 1, FREE_LABEL)
+    else:
+        vote_lists, box_of_vote = votes(static, cloud, boxes, T, spec.grid, dynamic, classes.n)
+        semantics, vote_lists = classes.semantics(vote_lists, spec.grid.shape)
     filled_by = None
     if more_rays is not None:
         semantics, filled_by = densify_keyframe(semantics, vote_lists, box_of_vote, boxes, rays, T, spec.grid,

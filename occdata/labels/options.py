@@ -9,6 +9,8 @@ import numpy as np
 
 from occdata.constants import NUM_CLASSES
 from occdata.labels.carve import CarveOptions
+from occdata.labels.flat import FLAT_CLASS
+from occdata.labels.paint import ImageMasks
 from occdata.nuscenes import NuScenesDataset, SceneRecord
 from occdata.nuscenes.annotations import Annotations
 
@@ -35,6 +37,9 @@ class LabelOptions:
     the scenes without boxes only; True: also on top of boxes; False: never). With carve True and
     use_boxes False the boxes are withheld altogether (`--boxes none`). dynamic_class: the Occ3D class
     of dynamic points without lidarseg; carve_options: the evidence rules (`occdata.labels.carve`).
+    ground_class: without lidarseg, the Occ3D class of static points on the scene's ground
+    (`occdata.labels.flat`; equal to static_class: no split). image_masks: classes from the user's 2D
+    masks where there is no lidarseg (`occdata.labels.paint`; None: none).
     deskew: place each point of a file with per-point times by the ego pose of its own time
     (`occdata.labels.deskew`; for clouds not motion-compensated already)."""
 
@@ -49,6 +54,8 @@ class LabelOptions:
     carve: bool | None = None
     dynamic_class: int = 4
     carve_options: CarveOptions = CarveOptions()
+    ground_class: int = FLAT_CLASS
+    image_masks: ImageMasks | None = None
     deskew: bool = False
 
     def __post_init__(self) -> None:
@@ -62,6 +69,13 @@ class LabelOptions:
             raise ValueError(f"static_class must be an Occ3D class 0..{NUM_CLASSES - 2}")
         if not 0 <= self.dynamic_class < NUM_CLASSES - 1:
             raise ValueError(f"dynamic_class must be an Occ3D class 0..{NUM_CLASSES - 2}")
+        if not 0 <= self.ground_class < NUM_CLASSES - 1:
+            raise ValueError(f"ground_class must be an Occ3D class 0..{NUM_CLASSES - 2}")
+
+    @property
+    def splits_ground(self) -> bool:
+        """Whether static points on the ground take `ground_class` (without lidarseg, `occdata.labels.flat`)."""
+        return self.ground_class != self.static_class
 
     def carves(self, has_boxes: bool, keyframes: int = 2) -> bool:
         """Whether a scene with (`has_boxes`) or without boxes, of `keyframes` keyframes, is carved. By

@@ -10,7 +10,8 @@
    and is stored in the box frame, so a moving object accumulates without smearing; the other points
    are the static scene (global), or dynamic (carving; drawn only at the keyframes within
    `carve_options.window` seconds of its frame, where it was then). Keyframes first, as the labelled
-   references; the sweeps then borrow their classes (`occdata.labels.cloud`).
+   references; the sweeps then borrow their classes (`occdata.labels.cloud`). Without lidarseg a point's
+   class comes from the scene's ground and the user's 2D masks (`occdata.labels.semantics`).
 4. Per keyframe and grid (`occdata.labels.keyframe`): the static points plus each instance's points
    placed at that keyframe's box pose, majority vote per voxel; optionally densified; the masks; and
    optionally (`flow`) the ground velocity of the box whose points won a voxel (`occdata.labels.flow`).
@@ -35,6 +36,7 @@ from occdata.labels.frames import Frame, Rays, frame_points, scene_frames, scene
 from occdata.labels.kernels import NearestIndex
 from occdata.labels.keyframe import grid_labels, static_rays
 from occdata.labels.options import LabelOptions, LabelSources, SceneCounts
+from occdata.labels.semantics import SceneClasses, scene_classes
 from occdata.nuscenes import LidarRecord, SceneRecord
 from occdata.nuscenes.annotations import BoxRecord
 from occdata.nuscenes.lidarseg import DROP
@@ -62,6 +64,11 @@ class _Scene:
     carve_grid: CarveGrid | None
     should_stop: Callable[[], None]
     track: PoseTrack | None = None
+    classes: SceneClasses | None = None  # without lidarseg: the ground's and the masks' classes
+
+    def own(self, points: np.ndarray, t_us: int, boxes: tuple[BoxRecord, ...]) -> tuple[np.ndarray, np.ndarray] | None:
+        """Each point's class if static and if dynamic (`SceneClasses.of`), None without `classes`."""
+        return None if self.classes is None else self.classes.of(points, t_us, boxes)
 
     def boxes(self, i: int, k: int, rec: LidarRecord) -> tuple[BoxRecord, ...]:
         """The boxes at frame `rec`'s time (`frame_boxes`), none when they are withheld."""
@@ -110,8 +117,9 @@ def _start(inputs: LabelSources, scene: SceneRecord, opts: LabelOptions, grids: 
         carve_grid = carve_scene(frames, n_key, *carve_region([ds.samples[i] for i in indices], grids),
                                  opts.carve_options, should_stop, track)
         counts.carve_voxels = int(np.prod(carve_grid.shape))
-    # --boxes none: the boxes give nothing, not even classes
-    return _Scene(inputs, opts, indices, counts, carving and not opts.use_boxes, carve_grid, should_stop, track)
+    withheld = carving and not opts.use_boxes  # --boxes none: the boxes give nothing, not even classes
+    classes = None if inputs.segmented else scene_classes(inputs, indices, opts, carve_grid, withheld, should_stop)
+    return _Scene(inputs, opts, indices, counts, withheld, carve_grid, should_stop, track, classes)
 
 
 def _gather_keyframes(sc: _Scene) -> tuple[Cloud, dict[str, Rays], list[Frame], bool]:
@@ -138,8 +146,10 @@ def _gather_keyframes(sc: _Scene) -> tuple[Cloud, dict[str, Rays], list[Frame], 
             with_seg |= cls is not None
             counts.add_frame(len(points), int((~off_ego).sum()))
             counts.dropped_class += int((off_ego & ~keep).sum())
-            add_keyframe(cloud, points[keep], None if cls is None else cls[keep], sc.boxes(i, k, rec), sc.opts,
-                         counts, sc.moving(points[keep], cls is not None, rec.timestamp), rec.timestamp)
+            boxes = sc.boxes(i, k, rec)
+            add_keyframe(cloud, points[keep], None if cls is None else cls[keep], boxes, sc.opts, counts,
+                         sc.moving(points[keep], cls is not None, rec.timestamp), rec.timestamp,
+                         None if cls is not None else sc.own(points[keep], rec.timestamp, boxes))
     return cloud, rays, deferred, with_seg
 
 
@@ -163,8 +173,10 @@ def _gather_sweeps(sc: _Scene, cloud: Cloud, deferred: list[Frame], with_seg: bo
         sc.should_stop()
         points, _, off_ego = frame_points(rec, sc.track)
         sc.counts.add_frame(len(points), int((~off_ego).sum()))
-        add_sweep(cloud, points[off_ego], sc.boxes(i, k, rec), static_index, object_index or {}, sc.opts, sc.counts,
-                  sc.moving(points[off_ego], False, rec.timestamp), rec.timestamp, dynamic_index)
+        boxes = sc.boxes(i, k, rec)
+        add_sweep(cloud, points[off_ego], boxes, static_index, object_index or {}, sc.opts, sc.counts,
+                  sc.moving(points[off_ego], False, rec.timestamp), rec.timestamp, dynamic_index,
+                  sc.own(points[off_ego], rec.timestamp, boxes))
 
 
 def _keyframe_labels(sc: _Scene, cloud: Cloud, rays: dict[str, Rays], grids: tuple[GridSpec, ...],
@@ -195,7 +207,8 @@ def _keyframe_labels(sc: _Scene, cloud: Cloud, rays: dict[str, Rays], grids: tup
             any_flow = any(g.name in flow_names for g in members)
             shared = grid_labels(static, cloud, boxes, s, rays[s.token], members[0],
                                  any(g.masks for g in members), v_global[n] if any_flow else None,
-                                 more_rays=more, dynamic=dynamic, solids=sc.inputs.segmented)
+                                 more_rays=more, dynamic=dynamic, solids=sc.inputs.segmented,
+                                 classes=sc.classes)
             for spec in members:
                 keep = {"semantics", *(("mask_lidar", "mask_camera") if spec.masks else ()),
                         *(("flow",) if spec.name in flow_names else ())}

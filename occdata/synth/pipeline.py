@@ -16,6 +16,7 @@ from occdata.constants import GRID, LIDAR_CHANNEL, OccGrid
 from occdata.errors import OccDataError
 from occdata.formats.gridfiles import LabelSite, write_grid_label
 from occdata.formats.gridspec import GridSpec, LabelFrame
+from occdata.formats.imagemasks import mask_path
 from occdata.formats.occ3d import label_path, write_label
 from occdata.geometry import invert_rigid, quaternion_wxyz_from_matrix, transform_points
 from occdata.synth import render
@@ -88,6 +89,7 @@ class SynthConfig:
     grids: tuple[GridSpec, ...] = ()  # more truth grids, gts/<grid>/ in their layouts (occ3d's is always written)
     rig: str = "nuscenes"  # a key of occdata.synth.rig.RIGS
     uncompensated: bool = False  # LiDARs spin over one period, each point at its own time (pcd rigs)
+    image_masks: Path | None = None  # also <dir>/<image path>.png: each image's truth class ids (uint8, 255 sky)
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,19 +136,19 @@ def ego_transform(world: SceneWorld, t_us: int) -> np.ndarray:
 
 def render_camera(
     world: SceneWorld, wg: WorldGrid, T_global_from_cam: np.ndarray, K: np.ndarray, width: int, height: int
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Ray cast one camera through pixel centres (integer pixel coordinates).
 
-    Returns `rgb (H, W, 3) uint8` and `depth (H, W) float32` (metres along the camera z axis, 0 = sky).
+    Returns `rgb (H, W, 3) uint8`, `depth (H, W) float32` (metres along the camera z axis, 0 = sky)
+    and `classes (H, W) uint8`, the Occ3D class each pixel sees (`render.SKY_CLASS` 255: sky).
     """
     _, variants = render.palette_tables()
     g = world.ground
     origin = np.ascontiguousarray(T_global_from_cam[:3, 3])
-    rgb, depth = render.render_camera_kernel(
+    return render.render_camera_kernel(
         np.linalg.inv(K), np.ascontiguousarray(T_global_from_cam[:3, :3]), origin, width, height, CAMERA_MAX_DEPTH,
         wg.prims.params, wg.cell_start, wg.items, wg.cell_ztop, wg.x0, wg.y0, wg.cell, wg.nx, wg.ny, wg.z_top,
         wg.prims.cls, wg.prims.style, g.codes, g.x0, g.y0, g.cell, variants, render.SUN_DIR)
-    return rgb, depth
 
 
 _REFLECTIVITY = np.array([0.3, 0.8, 0.5, 0.6, 0.6, 0.5, 0.5, 0.35, 0.9, 0.5, 0.55, 0.12, 0.2, 0.25, 0.3, 0.4, 0.28,
@@ -272,13 +274,14 @@ class SensorFrame:
 
 def _render_keyframe(
     out: Path, world: SceneWorld, scene_name: str, t_lidar: int, sd_tokens: dict[str, str], width: int, height: int,
-    extra_lidar_times: tuple[int, ...] = (), rig: SynthRig = NUSCENES,
+    extra_lidar_times: tuple[int, ...] = (), rig: SynthRig = NUSCENES, masks: Path | None = None,
 ) -> tuple[list[SensorFrame], dict[str, np.ndarray], KeyframeLidar, _Rays]:
     """Render and write the rig's camera images (+ depth maps) and every LiDAR's sweep of the keyframe
     at `t_lidar` (the reference LiDAR's timestamp); returns the written frames, the Occ3D labels (key
     ego = ego at `t_lidar`), the reference sweep with its per-point lidarseg labels and the rays behind
     the masks (every LiDAR's keyframe sweep). `mask_lidar` also counts the reference LiDAR's returns
-    of sweeps at `extra_lidar_times` (not written)."""
+    of sweeps at `extra_lidar_times` (not written). `masks`: also each image's class ids under that
+    folder (`mask_path`)."""
     T_global_from_keyego = ego_transform(world, t_lidar)
     T_keyego_from_global = invert_rigid(T_global_from_keyego)
     wg_lidar = WorldGrid.build(world, t_lidar)
@@ -293,11 +296,17 @@ def _render_keyframe(
         rel = rig.sensor_file(scene_name, ch, ts, key=True)
         K = cam.K(width, height)
         # Actors are placed at the camera's own timestamp.
-        rgb, depth = render_camera(world, WorldGrid.build(world, ts), T_global_from_sensor, K, width, height)
+        rgb, depth, classes = render_camera(world, WorldGrid.build(world, ts), T_global_from_sensor, K, width,
+                                            height)
         ok, jpg = cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
         if not ok:
             raise OccDataError(f"JPEG encoding failed for {rel}")
         write_atomic(out / rel, jpg.tobytes())
+        if masks is not None:
+            ok, png = cv2.imencode(".png", classes)
+            if not ok:
+                raise OccDataError(f"PNG encoding failed for the mask of {rel}")
+            write_atomic(mask_path(masks, rel), png.tobytes())
         write_atomic(out / "depth" / f"{sd_tokens[ch]}.npy", _npy_bytes(depth))
         cam_K.append(K)
         cam_T.append(invert_rigid(T_keyego_from_global @ T_global_from_sensor))
@@ -492,6 +501,7 @@ class _Scene:
     link: dict[str, tuple[str, str]]
     grids: tuple[GridSpec, ...] = ()
     rig: SynthRig = NUSCENES
+    masks: Path | None = None
 
 
 def _keyframe_sample_data(sc: _Scene, f: Any, k: int) -> dict[str, Any]:
@@ -535,7 +545,7 @@ def _write_keyframe(sc: _Scene, tables: dict[str, list], k: int, scene_tok: str)
     near = [sc.key_times[j] for j in window if j != k]
     frames, labels, key_lidar, rays = _render_keyframe(sc.out, sc.world, sc.name, t_lidar,
                                                        {ch: toks[k] for ch, toks in sc.sd_toks.items()}, sc.width,
-                                                       sc.height, tuple(near), rig)
+                                                       sc.height, tuple(near), rig, sc.masks)
     if rig.lidarseg:
         tables["lidarseg"].append(_write_lidarseg(sc.out, sc.sd_toks[ref][k], key_lidar, rig.version))
     annotation = _annotate(sc.world, t_lidar, key_lidar, rig.reference)
@@ -579,7 +589,7 @@ def _begin_scene(config: SynthConfig, si: int, tables: dict[str, list], sensor_t
         sd_toks={ch: [make_token(seed, "sample_data", si, k, ch) for k in range(config.samples)] for ch in channels},
         cs_tok={ch: row["token"] for ch, row in cs_rows.items()}, key_times=key_times, lidar_chains=chains, link=link,
         grids=tuple(g for g in config.grids if g.name != "occ3d"),  # occ3d's truth is gts/ itself
-        rig=rig,
+        rig=rig, masks=config.image_masks,
     )
     return sc, scene_tok
 

@@ -15,6 +15,7 @@ from numba import njit, prange
 __all__ = [
     "HIT_GROUND",
     "HIT_NONE",
+    "SKY_CLASS",
     "SUN_DIR",
     "build_cell_grid",
     "cast_rays",
@@ -24,6 +25,7 @@ __all__ = [
 ]
 
 HIT_NONE, HIT_GROUND = -1, -2
+SKY_CLASS = 255  # `render_camera_kernel`'s class where a pixel sees nothing (no Occ3D class)
 _EPS_T = 1e-9
 SUN_DIR = np.array([0.40, 0.30, 0.866], np.float64) / np.linalg.norm([0.40, 0.30, 0.866])
 
@@ -392,15 +394,17 @@ def render_camera_kernel(
     x0: float, y0: float, cell: float, nx: int, ny: int, z_top: float,
     prim_cls: np.ndarray, prim_style: np.ndarray, gcodes: np.ndarray, gx0: float, gy0: float, gcell: float,
     variants: np.ndarray, sun: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Render one pinhole camera: rays through pixel centres (integer pixel coordinates), camera-frame
     direction `K_inv @ (u, v, 1)` (z = 1, so the ray parameter is the depth), rotated to global.
 
-    Returns `rgb (H, W, 3) uint8` and `depth (H, W) float32` (camera z, 0 where nothing is hit).
+    Returns `rgb (H, W, 3) uint8`, `depth (H, W) float32` (camera z, 0 where nothing is hit) and
+    `classes (H, W) uint8`, the Occ3D class of the surface each pixel sees (`SKY_CLASS` where none).
     Same per-pixel maths as `cast_rays` + `hit_normals` + shading, without the large temporaries.
     """
     rgb = np.zeros((height, width, 3), np.uint8)
     depth = np.zeros((height, width), np.float32)
+    classes = np.full((height, width), SKY_CLASS, np.uint8)
     gny, gnx = gcodes.shape
     for v in prange(height):
         for u in range(width):
@@ -421,6 +425,7 @@ def render_camera_kernel(
                 c = prim_cls[h]
                 st = prim_style[h]
                 depth[v, u] = t
+                classes[v, u] = c
             elif h == -2:
                 nz_ = 1.0
                 ix = int(np.floor((origin[0] + t * dx - gx0) / gcell))
@@ -430,10 +435,11 @@ def render_camera_kernel(
                     gc = gcodes[iy, ix]
                 c = gc & 31
                 depth[v, u] = t
+                classes[v, u] = c
             # Normals are stored as float32 by `hit_normals`; round the same way for identical shading.
             r, g, b = _shade_one(origin[0], origin[1], origin[2], dx, dy, dz, t, h, np.float32(nx_),
                                  np.float32(ny_), np.float32(nz_), c, st, gc, variants, sun)
             rgb[v, u, 0] = min(max(int(r + 0.5), 0), 255)
             rgb[v, u, 1] = min(max(int(g + 0.5), 0), 255)
             rgb[v, u, 2] = min(max(int(b + 0.5), 0), 255)
-    return rgb, depth
+    return rgb, depth, classes

@@ -228,11 +228,17 @@ def render_camera_reference(
     K: np.ndarray, R_global_from_cam: np.ndarray, origin: np.ndarray, width: int, height: int, t_max: float,
     params: np.ndarray, prim_cls: np.ndarray, prim_style: np.ndarray, gcodes: np.ndarray, gx0: float, gy0: float,
     gcell: float, variants: np.ndarray, sun: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Numpy twin of `render_camera_kernel`: brute-force casting + numpy normals and shading."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Numpy twin of `render_camera_kernel`: brute-force casting + numpy normals and shading; the
+    class image from the hit primitive's class or the ground raster's (terrain outside it), 255 for sky."""
     dirs = camera_rays_reference(K, R_global_from_cam, width, height)
     t, hit = cast_rays_reference(origin, dirs, t_max, params)
     nrm = hit_normals_reference(origin, dirs, t, hit, params)
     rgb = shade_reference(origin, dirs, t, hit, nrm, prim_cls, prim_style, gcodes, gx0, gy0, gcell, variants, sun)
     depth = np.where(hit == HIT_NONE, 0.0, t).astype(np.float32)
-    return rgb.reshape(height, width, 3), depth.reshape(height, width)
+    p = origin + t[:, None] * dirs
+    ix, iy = np.floor((p[:, 0] - gx0) / gcell).astype(np.int64), np.floor((p[:, 1] - gy0) / gcell).astype(np.int64)
+    inside = (ix >= 0) & (ix < gcodes.shape[1]) & (iy >= 0) & (iy < gcodes.shape[0])
+    ground = np.where(inside, gcodes[np.clip(iy, 0, gcodes.shape[0] - 1), np.clip(ix, 0, gcodes.shape[1] - 1)] & 31, 14)
+    classes = np.where(hit >= 0, prim_cls[np.maximum(hit, 0)], np.where(hit == -2, ground, 255)).astype(np.uint8)
+    return rgb.reshape(height, width, 3), depth.reshape(height, width), classes.reshape(height, width)
