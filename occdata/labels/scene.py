@@ -1,4 +1,4 @@
-"""One scene's Occ3D-style labels from its LiDAR frames and 3D boxes (DESIGN §5.5).
+"""One scene's Occ3D-style labels from its LiDAR frames and 3D boxes (docs/design.md#labels-from-lidar).
 
 1. Carving (`carve`; by default exactly in the scenes without boxes), first: the scene's free-space
    evidence from every frame's rays (`occdata.labels.carving`), which later splits the points outside
