@@ -108,6 +108,28 @@ class StoreIntegrity:
         keys = self.stored_keys(name)
         return np.array([self._chunk_key(name, k, arr) not in keys for k in range(n)], dtype=bool)
 
+    def present_chunks(self, name: str) -> np.ndarray:
+        """`(k,) int64`, sorted: the indices along the row axis of `name`'s stored chunk/shard files,
+        parsed from its listing (one pass over the keys, no key made per possible chunk)."""
+        arr = self.group[name]
+        head = self._chunk_key(name, 0, arr)[: -len("0" + "/0" * (arr.ndim - 1))]  # e.g. "images/jpeg/c/"
+        sep = self._chunk_key(name, 0, arr)[len(head) + 1 :][:1] or "/"
+        found = []
+        for key in self.stored_keys(name):
+            if key.startswith(head):
+                first = key[len(head) :].split(sep, 1)[0]
+                if first.isdigit():
+                    found.append(int(first))
+        return np.unique(np.array(found, dtype=np.int64))
+
+    def chunk_rows(self, name: str) -> int:
+        """Rows (samples; elements of a flat array) per chunk/shard file of `name`."""
+        return self._chunk_rows(name)
+
+    def read_small(self, name: str) -> np.ndarray:
+        """A small array whole (its packed copy where the reader holds one); `CorruptStoreError` if unreadable."""
+        return self._read(name)
+
     def chunk_file(self, name: str, row: int) -> str:
         return self._chunk_key(name, row // self._chunk_rows(name))
 
