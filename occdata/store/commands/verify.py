@@ -247,10 +247,10 @@ def verify_rows(store: OpenStore, i0: int, i1: int, absent: Mapping[str, np.ndar
         if flat_name in absent and offsets[off_name] is not None:
             rows = store.integrity.chunk_rows(flat_name)
             first = first_absent_chunk(offsets[off_name], committed, rows, absent[flat_name])
-            problems += [Problem(i0 + j, store.token(i0 + j), flat_name,
+            problems += [Problem(int(i0 + j), store.token(i0 + j), flat_name,
                                  f"chunk {store.integrity.chunk_file(flat_name, int(k) * rows)} is missing")
                          for j, k in enumerate(first) if k >= 0]
-    idx = [i0 + j for j in np.flatnonzero(committed)]
+    idx = [int(i0 + j) for j in np.flatnonzero(committed)]
     for col, name in enumerate(store.names):
         if name not in FLAT_ARRAYS:
             problems += _check_array(store, name, i0, i1, idx, stored[:, col])
@@ -269,8 +269,9 @@ def _absent_rows(store: OpenStore, name: str, i0: int, committed: np.ndarray, st
     hit = committed & np.isin((i0 + np.arange(len(committed))) // rows, absent)
     if name in store.names and name != "status/checksum":
         hit &= stored[:, store.names.index(name)] != store.integrity.fill_crc(name)
-    return [Problem(i0 + j, store.token(i0 + j), name, f"chunk {store.integrity.chunk_file(name, i0 + j)} is missing")
-            for j in np.flatnonzero(hit)]
+    rows_hit = [int(i0 + j) for j in np.flatnonzero(hit)]
+    return [Problem(i, store.token(i), name, f"chunk {store.integrity.chunk_file(name, i)} is missing")
+            for i in rows_hit]
 
 
 def first_absent_chunk(offsets: np.ndarray, committed: np.ndarray, chunk_rows: int,
