@@ -229,8 +229,8 @@ def verify_rows(store: OpenStore, i0: int, i1: int, absent: Mapping[str, np.ndar
     try:
         state = np.asarray(store["status/state"][i0:i1])
         stored = np.asarray(store["status/checksum"][i0:i1])
-    except Exception as exc:  # noqa: BLE001 - the client read them whole a moment ago: a store changing under us
-        return [Problem(i0, "?", "status/checksum", f"unreadable chunk ({exc})")]
+    except Exception as exc:  # noqa: BLE001 - a damaged chunk: this block cannot be judged, the others can
+        return [Problem(i0, store.token(i0), "status/checksum", f"unreadable chunk ({exc})")]
     committed = state != STATE_PENDING
     if not committed.any():
         return []
