@@ -217,7 +217,7 @@ def dynamic_points(points: np.ndarray, lower: np.ndarray, voxel_size: float, sha
         if i < 0 or j < 0 or k < 0 or i >= shape[0] or j >= shape[1] or k >= shape[2]:
             continue
         c = crossed[i, j, k]
-        gone = min_gone > 0 and (before[i, j, k] >= min_gone or after[i, j, k] >= min_gone)
+        gone = min_gone > 0 and hits[i, j, k] > 0 and (before[i, j, k] >= min_gone or after[i, j, k] >= min_gone)
         out[n] = (c >= min_frames and c >= ratio * hits[i, j, k]) or gone
     return out
 
