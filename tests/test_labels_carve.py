@@ -11,7 +11,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from reference.labels_carve import carve_reference, dynamic_reference
+from reference.labels_carve import carve_reference, dynamic_reference, gone_reference, slot_evidence
 
 from occdata.errors import OccDataError
 from occdata.labels import LabelOptions, LabelsConfig, generate_labels
@@ -45,11 +45,18 @@ def test_carve_matches_twin(seed: int, near: int) -> None:
     assert crossed.sum() > 10 and hits.sum() > 20, "the rays must reach the grid for this to mean anything"
     np.testing.assert_array_equal(grid.hits, hits)
     np.testing.assert_array_equal(grid.crossed, crossed)
+    before, after = gone_reference(slot_evidence(slots, grid.lower, opts.voxel_size, grid.shape, opts.margin,
+                                                 opts.graze_max, opts.graze_height, near))
+    seen = hits > 0  # `before` and `after` mean something only where a slot had a return
+    np.testing.assert_array_equal(grid.before[seen], before[seen])
+    np.testing.assert_array_equal(grid.after[seen], after[seen])
     pts = rng.uniform(lo - 0.5, hi + 0.5, (200, 3))
-    for min_frames, ratio in ((1, 0.5), (2, 1.0)):
+    for min_frames, ratio, min_gone in ((1, 0.5, 0), (2, 1.0, 0), (2, 1.0, 1), (3, 2.0, 2)):
         np.testing.assert_array_equal(
-            dynamic_points(pts, grid.lower, opts.voxel_size, grid.shape, grid.hits, grid.crossed, min_frames, ratio),
-            dynamic_reference(pts, grid.lower, opts.voxel_size, grid.shape, hits, crossed, min_frames, ratio))
+            dynamic_points(pts, grid.lower, opts.voxel_size, grid.shape, grid.hits, grid.crossed, min_frames, ratio,
+                           grid.before, grid.after, min_gone),
+            dynamic_reference(pts, grid.lower, opts.voxel_size, grid.shape, hits, crossed, min_frames, ratio,
+                              before, after, min_gone))
 
 
 def test_carve_matches_twin_over_hundreds_of_slots() -> None:
@@ -71,10 +78,15 @@ def test_carve_matches_twin_over_hundreds_of_slots() -> None:
     assert hits.max() > 255 and crossed.max() > 255, "the counts must pass uint8's 255 for this to mean anything"
     np.testing.assert_array_equal(grid.hits, hits)
     np.testing.assert_array_equal(grid.crossed, crossed)
+    before, after = gone_reference(slot_evidence(slots, grid.lower, opts.voxel_size, grid.shape, opts.margin,
+                                                 opts.graze_max, opts.graze_height, 0))
+    seen = hits > 0
+    np.testing.assert_array_equal(grid.before[seen], before[seen])
+    np.testing.assert_array_equal(grid.after[seen], after[seen])
     pts = rng.uniform(lo, hi, (300, 3))
     np.testing.assert_array_equal(
         grid.dynamic(pts), dynamic_reference(pts, grid.lower, opts.voxel_size, grid.shape, hits, crossed,
-                                             opts.min_frames, opts.ratio))
+                                             opts.min_frames, opts.ratio, before, after, opts.min_gone))
 
 
 def _flat_ground(lo: np.ndarray, hi: np.ndarray, z: float = 0.0) -> GroundMap:
@@ -142,6 +154,41 @@ def test_a_point_other_times_saw_through_is_dynamic() -> None:
     assert g1.dynamic(car).tolist() == [False]
 
 
+def _bus_side(late_hit: bool, min_gone: int) -> bool:
+    """Slots 0-9 hit x = 10 m (a bus's side passing, 0.3 m a slot); slots 10-14 see through it to a wall at
+    x = 30 m; with `late_hit` slot 15 hits x = 10 m again. Whether the x = 10 m point is dynamic."""
+    g = _grid(CarveOptions(voxel_size=0.2, graze_height=0.2, min_gone=min_gone))
+    origin = np.array([0.0, 0.0, 1.0])
+    side, wall = np.array([[10.0, 0.0, 1.0]]), np.array([[30.0, 0.0, 1.0]])
+    for s in range(16 if late_hit else 15):
+        g.add_slot(s, [(origin, side if s < 10 or s == 15 else wall)])
+    i = tuple(np.floor((side[0] - g.lower) / 0.2).astype(int))
+    assert (g.hits[i], g.crossed[i], g.before[i], g.after[i]) == ((11, 5, 0, 0) if late_hit else (10, 5, 0, 5))
+    return bool(g.dynamic(side)[0])
+
+
+def test_a_long_mover_that_left_is_dynamic() -> None:
+    """A voxel a long mover filled for 10 slots and 5 later slots saw empty: 5 crossings are fewer than 10
+    hits (the ratio rule keeps it), but the last 5 slots that looked saw it empty (`min_gone` 4):
+    what was there left. Filled again in a last slot, it is static: nothing left for good."""
+    assert _bus_side(late_hit=False, min_gone=0) is False
+    assert _bus_side(late_hit=False, min_gone=4) is True
+    assert _bus_side(late_hit=False, min_gone=6) is False
+    assert _bus_side(late_hit=True, min_gone=4) is False
+
+
+def test_a_mover_that_arrived_is_dynamic() -> None:
+    """Slots 0-4 see through x = 10 m to a wall; slots 5-14 hit x = 10 m: `before` is 5, the thing came."""
+    g = _grid(CarveOptions(voxel_size=0.2, graze_height=0.2, min_gone=4))
+    origin = np.array([0.0, 0.0, 1.0])
+    car, wall = np.array([[10.0, 0.0, 1.0]]), np.array([[30.0, 0.0, 1.0]])
+    for s in range(15):
+        g.add_slot(s, [(origin, wall if s < 5 else car)])
+    i = tuple(np.floor((car[0] - g.lower) / 0.2).astype(int))
+    assert (g.hits[i], g.crossed[i], g.before[i], g.after[i]) == (10, 5, 5, 0)
+    assert g.dynamic(car).tolist() == [True]
+
+
 def test_grazing_rays_do_not_carve_the_ground() -> None:
     """A ray from 1.8 m onto the ground at x = 30 m (sin 0.06) passes 0.12 m over the ground at x = 28 m,
     inside the ground's 0.2 m voxel. Its last 0.2 / 0.06 = 3.3 m (graze_height 0.2 m) are no evidence, so
@@ -169,6 +216,9 @@ def test_a_slot_that_hits_a_voxel_gives_it_no_free_evidence() -> None:
     assert g.crossed[tuple(j)] == 1, "one slot counts once however many of its rays cross"
     with pytest.raises(ValueError, match="twice"):
         g.add_slot(0, [])
+    with pytest.raises(ValueError, match="time order"):
+        g.add_slot(1, [])
+        g.add_slot(0, [])  # slots come in time order: `before` and `after` depend on it
 
 
 def test_rays_along_their_own_returns_are_no_evidence() -> None:
@@ -217,12 +267,13 @@ def test_hundreds_of_slots_never_saturate() -> None:
     """A wall point returned by 400 slots and crossed by 260 others (level rays past it to x = 38 m; their
     last 5 m, `graze_max`, are no evidence) is static: 260 < 400. Counters that stopped at 255 read
     255 >= 255 and turned it dynamic. The mirror case, a mover's point returned by 260 slots and
-    crossed by 400, is dynamic."""
+    crossed by 400, is dynamic. (The ratio rule alone, `min_gone` 0: the crossings here all come after the
+    returns, which the `min_gone` rule reads as a thing that left.)"""
     origin = np.array([0.0, 0.0, 1.0])
     point, beyond = np.array([[30.0, 0.0, 1.0]]), np.array([[38.0, 0.0, 1.0]])
     i = tuple(np.floor((point[0] - _grid().lower) / OPTS.voxel_size).astype(int))
     for n_hit, n_cross, expect in ((400, 260, False), (260, 400, True)):
-        g = _grid()
+        g = _grid(CarveOptions(voxel_size=0.2, graze_height=0.2, min_gone=0))
         for s in range(n_hit + n_cross):
             g.add_slot(s, [(origin, point if s < n_hit else beyond)])
         assert (int(g.hits[i]), int(g.crossed[i])) == (n_hit, n_cross)
@@ -280,6 +331,8 @@ def test_carve_options_validated() -> None:
         CarveOptions(min_frames=MAX_SLOTS + 1)
     with pytest.raises(ValueError, match="near_above_ground"):
         CarveOptions(near=1, near_above_ground=2)
+    with pytest.raises(ValueError, match="min_gone"):
+        CarveOptions(min_gone=-1)
     with pytest.raises(ValueError, match="dynamic_class"):
         LabelOptions(dynamic_class=17)
 

@@ -207,6 +207,8 @@ def _carving_words(o: LabelOptions, with_seg: bool, carved: list[str]) -> dict[s
                  + (f" (above a return within {c.ground_clearance} m of the scene's ground: {c.near_above_ground} "
                     "voxel(s) up)" if c.near_above_ground < c.near and c.ground_clearance > 0 else "")
                  + " are no evidence"
+                 + (f"; a point is also dynamic when at least {c.min_gone} slots saw its voxel empty after the "
+                    "voxel's last return or before its first (it left, or it came)" if c.min_gone > 0 else "")
                  + ("; each slot's heights are first corrected by its height error, fitted to the ground the "
                     "keyframes share" if c.align_heights else "")
                  + (f"; a point within {c.ground_clearance} m of the scene's ground (the lowest surface any keyframe "
