@@ -112,6 +112,8 @@ def _free_port() -> int:
 def s3_with_proxy(latency_ms: float) -> Iterator[tuple[dict[str, str], dict[str, str], LatencyProxy]]:
     """A moto server and the proxy in front of it. Yields (env to reach S3 directly, env through the
     proxy, the proxy)."""
+    from benchmarks.common import wait_for_port
+
     port = _free_port()
     proc = subprocess.Popen([sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -120,14 +122,7 @@ def s3_with_proxy(latency_ms: float) -> Iterator[tuple[dict[str, str], dict[str,
     thread.start()
     creds = {"AWS_ACCESS_KEY_ID": "bench", "AWS_SECRET_ACCESS_KEY": "bench", "AWS_DEFAULT_REGION": "us-east-1"}
     try:
-        for _ in range(200):
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
-                break
-            except OSError:
-                time.sleep(0.1)
-        else:
-            raise RuntimeError("moto server did not start")
+        wait_for_port(port, "moto server", tries=200)
         yield ({**creds, "AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}"},
                {**creds, "AWS_ENDPOINT_URL": f"http://127.0.0.1:{proxy.server_address[1]}"}, proxy)
     finally:

@@ -63,7 +63,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from benchmarks.common import emit_json, write_json
+from benchmarks.common import emit_json, wait_for_port, write_json
 from benchmarks.provenance import REPO, finish, machine
 from benchmarks.scale_meter import measure
 from benchmarks.scale_profile import PROFILERS as PROFILE_TOOLS
@@ -394,14 +394,7 @@ def s3_server() -> Iterator[tuple[str, int]]:
     proc = subprocess.Popen([sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        for _ in range(100):
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
-                break
-            except OSError:
-                time.sleep(0.1)
-        else:
-            raise RuntimeError("moto server did not start")
+        wait_for_port(port, "moto server")
         import fsspec
 
         fsspec.filesystem("s3").clear_instance_cache()

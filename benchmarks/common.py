@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import socket
+import time
 from pathlib import Path
 from typing import Any
 
@@ -33,3 +35,15 @@ def emit_json(result: Any, path: Path | str | None, indent: int = 2) -> None:
     print(json.dumps(result, indent=indent, default=str))
     if path is not None:
         write_json(result, path, indent)
+
+
+def wait_for_port(port: int, what: str, tries: int = 100) -> None:
+    """Return once something listens on 127.0.0.1:`port` (a server started as a subprocess), polling every
+    0.1 s; RuntimeError naming `what` after `tries` polls."""
+    for _ in range(tries):
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
+            return
+        except OSError:
+            time.sleep(0.1)
+    raise RuntimeError(f"{what} did not start")
