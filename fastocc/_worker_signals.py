@@ -8,7 +8,11 @@ Signals. Ctrl-C sends SIGINT to the whole process group, and a cluster scheduler
 at a step boundary, shuts its loader down and saves. A worker that died of the signal on its own
 broke that (a traceback, or "DataLoader worker exited unexpectedly" in the trainer). The forkserver
 gives every child the handlers in place after its preload imports, so ignoring the signals here makes
-the workers (and the server) ignore them. The parent still stops them.
+the server ignore them. torch's worker loop then installs a SIGTERM handler of its own (the worker dies
+unless the sender is its parent, which is the forkserver, never the trainer), so each worker ignores
+the signals again when it starts iterating (`ignore_stop_signals`, called by the dataset). The parent
+still stops them (a done event; its last-resort `terminate()` no longer kills a stuck worker, the
+parent's exit does, below).
 
 Orphans. If the parent dies without shutting its loader down (SIGKILL, a crash), the forkserver and
 the workers used to keep running with parent PID 1 (1.2 GB in one trial, still alive after 100 s).
@@ -27,11 +31,17 @@ import sys
 import threading
 import time
 
-__all__: list[str] = []
+__all__ = ["ignore_stop_signals"]
 
 IGNORED = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2)
 _PR_SET_PDEATHSIG = 1
 WATCHDOG_SECONDS = 1.0
+
+
+def ignore_stop_signals() -> None:
+    """Ignore Ctrl-C, SIGTERM and the warning signals in this process (call in a loader worker's main thread)."""
+    for sig in IGNORED:
+        signal.signal(sig, signal.SIG_IGN)
 
 
 def _in_forkserver() -> bool:
@@ -68,8 +78,7 @@ def _after_fork_in_child(server_pid: int) -> None:
 
 
 if _in_forkserver():  # importing this module anywhere else changes nothing
-    for _sig in IGNORED:
-        signal.signal(_sig, signal.SIG_IGN)
+    ignore_stop_signals()
     die_with_parent(os.getppid())
     _server = os.getpid()
     os.register_at_fork(after_in_child=lambda: _after_fork_in_child(_server))

@@ -42,7 +42,7 @@ ALLOWED: dict[str, dict[str, set[str]]] = {
         "losses": set(),
         "checkpoint": {"model"},
         "storegrid": {"model"},
-        "data": {"model"},
+        "data": {"model", "_worker_signals"},  # workers ignore the job's stop signals
         "infer": {"checkpoint", "data", "dist", "model", "storegrid"},
         "train": {"checkpoint", "data", "dist", "infer", "losses", "model", "storegrid"},
         "deploy": {"checkpoint", "data", "model", "storegrid"},

@@ -165,3 +165,39 @@ def test_a_sigterm_while_the_loader_starts_is_raised_after_it_started() -> None:
         assert signal.getsignal(signal.SIGTERM) is handler  # the caller's handler is back
     finally:
         signal.signal(signal.SIGTERM, old)
+
+
+def test_loader_workers_outlive_a_sigterm_to_the_job(synth_store: Path, tmp_path: Path) -> None:
+    """A scheduler's SIGTERM reaches every process of the job; the trainer stops at a step boundary and
+    needs its workers until then. torch's worker loop installs its own SIGTERM handler (it dies unless
+    the sender is its parent, here the forkserver), which undid the forkserver's ignore: a batch not yet
+    made when the signal came failed with "DataLoader worker exited unexpectedly" (seen in CI)."""
+    body = f"""
+    import os, signal, time
+    from pathlib import Path
+
+    def children(pid):
+        out = []
+        for task in Path(f"/proc/{{pid}}/task").iterdir():
+            out += [int(c) for c in (task / "children").read_text().split()]
+        return out
+
+    def main():
+        loader = make_loader(LoaderConfig(store={str(synth_store)!r}, batch_size=1, sample=cfg), num_workers=1)
+        it = iter(loader)
+        n = len(next(it).sample_index)
+        workers = [w for server in children(os.getpid()) for w in children(server)]
+        for w in workers:
+            os.kill(w, signal.SIGTERM)  # from the job, not the worker's parent
+        time.sleep(1.0)
+        print("alive", sum(Path(f"/proc/{{w}}").exists() and
+                           Path(f"/proc/{{w}}/stat").read_text().split(")")[1].split()[0] != "Z" for w in workers),
+              "of", len(workers))
+        print("samples", n + sum(len(b.sample_index) for b in it))
+
+    if __name__ == "__main__":
+        main()
+    """
+    r = _run(SCRIPT.format(body=body), tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.splitlines() == ["alive 1 of 1", "samples 6"], r.stdout + r.stderr[-3000:]

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
+from fastocc._worker_signals import ignore_stop_signals
 from fastocc.data.batch import Batch, collate
 from fastocc.data.order import Slot, sequential_batches, shuffle_units
 from fastocc.data.sample import RawSample, SampleConfig, SampleMaker, StoreSamples
@@ -131,6 +132,7 @@ class StoreDataset(IterableDataset):
     def __iter__(self) -> Iterator[Batch]:
         if get_worker_info() is not None:
             cv2.setNumThreads(1)  # one core per worker; OpenCV's own pool would oversubscribe
+            ignore_stop_signals()  # the trainer stops us; torch's own SIGTERM handler would kill us first
         slot = self._slot()
         if self.config.sequential:
             yield from self._iter_sequential(slot)
