@@ -209,16 +209,18 @@ def labels_job(world: World, tmp: Path) -> Job:
     return Job("labels", run, lambda tag: tmp / tag, warm)
 
 
-def _timed_runs(job: Job, workers: int, client: Any, rounds: int, server_pid: int | None) -> dict[str, Any]:
-    """One warm run, then `rounds` measured ones (outputs removed after each); the fastest, plus all
-    the times."""
-    _log(f"{job.name}, {workers} worker(s): warm-up")
-    (job.warm or job.run)(f"w{workers}_warm", client, workers)
-    _drop(job.out(f"w{workers}_warm"))
+def _timed_runs(job: Job, workers: int, client: Any, rounds: int, server_pid: int | None,
+                warm: bool = True, first: int = 0) -> list[dict[str, Any]]:
+    """One warm run (if `warm`), then `rounds` measured ones numbered from `first` (outputs removed
+    after each)."""
+    if warm:
+        _log(f"{job.name}, {workers} worker(s): warm-up")
+        (job.warm or job.run)(f"w{workers}_warm", client, workers)
+        _drop(job.out(f"w{workers}_warm"))
     runs = []
-    for r in range(rounds):
+    for r in range(first, first + rounds):
         tag = f"w{workers}_r{r}"
-        _log(f"{job.name}, {workers} worker(s): timed run {r + 1}/{rounds}")
+        _log(f"{job.name}, {workers} worker(s): timed run {r + 1}")
         rec = measure(functools.partial(job.run, tag, client, workers), client, server_pid)
         stored = _stored_bytes(job.out(tag))
         if stored is not None:
@@ -226,36 +228,52 @@ def _timed_runs(job: Job, workers: int, client: Any, rounds: int, server_pid: in
             rec["written_over_stored"] = rec["written_bytes_per_unit"] / rec["stored_bytes_per_unit"]
         _drop(job.out(tag))
         runs.append(rec)
+    return runs
+
+
+def _fastest(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The fastest run, plus all the times."""
     return min(runs, key=lambda r: r["seconds"]) | {"seconds_all": [r["seconds"] for r in runs]}
 
 
 def bench_scaling(job: Job, workers: Sequence[int], rounds: int = 1, server_pid: int | None = None,
-                  on_cluster: Callable[[Any], dict[str, Any]] | None = None) -> dict[str, Any]:
+                  on_cluster: Callable[[Any], dict[str, Any]] | None = None,
+                  interleave: bool = False) -> dict[str, Any]:
     """`job` at each worker count (1: in this process); `on_cluster(client)` adds figures taken on
-    the last cluster (e.g. Dask's round trip)."""
+    the last cluster (e.g. Dask's round trip). `interleave`: round by round, every worker count in
+    turn (a fresh cluster each round), so that a host whose speed drifts between minutes (this VM's
+    per-sample CPU moved by 30% between runs ten minutes apart) drifts within each round's pair;
+    `paired_speedup_W_over_1` gives each round's own ratio."""
     out: dict[str, Any] = {}
-    for w in workers:
-        t0 = time.perf_counter()
-        with cluster_client(ClusterConfig(workers=w)) as client:
-            if client is not None:
-                out[f"localcluster_{w}_startup_s"] = time.perf_counter() - t0
-            out[f"workers_{w}"] = _timed_runs(job, w, client, rounds, server_pid)
-            if client is not None and on_cluster is not None:
-                out |= on_cluster(client)
+    runs: dict[int, list[dict[str, Any]]] = {w: [] for w in workers}
+    for r in range(rounds if interleave else 1):
+        for w in workers:
+            t0 = time.perf_counter()
+            with cluster_client(ClusterConfig(workers=w)) as client:
+                if client is not None:
+                    out[f"localcluster_{w}_startup_s"] = time.perf_counter() - t0
+                runs[w] += _timed_runs(job, w, client, 1 if interleave else rounds, server_pid, warm=r == 0, first=r)
+                if client is not None and on_cluster is not None and r == (rounds - 1 if interleave else 0):
+                    out |= on_cluster(client)
+    out |= {f"workers_{w}": _fastest(runs[w]) for w in workers}
     if "workers_1" in out:
         for w in (w for w in workers if w != 1):
             out[f"speedup_{w}_over_1"] = out[f"workers_{w}"]["units_per_s"] / out["workers_1"]["units_per_s"]
+            pairs = zip(runs[1], runs[w], strict=True)
+            out[f"paired_speedup_{w}_over_1"] = [a["seconds"] / b["seconds"] for a, b in pairs]
     return out
 
 
 def bench_build(world: World, base: Path | str, workers: Sequence[int], rounds: int, lidar_sweeps: int,
-                block: int, server_pid: int | None = None, name: str = "build") -> dict[str, Any]:
+                block: int, server_pid: int | None = None, name: str = "build",
+                interleave: bool = False) -> dict[str, Any]:
     """`occdata build --lidar-sweeps N` at each worker count, with the block granularity's ceiling."""
     sizes = [min(block, world.samples - i) for i in range(0, world.samples, block)]
     out = {"blocks": len(sizes), "block_samples": block,
            **{f"ceiling_{w}_over_1": block_ceiling(sizes, w) for w in workers if w > 1}}
     extra = (lambda client: {"dask_overhead": bench_overhead(client)}) if server_pid is None else None
-    return out | bench_scaling(build_job(world, base, lidar_sweeps, block, name), workers, rounds, server_pid, extra)
+    return out | bench_scaling(build_job(world, base, lidar_sweeps, block, name), workers, rounds, server_pid, extra,
+                               interleave)
 
 
 def bench_labels(world: World, tmp: Path, workers: Sequence[int], rounds: int) -> dict[str, Any]:
@@ -428,7 +446,7 @@ def run_sections(args: argparse.Namespace, world: World, tmp: Path,
         res["bytes"] = bench_bytes(world.root, world.gts, block, tmp, sweeps)
         save(res)
     if "build" in args.sections:
-        res["build"] = bench_build(world, tmp, workers, rounds, sweeps, block)
+        res["build"] = bench_build(world, tmp, workers, rounds, sweeps, block, interleave=args.interleave)
         save(res)
     if "s3" in args.sections:
         with s3_server() as (bucket, pid):
@@ -496,6 +514,8 @@ def _section_table(title: str, sec: dict[str, Any], unit: str) -> list[str]:
             continue
         r = f"{vb / va:.2f}x" if ratio and isinstance(va, float) and isinstance(vb, float) and va else ""
         lines.append(f"  {label.format(unit=unit):40}{_cell(va, fmt):>12}{_cell(vb, fmt):>14}{r:>8}")
+    if paired := sec.get("paired_speedup_2_over_1"):
+        lines.append(f"  {'2/1 within each round':40}{'':>12}{'':>14}  " + ", ".join(f"{x:.2f}x" for x in paired))
     if "localcluster_2_startup_s" in sec:
         lines.append(f"  {'LocalCluster start-up (not counted), s':40}{'':>12}{sec['localcluster_2_startup_s']:>14.2f}")
     return lines
@@ -539,10 +559,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--synth-scenes", type=int, default=2)
     ap.add_argument("--synth-samples", type=int, default=40, help="synthetic keyframes in all (split over the scenes)")
     ap.add_argument("--synth-seed", type=int, default=0)
-    ap.add_argument("--block-samples", type=int, default=8)
+    ap.add_argument("--block-samples", type=int, default=BuildConfig.block_samples,
+                    help="samples per build task (default: the build's own)")
     ap.add_argument("--lidar-sweeps", type=int, default=9, help="occdata build --lidar-sweeps N, for every build")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts (1: in this process)")
     ap.add_argument("--rounds", type=int, default=1, help="timed runs per figure (the fastest is kept)")
+    ap.add_argument("--interleave", action="store_true",
+                    help="build: round by round, each worker count in turn (paired ratios on a drifting host)")
     ap.add_argument("--threads", type=int, default=1, help="threads per process (0: the libraries' defaults)")
     ap.add_argument("--sections", default=",".join(SECTIONS), help=f"comma-separated, of {','.join(SECTIONS)}")
     ap.add_argument("--write-samples", type=int, default=256)

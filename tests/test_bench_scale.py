@@ -69,3 +69,16 @@ def test_build_figures_at_one_and_two_workers(synth_root: Path, tmp_path: Path) 
     table = bs.format_table(res)
     assert "occdata build, local disk" in table and "CPU kernel, s/sample" in table and "2/1" in table
     assert not list(tmp_path.glob("*.zarr"))  # every output removed after its run
+
+
+def test_interleaved_rounds_pair_each_worker_count(synth_root: Path, tmp_path: Path) -> None:
+    """--interleave: 1 worker, 2 workers, 1, 2 (a drifting host drifts within each pair)."""
+    args = bs.parse_args(["--root", str(synth_root), "--gts", str(synth_root / "gts"), "--block-samples", "3",
+                          "--lidar-sweeps", "0", "--sections", "build", "--workers", "1", "2", "--rounds", "2",
+                          "--interleave"])
+    res = bs.run_sections(args, bs.World.of(args.root, args.gts), tmp_path, lambda r: None)
+    build = res["build"]
+    one, two = build["workers_1"]["seconds_all"], build["workers_2"]["seconds_all"]
+    assert len(one) == len(two) == 2
+    assert build["paired_speedup_2_over_1"] == pytest.approx([one[0] / two[0], one[1] / two[1]])
+    assert "2/1 within each round" in bs.format_table(res)
