@@ -246,14 +246,15 @@ def bench_scaling(job: Job, workers: Sequence[int], rounds: int = 1, server_pid:
     `paired_speedup_W_over_1` gives each round's own ratio."""
     out: dict[str, Any] = {}
     runs: dict[int, list[dict[str, Any]]] = {w: [] for w in workers}
-    for r in range(rounds if interleave else 1):
+    passes, per_pass = (rounds, 1) if interleave else (1, rounds)
+    for r in range(passes):
         for w in workers:
             t0 = time.perf_counter()
             with cluster_client(ClusterConfig(workers=w)) as client:
                 if client is not None:
                     out[f"localcluster_{w}_startup_s"] = time.perf_counter() - t0
-                runs[w] += _timed_runs(job, w, client, 1 if interleave else rounds, server_pid, warm=r == 0, first=r)
-                if client is not None and on_cluster is not None and r == (rounds - 1 if interleave else 0):
+                runs[w] += _timed_runs(job, w, client, per_pass, server_pid, warm=r == 0, first=r)
+                if client is not None and on_cluster is not None and r == passes - 1:
                     out |= on_cluster(client)
     out |= {f"workers_{w}": _fastest(runs[w]) for w in workers}
     if "workers_1" in out:

@@ -173,26 +173,19 @@ def test_loader_workers_outlive_a_sigterm_to_the_job(synth_store: Path, tmp_path
     the sender is its parent, here the forkserver), which undid the forkserver's ignore: a batch not yet
     made when the signal came failed with "DataLoader worker exited unexpectedly" (seen in CI)."""
     body = f"""
-    import os, signal, time
-    from pathlib import Path
-
-    def children(pid):
-        out = []
-        for task in Path(f"/proc/{{pid}}/task").iterdir():
-            out += [int(c) for c in (task / "children").read_text().split()]
-        return out
+    import os, signal, sys, time
+    sys.path.insert(0, {str(REPO / "tests")!r})
+    from proc_tools import alive, descendants, loader_processes
 
     def main():
         loader = make_loader(LoaderConfig(store={str(synth_store)!r}, batch_size=1, sample=cfg), num_workers=1)
         it = iter(loader)
         n = len(next(it).sample_index)
-        workers = [w for server in children(os.getpid()) for w in children(server)]
+        workers = [w for server in loader_processes(os.getpid()) for w in descendants(server)]
         for w in workers:
             os.kill(w, signal.SIGTERM)  # from the job, not the worker's parent
         time.sleep(1.0)
-        print("alive", sum(Path(f"/proc/{{w}}").exists() and
-                           Path(f"/proc/{{w}}/stat").read_text().split(")")[1].split()[0] != "Z" for w in workers),
-              "of", len(workers))
+        print("alive", sum(alive(w) for w in workers), "of", len(workers))
         print("samples", n + sum(len(b.sample_index) for b in it))
 
     if __name__ == "__main__":
