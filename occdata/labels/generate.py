@@ -112,9 +112,7 @@ def load_inputs(cfg: LabelsConfig) -> tuple[LabelSources, str]:
 
 
 def _only_scenes(ds: NuScenesDataset, names: set[str]) -> NuScenesDataset:
-    scenes = tuple(sc for sc in ds.scenes if sc.name in names)
-    keep = {sc.token for sc in scenes}
-    return dataclasses.replace(ds, scenes=scenes, samples=tuple(s for s in ds.samples if s.scene_token in keep))
+    return ds.only_scenes(tuple(sc for sc in ds.scenes if sc.name in names))
 
 
 # Options that exist for carving alone: recorded only when some scene is carved, so that the box path's

@@ -14,7 +14,7 @@ the previous sample is kept as it is; instances only in the previous sample are 
 
 from __future__ import annotations
 
-from collections.abc import Collection, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -222,7 +222,7 @@ def load_annotations(root: Path, version: str, sample_tokens: Collection[str] | 
     categories = load_table(vdir / "category.json")
     instances = load_table(inst_path)
     instance_category = {tok: _category_name(categories, tok, row) for tok, row in instances.items()}
-    sample_rows = load_table(vdir / "sample.json")
+    sample_rows = load_table(vdir / "sample.json", columns=True)
     rows, every_token = _read_rows(ann_path, None if sample_tokens is None else set(sample_tokens))
     timestamps = _references(rows, sample_rows, instance_category)
     columns = {key: _numbers(rows, key) for key in ("translation", "size", "rotation")}
@@ -280,7 +280,7 @@ def _read_rows(path: Path, wanted: set[str] | None) -> tuple[list[_Row], set[str
 
 
 def _references(
-    rows: list[_Row], sample_rows: dict[str, dict[str, Any]], instance_category: dict[str, str]
+    rows: list[_Row], sample_rows: Mapping[str, dict[str, Any]], instance_category: dict[str, str]
 ) -> list[int]:
     """Check each row's sample and instance exist; the timestamp (us) of each row's sample."""
     sample_ts: dict[str, int] = {}

@@ -9,9 +9,11 @@ early with one line naming the table and token.
 
 from __future__ import annotations
 
+import bisect
 import os
 import re
-from collections import Counter, defaultdict
+from array import array
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from dataclasses import field as dc_field
@@ -21,8 +23,17 @@ from typing import Any
 import numpy as np
 
 from occdata.errors import OccDataError
+from occdata.nuscenes.columns import ColumnTable
+from occdata.nuscenes.packed import PackedSamples
 from occdata.nuscenes.pointfiles import is_pcd, read_pcd
-from occdata.nuscenes.records import CameraRecord, LidarRecord, NuScenesDataset, SampleRecord, SceneRecord
+from occdata.nuscenes.records import (
+    CameraRecord,
+    LazySamples,
+    LidarRecord,
+    NuScenesDataset,
+    SampleRecord,
+    SceneRecord,
+)
 from occdata.nuscenes.rig import Rig, RigChoice, resolve_rig, sensor_modalities
 from occdata.nuscenes.rows import RowProblem, field, floats, integer, link, pose, ref, short, timestamp_us
 from occdata.nuscenes.splits import AUTO_SPLIT, SplitChoice, auto_split, official_split
@@ -111,13 +122,27 @@ def confined_path(root: Path, relative: Any, where: str) -> Path:
 
 
 @dataclass(frozen=True, eq=False)
+class Keyframes:
+    """Per row of sample.json (file order) and channel, the position of its keyframe row in
+    sample_data (-1: none): `positions (n_sample_rows, len(channels)) int32`."""
+
+    channels: tuple[str, ...]
+    positions: np.ndarray
+
+    def present(self) -> set[str]:
+        """The channels with a keyframe row in some sample."""
+        return {c for c, col in zip(self.channels, self.positions.T, strict=True) if (col >= 0).any()}
+
+
+@dataclass(frozen=True, eq=False)
 class TableIndex:
     """The rows that `load_nuscenes` needs, keyed by token, and the maps derived from them.
 
-    `sample_data` holds the keyframe rows of the rig's sensors, plus (with `sweeps`) the LiDARs'
-    non-keyframe rows; `ego_poses` only the poses those rows use. Derived: `rig`, `channel_of_calib`
-    (calibrated_sensor token -> sensor channel), `lidar_rows` (the rig's LiDAR rows of `sample_data`),
-    `keyframes` (sample token -> channel -> keyframe sample_data row).
+    `sample_data` holds the keyframe rows of the tables' cameras and LiDARs, plus (with `sweeps`) the
+    LiDARs' non-keyframe rows; `ego_poses` only the poses of the rig's rows. `samples`, `sample_data`
+    and `ego_poses` are `ColumnTable`s (they grow with the dataset). Derived: `rig`,
+    `channel_of_calib` (calibrated_sensor token -> sensor channel), `keyframes` (`Keyframes`; read
+    through `keyframe_rows`), `n_lidar_rows` (the rig's LiDAR rows: a bound for chain walks).
     """
 
     root: Path
@@ -127,17 +152,35 @@ class TableIndex:
     calibs: dict[str, dict[str, Any]]
     logs: dict[str, dict[str, Any]] | None  # None: the tree has no log.json
     scenes: dict[str, dict[str, Any]]
-    samples: dict[str, dict[str, Any]]
-    sample_data: dict[str, dict[str, Any]]
-    ego_poses: dict[str, dict[str, Any]]
+    samples: ColumnTable
+    sample_data: ColumnTable
+    ego_poses: ColumnTable
     channel_of_calib: dict[str, str]
-    lidar_rows: dict[str, dict[str, Any]]
-    keyframes: dict[str, dict[str, dict[str, Any]]]
+    keyframes: Keyframes
+    n_lidar_rows: int
     notes: tuple[str, ...]  # one line each: identical duplicate rows ignored
     rig: Rig
     # (calibrated_sensor token, is a camera) -> (T_sensor, K): made once, shared (`_calibration`)
     calib_cache: dict[tuple[str, bool], tuple[np.ndarray, np.ndarray | None]] = dc_field(
         default_factory=dict)
+
+    def keyframe_rows(self, sample_token: str) -> dict[str, dict[str, Any]]:
+        """The rig's channels -> that sample's keyframe sample_data row (file order; absent ones left out)."""
+        s_pos = self.samples.position(sample_token)
+        if s_pos < 0:
+            return {}
+        used = set(self.rig.channels)
+        found = sorted((int(p), c) for c, p in zip(self.keyframes.channels, self.keyframes.positions[s_pos],
+                                                    strict=True) if p >= 0 and c in used)
+        return {c: self.sample_data.row_at(p) for p, c in found}
+
+    def lidar_row(self, token: Any) -> dict[str, Any] | None:
+        """The sample_data row `token` if it is a row of one of the rig's LiDARs, else None."""
+        pos = self.sample_data.position(token)
+        if pos < 0:
+            return None
+        row = self.sample_data.row_at(pos)
+        return row if self.channel_of_calib[row["calibrated_sensor_token"]] in self.rig.lidars else None
 
 
 def read_tables(root: Path, version: str, sweeps: bool, rig: RigChoice | None = None) -> TableIndex:
@@ -158,36 +201,62 @@ def read_tables(root: Path, version: str, sweeps: bool, rig: RigChoice | None = 
     scenes = load_table(vdir / "scene.json", warn=notes.append)
     if not scenes:
         raise OccDataError(f"{vdir / 'scene.json'} holds no scenes: nothing to read")
-    samples = load_table(vdir / "sample.json", warn=notes.append)
-    for tok, row in samples.items():  # every sample belongs to a scene of the tables
-        ref(scenes, field(row, "scene_token", "sample"), "scene", f"sample {tok!r}")
+    samples = load_table(vdir / "sample.json", warn=notes.append, columns=True)
+    for pos in range(len(samples)):  # every sample belongs to a scene of the tables
+        ref(scenes, field(samples.row_at(pos), "scene_token", "sample"), "scene",
+            f"sample {samples.value_at(pos, 'token')!r}")
     channel_of_calib = _channels_of_calibs(calibs, sensors)
     modalities = sensor_modalities(sensors)
     choice = rig or RigChoice()
     wanted = {c for c, m in modalities.items() if m in ("camera", "lidar")}
     keep = _sample_data_filter(calibs, channel_of_calib, modalities, wanted, sweeps)
     all_sample_data = TokenSet()
-    sample_data = load_table(vdir / "sample_data.json", keep=keep, warn=notes.append, tokens=all_sample_data)
+    sample_data = load_table(vdir / "sample_data.json", keep=keep, warn=notes.append, tokens=all_sample_data,
+                             columns=True)
     _check_links(sample_data, all_sample_data)
     keyframes = _keyframes_by_sample(sample_data, samples, channel_of_calib)
-    resolved = resolve_rig(modalities, {c for per in keyframes.values() for c in per}, choice)
-    used = set(resolved.channels)
-    sample_data = {t: sd for t, sd in sample_data.items() if channel_of_calib[sd["calibrated_sensor_token"]] in used}
-    keyframes = {s: {c: sd for c, sd in per.items() if c in used} for s, per in keyframes.items()}
-    pose_tokens = set()
-    for tok, sd in sample_data.items():
-        pose_tok = field(sd, "ego_pose_token", "sample_data")
-        if not isinstance(pose_tok, str):
-            raise OccDataError(f"sample_data.json: row {tok!r} ego_pose_token is not a token ({short(pose_tok)})")
-        pose_tokens.add(pose_tok)
-    ego_poses = load_table(vdir / "ego_pose.json", keep=lambda r: r.get("token") in pose_tokens, warn=notes.append)
-    lidars = set(resolved.lidars)
-    lidar_rows = {t: sd for t, sd in sample_data.items() if channel_of_calib[sd["calibrated_sensor_token"]] in lidars}
+    resolved = resolve_rig(modalities, keyframes.present(), choice)
+    pose_hashes, n_lidar_rows = _pose_hashes(sample_data, channel_of_calib, resolved)
+    ego_poses = load_table(vdir / "ego_pose.json", keep=lambda r: _has_hash(pose_hashes, r.get("token")),
+                           warn=notes.append, columns=True)
     return TableIndex(
         root=root, version=version, sweeps=sweeps, sensors=sensors, calibs=calibs, logs=logs, scenes=scenes,
         samples=samples, sample_data=sample_data, ego_poses=ego_poses, channel_of_calib=channel_of_calib,
-        lidar_rows=lidar_rows, keyframes=keyframes, notes=tuple(notes), rig=resolved,
+        keyframes=keyframes, n_lidar_rows=n_lidar_rows, notes=tuple(notes), rig=resolved,
     )
+
+
+def _pose_hashes(sample_data: ColumnTable, channel_of_calib: dict[str, str], rig: Rig) -> tuple[array, int]:
+    """The sorted hashes of the ego_pose tokens that the rig's rows name (each must be a string), and
+    how many of those rows are the rig's LiDARs'."""
+    used, lidars = set(rig.channels), set(rig.lidars)
+    hashes = array("q")
+    n_lidar = 0
+    for pos in range(len(sample_data)):
+        channel = channel_of_calib[sample_data.value_at(pos, "calibrated_sensor_token")]
+        if channel not in used:
+            continue
+        n_lidar += channel in lidars
+        pose_tok = sample_data.get_at(pos, "ego_pose_token", _MISSING)
+        if pose_tok is _MISSING:
+            field(sample_data.row_at(pos), "ego_pose_token", "sample_data")  # raises, naming the row
+        if not isinstance(pose_tok, str):
+            raise OccDataError(f"sample_data.json: row {sample_data.value_at(pos, 'token')!r} ego_pose_token is "
+                               f"not a token ({short(pose_tok)})")
+        hashes.append(hash(pose_tok))
+    return array("q", sorted(set(hashes))), n_lidar
+
+
+_MISSING = object()
+
+
+def _has_hash(sorted_hashes: array, token: Any) -> bool:
+    """Whether `hash(token)` is in `sorted_hashes` (a 64-bit collision keeps a row that is not needed)."""
+    if not isinstance(token, str):
+        return False
+    h = hash(token)
+    i = bisect.bisect_left(sorted_hashes, h)
+    return i < len(sorted_hashes) and sorted_hashes[i] == h
 
 
 def _channels_of_calibs(calibs: dict[str, dict[str, Any]], sensors: dict[str, dict[str, Any]]) -> dict[str, str]:
@@ -224,41 +293,60 @@ def _sample_data_filter(
     return keep
 
 
-def _check_links(sample_data: dict[str, dict[str, Any]], every: TokenSet) -> None:
+def _check_links(sample_data: ColumnTable, every: TokenSet) -> None:
     """Every kept sample_data row has `prev` and `next`, each "" or a row of sample_data.json (kept or
-    not); where both ends are kept, the two links agree."""
+    not); where both ends are kept, the two links agree. Checked on the tokens' hashes, all rows at once;
+    a row that fails is found again in file order for the message."""
+    n = len(sample_data)
+    for key in ("prev", "next"):  # a missing or non-string link: the first such row, by name
+        for pos in range(n):
+            value = sample_data.get_at(pos, key, _MISSING)
+            if type(value) is not str:
+                link(sample_data.row_at(pos), key, "sample_data")
+    tok_h = sample_data.token_hashes()
+    link_h = {key: sample_data.hashes_of(key) for key in ("prev", "next")}
+    target = {key: sample_data.positions_of_hashes(h) for key, h in link_h.items()}
+    empty = hash("")
     for key in ("prev", "next"):
-        links = [(tok, link(sd, key, "sample_data")) for tok, sd in sample_data.items()]
-        targets = [to for _, to in links if to and to not in sample_data]
-        found = set(every.hits(targets))
-        for tok, to in links:
-            if to and to not in sample_data and to not in found:
-                raise OccDataError(f"dangling token: sample_data {tok!r}.{key} refers to sample_data {to!r}, "
-                                   "not in sample_data.json")
+        outside = (link_h[key] != empty) & (target[key] < 0)
+        missing = np.flatnonzero(outside)[~every.has_hashes(link_h[key][outside])]
+        if len(missing):
+            pos = int(missing[0])
+            raise OccDataError(f"dangling token: sample_data {sample_data.value_at(pos, 'token')!r}.{key} refers "
+                               f"to sample_data {sample_data.value_at(pos, key)!r}, not in sample_data.json")
     back = {"prev": "next", "next": "prev"}
-    for tok, sd in sample_data.items():
+    bad = np.zeros(n, dtype=bool)
+    for key in ("prev", "next"):
+        t = target[key]
+        inside = t >= 0
+        bad[inside] |= link_h[back[key]][t[inside]] != tok_h[inside]
+    for pos in np.flatnonzero(bad)[:1]:
+        sd = sample_data.row_at(int(pos))
         for key in ("prev", "next"):
             other = sample_data.get(sd[key])
-            if other is not None and other[back[key]] != tok:
-                raise OccDataError(f"sample_data.json: row {tok!r}.{key} is {sd[key]!r}, but that row's "
+            if other is not None and other[back[key]] != sd["token"]:
+                raise OccDataError(f"sample_data.json: row {sd['token']!r}.{key} is {sd[key]!r}, but that row's "
                                    f"{back[key]} is {other[back[key]]!r}")
 
 
-def _keyframes_by_sample(
-    sample_data: dict[str, dict[str, Any]], samples: dict[str, dict[str, Any]], channel_of_calib: dict[str, str]
-) -> dict[str, dict[str, dict[str, Any]]]:
-    """sample token -> channel -> its keyframe sample_data row (one per channel)."""
-    out: dict[str, dict[str, dict[str, Any]]] = defaultdict(dict)
-    for tok, sd in sample_data.items():
-        if not sd.get("is_key_frame", False):
+def _keyframes_by_sample(sample_data: ColumnTable, samples: ColumnTable, channel_of_calib: dict[str, str]) -> Keyframes:
+    """Per sample and channel its keyframe sample_data row (one per channel)."""
+    channels = tuple(sorted(set(channel_of_calib.values())))
+    code = {c: i for i, c in enumerate(channels)}
+    out = np.full((len(samples), len(channels)), -1, dtype=np.int32)
+    for pos in range(len(sample_data)):
+        if not sample_data.get_at(pos, "is_key_frame", False):
             continue
+        sd = sample_data.row_at(pos)
         s_tok = field(sd, "sample_token", "sample_data")
-        ref(samples, s_tok, "sample", f"sample_data {tok!r}")
+        s_pos = samples.position(s_tok)
+        if s_pos < 0:
+            ref(samples, s_tok, "sample", f"sample_data {sd['token']!r}")
         channel = channel_of_calib[sd["calibrated_sensor_token"]]
-        if channel in out[s_tok]:
+        if out[s_pos, code[channel]] >= 0:
             raise OccDataError(f"sample {s_tok!r} has two keyframe {channel} records in sample_data.json")
-        out[s_tok][channel] = sd
-    return dict(out)
+        out[s_pos, code[channel]] = pos
+    return Keyframes(channels, out)
 
 
 def load_nuscenes(
@@ -299,29 +387,39 @@ def load_nuscenes(
     notes = list(idx.notes)
     choice = splits or SplitChoice()
     split_table = choice.table()
-    samples_per_scene = Counter(r.get("scene_token") for r in idx.samples.values())
+    samples_per_scene = Counter(idx.samples.get_at(p, "scene_token") for p in range(len(idx.samples)))
     scenes: list[SceneRecord] = []
-    samples: list[SampleRecord] = []
+    tokens: list[str] = []
+    packed = PackedSamples(idx.root)
     for sc_tok, sc in idx.scenes.items():
         scene = _scene_record(idx, sc_tok, sc, samples_per_scene[sc_tok], notes, split_table, choice.unlisted)
-        scenes.append(scene)
         for i, s_tok in enumerate(scene.sample_tokens):
-            prev_keys = _lidar_tokens(idx, scene.sample_tokens[i - 1]) if i else {}
-            samples.append(_sample_record(idx, s_tok, scene.name, i, prev_keys, check_files))
+            # each record is made once, here (a broken tree fails now), and packed: `LazySamples`
+            # makes it again from the pack when asked, without the tables
+            packed.add(_sample_record(idx, s_tok, scene.name, i, _prev_keys(idx, scene, i), check_files), scene)
+            tokens.append(s_tok)
+        scenes.append(scene)
     absent = sorted(set(split_table) - {sc.name for sc in scenes})
     if absent:
         notes.append(f"split file {choice.file}: {len(absent)} of its scenes are not in the tables "
                      f"(first: {absent[0]!r})")
     return NuScenesDataset(
-        root=root, version=version, scenes=tuple(scenes), samples=tuple(samples), warnings=tuple(notes),
-        sweeps_loaded=sweeps, rig=idx.rig,
+        root=root, version=version, scenes=tuple(scenes), samples=LazySamples(packed.record, tokens),
+        warnings=tuple(notes), sweeps_loaded=sweeps, rig=idx.rig,
     )
+
+
+def _prev_keys(idx: TableIndex, scene: SceneRecord, i: int) -> dict[str, str]:
+    return _lidar_tokens(idx, scene.sample_tokens[i - 1]) if i else {}
 
 
 def _lidar_tokens(idx: TableIndex, sample_token: str) -> dict[str, str]:
     """LiDAR channel -> the keyframe sample_data token of that LiDAR in a sample."""
-    rows = idx.keyframes.get(sample_token, {})
-    return {c: rows[c]["token"] for c in idx.rig.lidars if c in rows}
+    s_pos = idx.samples.position(sample_token)
+    if s_pos < 0:
+        return {}
+    at = dict(zip(idx.keyframes.channels, idx.keyframes.positions[s_pos].tolist(), strict=True))
+    return {c: idx.sample_data.value_at(at[c], "token") for c in idx.rig.lidars if at.get(c, -1) >= 0}
 
 
 def _scene_record(idx: TableIndex, sc_tok: str, sc: dict[str, Any], in_table: int, notes: list[str],
@@ -396,7 +494,7 @@ def _sample_record(
 ) -> SampleRecord:
     """The record of one keyframe sample; a problem with its values gives a placeholder record."""
     row = idx.samples[s_tok]
-    sds = idx.keyframes.get(s_tok, {})
+    sds = idx.keyframe_rows(s_tok)
     missing = [c for c in idx.rig.channels if c not in sds]
     if missing:
         raise OccDataError(f"sample {s_tok!r} has no keyframe sample_data for {', '.join(missing)}"
@@ -407,7 +505,8 @@ def _sample_record(
     ]
     for sd in (*sds.values(), *(sd for chain in chains for sd in chain)):
         # foreign keys first: a dangling pose is a broken tree, not a row value
-        ref(idx.ego_poses, sd["ego_pose_token"], "ego_pose", f"sample_data {sd['token']!r}")
+        if idx.ego_poses.position(sd["ego_pose_token"]) < 0:
+            ref(idx.ego_poses, sd["ego_pose_token"], "ego_pose", f"sample_data {sd['token']!r}")
     try:
         return _build_sample(idx, s_tok, row, sds, scene_name, index, chains, check_files)
     except RowProblem as exc:
@@ -422,7 +521,7 @@ def _sweep_chain(
     out: list[dict[str, Any]] = []
     cur, tok = key_sd, key_sd.get("prev", "")
     while tok and tok != prev_key:
-        nxt = idx.lidar_rows.get(tok)
+        nxt = idx.lidar_row(tok)
         where = f"{channel} chain of scene {scene_name!r}: sample_data {cur['token']!r}.prev"
         if nxt is None or idx.channel_of_calib[nxt["calibrated_sensor_token"]] != channel:
             raise OccDataError(f"{where} is {tok!r}, not a {channel} row of sample_data.json")
@@ -434,7 +533,7 @@ def _sweep_chain(
         s_row = ref(idx.samples, field(nxt, "sample_token", "sample_data"), "sample", f"sample_data {tok!r}")
         if s_row.get("scene_token") != scene_tok:
             raise OccDataError(f"{where} is {tok!r}, a row of another scene (sample {nxt['sample_token']!r})")
-        if len(out) >= len(idx.lidar_rows):
+        if len(out) >= idx.n_lidar_rows:
             raise OccDataError(f"{where}: the prev-links form a cycle")
         out.append(nxt)
         cur, tok = nxt, nxt.get("prev", "")

@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import dataclasses
+from collections import OrderedDict
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, overload
 
 import numpy as np
 
 from occdata.geometry import invert_rigid
 from occdata.nuscenes.rig import NUSCENES_RIG, Rig
 
-__all__ = ["CameraRecord", "CameraRig", "LidarRecord", "NuScenesDataset", "SampleRecord", "SceneRecord"]
+__all__ = ["CameraRecord", "CameraRig", "LazySamples", "LidarRecord", "NuScenesDataset", "SampleRecord", "SceneRecord"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -146,28 +149,124 @@ class SceneRecord:
     sample_tokens: tuple[str, ...]  # time order
 
 
+class LazySamples(Sequence[SampleRecord]):
+    """A dataset's samples, each record made when it is asked for (`make(base index)`) and dropped
+    after: a million keyframes' records took ~7 KiB each; here a sample costs its token's reference.
+
+    `tokens` are the samples' tokens in order (shared with the scene records); `picks` the base
+    indices this sequence shows (a selection), `overrides` records that replace the made ones (a
+    problem found after reading). The last `_CACHED` records are kept, since callers often ask for
+    the same sample several times in a row. Pickled, it becomes a tuple of its records."""
+
+    _CACHED = 64
+
+    def __init__(self, make: Callable[[int], SampleRecord], tokens: Sequence[str], picks: np.ndarray | None = None,
+                 overrides: Mapping[int, SampleRecord] | None = None) -> None:
+        self._make, self._tokens = make, tokens
+        self._picks = np.arange(len(tokens), dtype=np.int64) if picks is None else picks
+        self._overrides = dict(overrides or {})
+        self._cache: OrderedDict[int, SampleRecord] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._picks)
+
+    @overload
+    def __getitem__(self, i: int) -> SampleRecord: ...
+    @overload
+    def __getitem__(self, i: slice) -> LazySamples: ...
+    def __getitem__(self, i: int | slice) -> SampleRecord | LazySamples:
+        if isinstance(i, slice):
+            return self.take(range(len(self))[i])
+        return self._record(int(self._picks[i]))  # IndexError past the end ends iteration
+
+    def __iter__(self) -> Iterator[SampleRecord]:
+        for base in self._picks:
+            yield self._record(int(base))
+
+    def _record(self, base: int) -> SampleRecord:
+        if base in self._overrides:
+            return self._overrides[base]
+        rec = self._cache.get(base)
+        if rec is None:
+            rec = self._make(base)
+            self._cache[base] = rec
+            if len(self._cache) > self._CACHED:
+                self._cache.popitem(last=False)
+        return rec
+
+    def tokens(self) -> list[str]:
+        """The samples' tokens, in order, without making their records."""
+        return [self._tokens[int(b)] for b in self._picks]
+
+    def take(self, positions: Sequence[int] | np.ndarray) -> LazySamples:
+        """The samples at `positions` of this sequence, as a new sequence."""
+        picks = self._picks[np.asarray(positions, dtype=np.int64)] if len(positions) else np.zeros(0, np.int64)
+        return LazySamples(self._make, self._tokens, picks, self._overrides)
+
+    def with_records(self, records: Mapping[int, SampleRecord]) -> LazySamples:
+        """This sequence with the samples at the given positions replaced by `records`."""
+        overrides = {**self._overrides, **{int(self._picks[i]): rec for i, rec in records.items()}}
+        return LazySamples(self._make, self._tokens, self._picks, overrides)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (tuple, (list(self),))
+
+
+def _tokens_of(samples: Sequence[SampleRecord]) -> list[str]:
+    return samples.tokens() if isinstance(samples, LazySamples) else [s.token for s in samples]
+
+
 @dataclass(frozen=True, eq=False)
 class NuScenesDataset:
-    """A version folder's keyframes: scenes, and samples in scene order then time order."""
+    """A version folder's keyframes: scenes, and samples in scene order then time order.
+
+    `samples` is a tuple of records, or (from `load_nuscenes`) a `LazySamples` that makes each record
+    when asked: iterate or index it, never keep all of its records."""
 
     root: Path
     version: str
     scenes: tuple[SceneRecord, ...]
-    samples: tuple[SampleRecord, ...]
+    samples: Sequence[SampleRecord]
     warnings: tuple[str, ...] = ()  # one line each: identical duplicate rows, nbr_samples disagreeing
     sweeps_loaded: bool = False  # read with `sweeps=True`: `SampleRecord.sweeps` are filled in
     rig: Rig = NUSCENES_RIG  # the cameras and LiDARs read (`Rig.left_out`: the sensors that were not)
-    _index: dict[str, int] = field(init=False, repr=False)
+    _tokens: list[str] = field(init=False, repr=False)
+    _sorted: tuple[np.ndarray, np.ndarray] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "_index", {s.token: i for i, s in enumerate(self.samples)})
+        # token -> position by sorted hashes (16 bytes a sample, not a dict entry's ~100)
+        tokens = _tokens_of(self.samples)
+        h = np.fromiter((hash(t) for t in tokens), np.int64, len(tokens))
+        order = np.argsort(h, kind="stable")
+        object.__setattr__(self, "_tokens", tokens)
+        object.__setattr__(self, "_sorted", (h[order], order))
+
+    def __getstate__(self) -> dict[str, Any]:
+        # the index holds str hashes, which differ between processes: made again where unpickled
+        return {k: v for k, v in vars(self).items() if k not in ("_tokens", "_sorted")}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        for k, v in state.items():
+            object.__setattr__(self, k, v)
+        self.__post_init__()
 
     def sample(self, token: str) -> SampleRecord:
-        return self.samples[self._index[token]]
+        return self.samples[self.index_of(token)]
 
     def index_of(self, token: str) -> int:
         """Position of a sample token in `samples` (KeyError if absent)."""
-        return self._index[token]
+        h, order = self._sorted
+        key = hash(token)
+        i = int(np.searchsorted(h, key))
+        while i < len(h) and h[i] == key:
+            if self._tokens[int(order[i])] == token:
+                return int(order[i])
+            i += 1
+        raise KeyError(token)
+
+    def sample_tokens(self) -> list[str]:
+        """The samples' tokens in order (no record is made)."""
+        return list(self._tokens)
 
     def split_of(self, sample: SampleRecord) -> str:
         return next(sc.split for sc in self.scenes if sc.token == sample.scene_token)
@@ -176,16 +275,32 @@ class NuScenesDataset:
         """A dataset restricted to scenes whose split is in `splits` (None: everything)."""
         if not splits:
             return self
-        scenes = tuple(sc for sc in self.scenes if sc.split in splits)
+        return self.only_scenes(tuple(sc for sc in self.scenes if sc.split in splits))
+
+    def only_scenes(self, scenes: tuple[SceneRecord, ...]) -> NuScenesDataset:
+        """The dataset of `scenes` (some of this one's, in its order) and their samples."""
         keep = {sc.token for sc in scenes}
-        return dataclasses.replace(
-            self, scenes=scenes, samples=tuple(s for s in self.samples if s.scene_token in keep)
-        )
+        if isinstance(self.samples, LazySamples):
+            pos = [self.index_of(t) for sc in self.scenes if sc.token in keep for t in sc.sample_tokens]
+            return dataclasses.replace(self, scenes=scenes, samples=self.samples.take(sorted(pos)))
+        return dataclasses.replace(self, scenes=scenes, samples=tuple(s for s in self.samples
+                                                                       if s.scene_token in keep))
+
+    def with_problems(self, problems: Mapping[int, str]) -> NuScenesDataset:
+        """This dataset with sample `i`'s record carrying `problems[i]` (unless it has one already)."""
+        if not problems:
+            return self
+        records = {i: self.samples[i] for i in problems}
+        records = {i: r if r.problem else dataclasses.replace(r, problem=problems[i]) for i, r in records.items()}
+        if isinstance(self.samples, LazySamples):
+            return dataclasses.replace(self, samples=self.samples.with_records(records))
+        return dataclasses.replace(self, samples=tuple(records.get(i, s) for i, s in enumerate(self.samples)))
 
     def scene_slice(self, scene: SceneRecord) -> NuScenesDataset:
-        """The dataset of one scene alone (what a task on a worker holds), in `O(scene)` time.
-        The tree-wide `warnings` stay with the full dataset (they are reported once, by the client)."""
-        samples = tuple(self.samples[self._index[t]] for t in scene.sample_tokens)
+        """The dataset of one scene alone (what a task on a worker holds), in `O(scene)` time, its records
+        made (a tuple: a task carries them, not the tables). The tree-wide `warnings` stay with the full
+        dataset (they are reported once, by the client)."""
+        samples = tuple(self.samples[self.index_of(t)] for t in scene.sample_tokens)
         return dataclasses.replace(self, scenes=(scene,), samples=samples, warnings=())
 
     def lidar_history(self, index: int, n: int) -> tuple[LidarRecord, ...]:

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from occdata.errors import OccDataError
+from occdata.nuscenes.columns import ColumnTable, TableBuilder
 
 __all__ = ["TABLE_NAMES", "TokenSet", "iter_table_rows", "load_table", "usable_as_file_name"]
 
@@ -179,6 +180,10 @@ class TokenSet:
         values, counts = np.unique(raw, return_counts=True)
         return {int(v) for v in values[counts > 1]}
 
+    def has_hashes(self, hashes: np.ndarray) -> np.ndarray:
+        """`(k,) bool`: which of the `hash(token)` values `hashes` `(k,) int64` are in the set."""
+        return np.isin(hashes, self._hashes())
+
     def hits(self, tokens: list[str]) -> list[str]:
         """The `tokens` that are in the set."""
         if not tokens:
@@ -192,7 +197,8 @@ def load_table(
     keep: Callable[[dict[str, Any]], bool] | None = None,
     warn: Callable[[str], None] | None = None,
     tokens: TokenSet | None = None,
-) -> dict[str, dict[str, Any]]:
+    columns: bool = False,
+) -> dict[str, dict[str, Any]] | ColumnTable:
     """Rows of a table keyed by `token`, optionally filtered by `keep(row)`; `tokens` (if given)
     receives the token of every row, kept or not.
 
@@ -202,8 +208,11 @@ def load_table(
     `keep` keeps both copies, one or none: every command refuses the same tree. Repeated tokens are
     found through the hashes of all tokens and compared in a second read of the file, which only
     happens when a token repeats. Identical duplicates are kept once and reported through `warn`
-    (one message per table).
+    (one message per table). With `columns`, the rows are kept as a `ColumnTable` (a few hundred bytes
+    a row, not a dict's kilobytes: for sample_data and ego_pose, which grow with the dataset).
     """
+    if columns:
+        return _load_columns(path, keep, warn, tokens)
     out: dict[str, dict[str, Any]] = {}
     every = tokens if tokens is not None else TokenSet()
     for row in iter_table_rows(path):
@@ -212,13 +221,7 @@ def load_table(
             every.add(token)
         if keep is not None and not keep(row):
             continue
-        if not isinstance(token, str):
-            raise OccDataError(f"malformed table {path}: a row has no string 'token' field")
-        if not usable_as_file_name(token):
-            raise OccDataError(
-                f"malformed table {path}: token {token!r} is empty or not usable as a file name "
-                "(tokens name folders of label and prediction files: no '/', '\\', NUL, '.' or '..')"
-            )
+        token = _checked_token(path, row)
         seen = out.get(token)
         if seen is not None and seen != row:
             raise _duplicate(path, token, seen, row)
@@ -228,6 +231,50 @@ def load_table(
     if identical and warn is not None:
         warn(f"{path.name}: {len(identical)} identical duplicate row(s) ignored (first token {identical[0]!r})")
     return out
+
+
+def _checked_token(path: Path, row: dict[str, Any]) -> str:
+    token = row.get("token")
+    if not isinstance(token, str):
+        raise OccDataError(f"malformed table {path}: a row has no string 'token' field")
+    if not usable_as_file_name(token):
+        raise OccDataError(
+            f"malformed table {path}: token {token!r} is empty or not usable as a file name "
+            "(tokens name folders of label and prediction files: no '/', '\\', NUL, '.' or '..')"
+        )
+    return token
+
+
+def _load_columns(path: Path, keep: Callable[[dict[str, Any]], bool] | None, warn: Callable[[str], None] | None,
+                  tokens: TokenSet | None) -> ColumnTable:
+    """`load_table` into a `ColumnTable`: the same checks, duplicates found by the tokens' hashes."""
+    builder = TableBuilder()
+    every = tokens if tokens is not None else TokenSet()
+    for row in iter_table_rows(path):
+        token = row.get("token")
+        if isinstance(token, str):
+            every.add(token)
+        if keep is not None and not keep(row):
+            continue
+        builder.append(_checked_token(path, row), row)
+    table = builder.finish()
+    identical = _compare_repeated(path, every.repeated())  # differing copies raise here
+    if identical:
+        table = _first_copies(table)
+        if warn is not None:
+            warn(f"{path.name}: {len(identical)} identical duplicate row(s) ignored (first token {identical[0]!r})")
+    return table
+
+
+def _first_copies(table: ColumnTable) -> ColumnTable:
+    """`table` without the later copies of a repeated token (identical rows: checked by the caller)."""
+    seen: set[str] = set()
+    builder = TableBuilder()
+    for _, row in table.rows():
+        if row["token"] not in seen:
+            seen.add(row["token"])
+            builder.append(row["token"], row)
+    return builder.finish()
 
 
 def _shared_strings(row: dict[str, Any]) -> dict[str, Any]:

@@ -50,7 +50,7 @@ def build_identity(config: BuildConfig, ds: NuScenesDataset, gts: Path | None,
         "splits": list(config.splits),
         "block_samples": config.block_samples,
         "options": asdict(config.options),
-        "sample_tokens_crc32": zlib.crc32("".join(s.token for s in ds.samples).encode()),
+        "sample_tokens_crc32": _tokens_crc32(ds.sample_tokens()),
     } | extra
 
 
@@ -76,3 +76,11 @@ def identity_diff(stored: dict[str, Any], now: dict[str, Any]) -> list[str]:
                 was, now_ = a.get(key, "<unset>"), b.get(key, "<unset>")
                 out.append(f"{_IDENTITY_OPTION.get(key, key)}: store {was!r}, now {now_!r}")
     return out
+
+
+def _tokens_crc32(tokens: list[str]) -> int:
+    """crc32 of the tokens joined, computed a token at a time (the joined text grew with the dataset)."""
+    crc = 0
+    for tok in tokens:
+        crc = zlib.crc32(tok.encode(), crc)
+    return crc

@@ -3,10 +3,11 @@ and what each sample's record needs from the whole selection (scene, split, temp
 
 from __future__ import annotations
 
-import dataclasses
 import os
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -16,29 +17,49 @@ from occdata.formats.gridfiles import LabelSite, grid_label_path, read_grid_labe
 from occdata.formats.gridspec import GridSpec, LabelLayout
 from occdata.formats.occ3d import LABEL_FILE, OPENOCC_V2, label_keys, label_relpaths
 from occdata.nuscenes import LidarRecord, NuScenesDataset, load_nuscenes
-from occdata.nuscenes.reader import confined_path
+from occdata.nuscenes.columns import TextColumn
+from occdata.nuscenes.reader import confined_path, dataset_root
 from occdata.store.blocks import SampleInput
 from occdata.store.config import BuildConfig, check_out
 from occdata.store.labelgrid import is_default_grid
 from occdata.store.reader import store_location
 from occdata.store.sample import static_arrays, temporal_indices
 
-__all__ = ["BuildInputs", "check_sweep_files", "find_grid_label_files", "find_label_files", "label_format",
-           "read_inputs"]
+__all__ = ["BuildInputs", "Histories", "LabelFiles", "check_sweep_files", "find_grid_label_files", "find_label_files",
+           "label_format", "read_inputs", "scene_positions"]
+
+
+class Histories(Sequence[tuple[LidarRecord, ...]]):
+    """Per sample, its previous LiDAR sweeps (`NuScenesDataset.lidar_histories(i, n_sweeps)`), made when
+    asked: the records of ten sweeps a sample grew with the dataset."""
+
+    def __init__(self, ds: NuScenesDataset, n_sweeps: int) -> None:
+        self.ds, self.n_sweeps = ds, n_sweeps
+
+    def __len__(self) -> int:
+        return len(self.ds.samples)
+
+    def __getitem__(self, i: int | slice) -> Any:
+        if isinstance(i, slice):
+            return [self[k] for k in range(len(self))[i]]
+        return self.ds.lidar_histories(range(len(self))[i], self.n_sweeps)
+
+    def __iter__(self) -> Iterator[tuple[LidarRecord, ...]]:
+        return (self[i] for i in range(len(self)))
 
 
 @dataclass(frozen=True, eq=False)
 class BuildInputs:
     """The selection a build converts, `n` samples: `labels` and `histories` per sample (its labels
-    file or None, its previous LiDAR sweeps); `scene_index`, `split_code`, `prev_index` `(n,)`
-    and `prev_valid` `(n, ...)` as `temporal_indices` gives them; `gts` the labels folder read;
-    `label_format` its files' format ("occ3d", or "openocc-v2": the store gets `labels/flow`);
-    `grid` the files' grid when not Occ3D's (None otherwise)."""
+    file or None, its previous LiDAR sweeps, both made when asked); `scene_index`, `split_code`,
+    `prev_index` `(n,)` and `prev_valid` `(n, ...)` as `temporal_indices` gives them; `gts` the labels
+    folder read; `label_format` its files' format ("occ3d", or "openocc-v2": the store gets
+    `labels/flow`); `grid` the files' grid when not Occ3D's (None otherwise)."""
 
     ds: NuScenesDataset
     gts: Path | None
-    labels: tuple[Path | None, ...]
-    histories: tuple[tuple[LidarRecord, ...], ...]
+    labels: LabelFiles
+    histories: Histories
     split_names: tuple[str, ...]
     scene_index: np.ndarray
     split_code: np.ndarray
@@ -69,25 +90,39 @@ def read_inputs(config: BuildConfig) -> BuildInputs:
                        splits=config.scene_splits).select(config.splits or None)
     if not ds.samples:
         raise OccDataError(f"no samples selected under {config.root} (splits: {list(config.splits) or 'all'})")
-    histories = tuple(ds.lidar_histories(i, n_sweeps) for i in range(len(ds.samples)))
-    check_sweep_files(list(histories), n_sweeps)
+    histories = Histories(ds, n_sweeps)
+    check_sweep_files(histories, n_sweeps)
     source = config.labels()
     if source.folder is not None and not source.folder.is_dir():
         raise OccDataError(f"labels folder not found: {source.folder}")
-    labels: list[Path | None] = [None] * len(ds.samples)
+    labels = LabelFiles.none(len(ds.samples))
     grid = None if is_default_grid(config.grid) else config.grid
     if source.folder is not None:
         labels, ds = (find_label_files(source.folder, ds, source.required) if grid is None
                       else find_grid_label_files(source.folder, ds, source.required, grid))
+        histories = Histories(ds, n_sweeps)
     _check_first_label(labels, grid)
     split_names = sorted({sc.split for sc in ds.scenes})
-    scene_pos = {sc.token: i for i, sc in enumerate(ds.scenes)}
-    scene_index = np.array([scene_pos[s.scene_token] for s in ds.samples])
+    scene_index, index_in_scene = scene_positions(ds)
     split_of = {name: i for i, name in enumerate(split_names)}
-    split_code = np.array([split_of[ds.scenes[k].split] for k in scene_index])
-    prev_index, prev_valid = temporal_indices(scene_index, np.array([s.index_in_scene for s in ds.samples]))
-    return BuildInputs(ds, source.folder, tuple(labels), histories, tuple(split_names), scene_index, split_code,
+    split_code = np.array([split_of[sc.split] for sc in ds.scenes], dtype=np.int64)[scene_index]
+    prev_index, prev_valid = temporal_indices(scene_index, index_in_scene)
+    return BuildInputs(ds, source.folder, labels, histories, tuple(split_names), scene_index, split_code,
                        prev_index, prev_valid, label_format(labels) if grid is None else "occ3d", grid)
+
+
+def scene_positions(ds: NuScenesDataset) -> tuple[np.ndarray, np.ndarray]:
+    """`(n,) int64` each sample's scene (position in `ds.scenes`) and its index in that scene, from the
+    scenes' token lists (no record is made)."""
+    scene_index = np.full(len(ds.samples), -1, dtype=np.int64)
+    index_in_scene = np.zeros(len(ds.samples), dtype=np.int64)
+    for k, sc in enumerate(ds.scenes):
+        for j, tok in enumerate(sc.sample_tokens):
+            i = ds.index_of(tok)
+            scene_index[i], index_in_scene[i] = k, j
+    if (scene_index < 0).any():
+        raise OccDataError("a sample belongs to no scene of the selection")  # a dataset made in code
+    return scene_index, index_in_scene
 
 
 def _check_first_label(labels: list[Path | None], grid: GridSpec | None) -> None:
@@ -128,40 +163,78 @@ def label_format(labels: list[Path | None]) -> str:
     return "occ3d"
 
 
-def check_sweep_files(histories: list[tuple[LidarRecord, ...]], n_sweeps: int) -> None:
+def check_sweep_files(histories: Iterable[tuple[LidarRecord, ...]], n_sweeps: int) -> None:
     """Raise one `OccDataError` line if any sweep file that `--lidar-sweeps` needs is not a file:
-    it names the first missing one and how many of the needed files were found."""
-    needed = list(dict.fromkeys(sw for h in histories for sw in h))  # samples share sweeps
-    missing = [sw for sw in needed if not sw.path.is_file()]
-    if missing:
-        first = missing[0]
+    it names the first missing one and how many of the needed files were found. `histories` come in
+    sample order: a sweep shared by several samples' histories is shared by consecutive ones, so
+    each is checked once against the previous history alone (memory does not grow with the samples)."""
+    n_needed, missing, first = 0, 0, None
+    previous: set[str] = set()
+    for h in histories:
+        current = {sw.token for sw in h}
+        for sw in h:
+            if sw.token in previous:
+                continue
+            previous.add(sw.token)  # a history may name a sweep twice (two LiDARs share none, but be safe)
+            n_needed += 1
+            if not sw.path.is_file():
+                missing += 1
+                first = first or sw
+        previous = current
+    if first is not None:
         raise OccDataError(
             f"--lidar-sweeps {n_sweeps}: missing sweep file {first.path} (sample_data {first.token!r}); "
-            f"{len(needed) - len(missing)} of the {len(needed)} sweep files needed were found. A keyframe-only "
+            f"{n_needed - missing} of the {n_needed} sweep files needed were found. A keyframe-only "
             "download has no sweeps/ folder: add the sweeps, or use --lidar-sweeps 0"
         )
 
 
+class LabelFiles(Sequence[Path | None]):
+    """Per sample, its labels file or None: paths under `gts` kept as text in one buffer (a `Path`
+    object per sample grew with the dataset)."""
+
+    def __init__(self, gts: Path | None) -> None:
+        self.gts, self._rel = gts, TextColumn()
+
+    def append(self, path: Path | None) -> None:
+        self._rel.append("" if path is None else str(path.relative_to(self.gts)))
+
+    def __len__(self) -> int:
+        return len(self._rel)
+
+    def __getitem__(self, i: int | slice) -> Any:
+        if isinstance(i, slice):
+            return [self[k] for k in range(len(self))[i]]
+        rel = self._rel.get(range(len(self))[i])
+        return self.gts / rel if rel and self.gts is not None else None
+
+    @classmethod
+    def none(cls, n: int) -> LabelFiles:
+        out = cls(None)
+        for _ in range(n):
+            out.append(None)
+        return out
+
+
 def find_label_files(
     gts: Path, ds: NuScenesDataset, required: bool
-) -> tuple[list[Path | None], NuScenesDataset]:
+) -> tuple[LabelFiles, NuScenesDataset]:
     """Per sample, its `labels.npz` under `gts` (nested `<scene>/<token>/` first, then flat
     `<token>/`), or None. Scene names and tokens come from the tables: a label path that would leave
     `gts` marks that sample with a problem (the sample fails, naming the row). With `required`, no
     match for any sample is an error that shows the expected layout and one expected path.
     """
-    found: list[Path | None] = []
-    samples = []
-    for s in ds.samples:
+    found = LabelFiles(dataset_root(gts))
+    problems: dict[int, str] = {}
+    for i, s in enumerate(ds.samples):
         where = f"scene {s.scene_name!r} / sample {s.token!r} (labels path under --gts)"
         path: Path | None = None
         try:
             candidates = [confined_path(gts, rel, where) for rel in label_relpaths(s.scene_name, s.token)]
             path = next((c for c in candidates if os.path.lexists(c)), None)
         except OccDataError as exc:
-            s = dataclasses.replace(s, problem=s.problem or str(exc))
+            problems[i] = str(exc)
         found.append(path)
-        samples.append(s)
     if required and ds.samples and not any(found):
         s = ds.samples[0]
         nested, flat = label_relpaths(s.scene_name, s.token)
@@ -171,29 +244,25 @@ def find_label_files(
             f"e.g. {gts / nested} (check --gts; leave it out for samples without labels, e.g. the test split; "
             "labels of another grid need --gts-grid NAME or --voxel-size)"
         )
-    if any(s.problem for s in samples):
-        ds = dataclasses.replace(ds, samples=tuple(samples))
-    return found, ds
+    return found, ds.with_problems(problems)
 
 
 def find_grid_label_files(gts: Path, ds: NuScenesDataset, required: bool,
-                          spec: GridSpec) -> tuple[list[Path | None], NuScenesDataset]:
+                          spec: GridSpec) -> tuple[LabelFiles, NuScenesDataset]:
     """Per sample, its label file of `spec` under `gts` in the grid's own layout
     (`occdata.formats.gridfiles.grid_label_path`), or None; `required` as in `find_label_files`."""
-    found: list[Path | None] = []
-    samples = []
-    for s in ds.samples:
+    found = LabelFiles(dataset_root(gts))
+    problems: dict[int, str] = {}
+    for i, s in enumerate(ds.samples):
         site = LabelSite(s.scene_name, s.scene_token, s.token, s.lidar.token, s.lidar.path.name)
         path: Path | None = None
         try:  # names from the tables are data: the path must stay under gts
             rel = str(grid_label_path(spec, Path("."), site))
             path = confined_path(gts, rel, f"scene {s.scene_name!r} / sample {s.token!r} (labels path under --gts)")
         except OccDataError as exc:
-            s = dataclasses.replace(s, problem=s.problem or str(exc))
+            problems[i] = str(exc)
         found.append(path if path is not None and os.path.lexists(path) else None)
-        samples.append(s)
-    if any(s.problem for s in samples):
-        ds = dataclasses.replace(ds, samples=tuple(samples))
+    ds = ds.with_problems(problems)
     if required and ds.samples and not any(found):
         s = ds.samples[0]
         expect = grid_label_path(spec, gts, LabelSite(s.scene_name, s.scene_token, s.token, s.lidar.token,

@@ -71,22 +71,25 @@ def _points(path: Path) -> int:
 
 
 def payload_bounds(samples: Sequence[SampleRecord], histories: Sequence[tuple[LidarRecord, ...]],
-                   options: SampleOptions, threads: int = 16) -> np.ndarray:
+                   options: SampleOptions, threads: int = 16, window: int = 1024) -> np.ndarray:
     """`(n, len(FLAT_ARRAYS)) int64` rows planned per sample in each flat array: JPEG bytes from the
     image sizes in the tables (`jpeg_bound`); depth rows = cameras x the points of every LiDAR's
     keyframe sweep and of each history sweep (a point can land in several cameras), from the files'
-    sizes (one stat per distinct file, in `threads` threads: a network file system answers slowly)."""
-    files = list(dict.fromkeys(p for s, h in zip(samples, histories, strict=True)
-                               for p in (*(r.path for r in s.lidars), *(r.path for r in h))))
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        points = dict(zip(files, pool.map(_points, files), strict=True))
+    sizes (one stat per distinct file of a `window` of samples, in `threads` threads: a network file
+    system answers slowly; windows keep the memory independent of the sample count)."""
     out = np.zeros((len(samples), len(FLAT_ARRAYS)), dtype=np.int64)
-    for i, (s, h) in enumerate(zip(samples, histories, strict=True)):
-        for f, name in enumerate(FLAT_ARRAYS):
-            if name == "images/jpeg":
-                out[i, f] = sum(jpeg_bound(c.width, c.height, options.image_scale) for c in s.cameras)
-            else:
-                out[i, f] = len(s.cameras) * sum(points[r.path] for r in (*s.lidars, *h))
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        for w0 in range(0, len(samples), window):
+            w1 = min(w0 + window, len(samples))
+            part = [(samples[i], histories[i]) for i in range(w0, w1)]
+            files = list(dict.fromkeys(p for s, h in part for p in (*(r.path for r in s.lidars), *(r.path for r in h))))
+            points = dict(zip(files, pool.map(_points, files), strict=True))
+            for i, (s, h) in enumerate(part, start=w0):
+                for f, name in enumerate(FLAT_ARRAYS):
+                    if name == "images/jpeg":
+                        out[i, f] = sum(jpeg_bound(c.width, c.height, options.image_scale) for c in s.cameras)
+                    else:
+                        out[i, f] = len(s.cameras) * sum(points[r.path] for r in (*s.lidars, *h))
     return out
 
 

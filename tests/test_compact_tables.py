@@ -1,0 +1,217 @@
+"""Issue 48: the tables' rows kept as columns and the keyframe records packed, made again when asked.
+
+Truths: the JSON files themselves (each kept row equals the file's row), the reader's own record made
+from the tables (a pack round trip, field by field), and the old whole-list definition of the sweep
+check's counts."""
+
+from __future__ import annotations
+
+import dataclasses
+import gc
+import json
+import math
+import os
+import pickle
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from occdata.errors import OccDataError
+from occdata.nuscenes import load_nuscenes
+from occdata.nuscenes import reader as R
+from occdata.nuscenes.columns import ColumnTable
+from occdata.nuscenes.records import LazySamples
+from occdata.nuscenes.tables import TokenSet, load_table
+from occdata.store.inputs import Histories, check_sweep_files
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Equal, NaN equal to NaN (Lyft writes `NaN` for a LiDAR row's width)."""
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return True
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    return a == b and (type(a) is type(b) or {type(a), type(b)} == {int, float})
+
+
+@pytest.mark.parametrize("table", ["sample_data", "ego_pose", "sample"])
+def test_column_rows_equal_the_files_rows(table: str, real_seq_root: Path, real_lyft_root: Path) -> None:
+    for path in (real_seq_root / "v1.0-mini" / f"{table}.json", real_lyft_root / "train_data" / f"{table}.json"):
+        rows = json.loads(path.read_text())
+        kept = load_table(path, columns=True)
+        assert isinstance(kept, ColumnTable) and len(kept) == len(rows)
+        assert list(kept) == [r["token"] for r in rows]  # file order
+        for r in rows:
+            assert _same(kept[r["token"]], r), (path, r["token"])
+        # numbers keep their type: nuScenes' integer timestamps, Lyft's float ones
+        assert type(kept[rows[0]["token"]]["timestamp"]) is type(rows[0]["timestamp"])
+        assert kept.nbytes() < 0.6 * len(path.read_bytes())  # the text of the file, not its Python objects
+
+
+def test_rows_that_do_not_fit_the_columns_are_kept_whole(tmp_path: Path) -> None:
+    base = {"token": "a", "timestamp": 1, "rotation": [1.0, 0.0, 0.0, 0.0], "name": "x", "key": True}
+    odd = [
+        {**base, "token": "b", "extra": 1},  # another key
+        {**base, "token": "c", "timestamp": "soon"},  # a value of another kind
+        {**base, "token": "d", "timestamp": 2**60},  # beyond float64's exact integers
+        {**base, "token": "e", "rotation": [1.0, 0.0]},  # a list of another length
+        {**base, "token": "f", "name": "\ud800"},  # a lone surrogate
+        {**base, "token": "g", "key": 1},  # a number where a boolean was
+        {k: v for k, v in base.items() if k != "name"} | {"token": "h"},  # a key missing
+    ]
+    fine = {**base, "token": "i", "timestamp": 2.5, "rotation": [0, 1, 0, 0]}
+    rows = [base, *odd, fine]
+    path = tmp_path / "t.json"
+    path.write_text(json.dumps(rows))
+    kept = load_table(path, columns=True)
+    assert list(kept) == [r["token"] for r in rows]
+    for r in rows:
+        assert _same(kept[r["token"]], r) and kept.position(r["token"]) == rows.index(r)
+    assert kept["i"]["rotation"] == [0.0, 1.0, 0.0, 0.0]  # list members read back as floats
+    assert kept["d"]["timestamp"] == 2**60 and kept["c"]["timestamp"] == "soon"
+    assert "z" not in kept and kept.position(3) == -1 and kept.get("z") is None
+    with pytest.raises(KeyError):
+        kept["z"]
+
+
+def test_column_tables_refuse_and_report_duplicates_as_the_dict_tables_do(tmp_path: Path) -> None:
+    row = {"token": "a", "timestamp": 1}
+    path = tmp_path / "t.json"
+    path.write_text(json.dumps([row, {"token": "b", "timestamp": 2}, row]))
+    notes: list[str] = []
+    kept = load_table(path, warn=notes.append, columns=True)
+    assert list(kept) == ["a", "b"] and len(notes) == 1 and "identical duplicate" in notes[0]
+    path.write_text(json.dumps([row, {"token": "a", "timestamp": 3}]))
+    with pytest.raises(OccDataError, match="duplicate token .*'a'.*'timestamp'"):
+        load_table(path, columns=True)
+
+
+def test_hash_lookups_answer_many_tokens_at_once(real_seq_root: Path) -> None:
+    path = real_seq_root / "v1.0-mini" / "sample_data.json"
+    every = TokenSet()
+    kept = load_table(path, keep=lambda r: r["is_key_frame"], columns=True, tokens=every)
+    rows = json.loads(path.read_text())
+    tokens = [r["token"] for r in rows]
+    pos = kept.positions_of_hashes(np.array([hash(t) for t in tokens], dtype=np.int64))
+    for t, p in zip(tokens, pos, strict=True):
+        assert p == kept.position(t)
+        assert (p >= 0) == any(r["token"] == t and r["is_key_frame"] for r in rows)
+    found = every.has_hashes(np.array([hash(t) for t in tokens] + [hash("nope")]))
+    assert found.tolist() == [True] * len(tokens) + [False]
+
+
+def _assert_same_record(a: Any, b: Any, where: str = "") -> None:
+    if dataclasses.is_dataclass(a):
+        assert type(a) is type(b), where
+        for f in dataclasses.fields(a):
+            _assert_same_record(getattr(a, f.name), getattr(b, f.name), f"{where}.{f.name}")
+    elif isinstance(a, tuple):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            _assert_same_record(x, y, f"{where}[{i}]")
+    elif isinstance(a, np.ndarray):
+        assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b, equal_nan=True), where
+    else:
+        assert a == b and type(a) is type(b), (where, a, b)
+
+
+@pytest.mark.parametrize("which", ["seq", "lyft"])
+def test_packed_records_are_the_records_the_tables_give(which: str, real_seq_root: Path,
+                                                        real_lyft_root: Path) -> None:
+    """Every record `ds.samples` makes again equals, field by field, the one the reader makes from the
+    tables (sweeps included: 358 on the real scene; Lyft's three LiDARs)."""
+    ds = load_nuscenes(real_seq_root if which == "seq" else real_lyft_root, sweeps=True)
+    assert isinstance(ds.samples, LazySamples)
+    idx = R.read_tables(ds.root, ds.version, True)
+    n_sweeps = 0
+    for sc in ds.scenes:
+        for i, tok in enumerate(sc.sample_tokens):
+            want = R._sample_record(idx, tok, sc.name, i, R._prev_keys(idx, sc, i), False)
+            _assert_same_record(ds.sample(tok), want, tok)
+            n_sweeps += sum(len(want.sweeps_of(k)) for k in range(len(want.lidars)))
+    assert len(ds.samples) == (41 if which == "seq" else 16)
+    if which == "seq":
+        assert n_sweeps == 358
+    else:
+        assert len(ds.samples[0].lidars) == 3
+
+
+def test_a_placeholder_record_keeps_its_problem(real_nuscenes_root: Path, tmp_path: Path) -> None:
+    import shutil
+
+    tree = tmp_path / "ns"
+    shutil.copytree(real_nuscenes_root / "v1.0-mini", tree / "v1.0-mini")
+    path = tree / "v1.0-mini" / "sample_data.json"
+    rows = json.loads(path.read_text())
+    rows[0]["width"] = "wide"
+    path.write_text(json.dumps(rows))
+    s = load_nuscenes(tree).samples[0]
+    assert "width is not an integer" in s.problem and np.isnan(s.cameras[0].K).all()
+
+
+def test_the_dataset_holds_no_table_rows_and_a_bounded_number_of_records(real_seq_root: Path) -> None:
+    """What stays after reading: the pack, not the tables (`TableIndex`, `ColumnTable`), and at most
+    `LazySamples._CACHED` records however many samples were visited."""
+    ds = load_nuscenes(real_seq_root, sweeps=True)
+    for _ in ds.samples:
+        pass
+    seen: set[int] = set()
+    todo: list[Any] = [ds]
+    records = 0
+    while todo:
+        obj = todo.pop()
+        if id(obj) in seen or isinstance(obj, (type, type(R))):
+            continue
+        seen.add(id(obj))
+        assert not isinstance(obj, (R.TableIndex, ColumnTable)), type(obj)
+        records += type(obj).__name__ == "SampleRecord"
+        todo.extend(gc.get_referents(obj))
+    assert 0 < records <= LazySamples._CACHED < len(ds.samples) or records <= len(ds.samples) < LazySamples._CACHED
+
+
+def test_a_pickled_dataset_finds_its_samples_under_another_hash_seed(real_seq_root: Path, tmp_path: Path) -> None:
+    """Token lookups use `hash`, which differs between processes: a dataset sent to a worker (pickled:
+    its records made) indexes itself again where it lands."""
+    ds = load_nuscenes(real_seq_root)
+    blob = tmp_path / "ds.pkl"
+    blob.write_bytes(pickle.dumps(ds.select(None)))
+    token = ds.samples[17].token
+    code = (f"import pickle; ds = pickle.loads(open({str(blob)!r}, 'rb').read()); "
+            f"assert type(ds.samples) is tuple; print(ds.index_of({token!r}), ds.sample({token!r}).token)")
+    for seed in ("1", "2"):
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO,
+                             env={**os.environ, "PYTHONHASHSEED": seed}).stdout.split()
+        assert out == ["17", token]
+
+
+def test_selections_and_slices_keep_the_order_and_make_records_lazily(real_seq_root: Path) -> None:
+    ds = load_nuscenes(real_seq_root)
+    sub = ds.samples[5:9]
+    assert isinstance(sub, LazySamples) and [s.token for s in sub] == ds.sample_tokens()[5:9]
+    scene = ds.scenes[0]
+    assert ds.only_scenes((scene,)).sample_tokens() == list(scene.sample_tokens)
+    sliced = ds.scene_slice(scene)
+    assert type(sliced.samples) is tuple and [s.token for s in sliced.samples] == list(scene.sample_tokens)
+    marked = ds.with_problems({3: "planted"})
+    assert marked.samples[3].problem == "planted" and not marked.samples[2].problem and not ds.samples[3].problem
+
+
+def test_the_streamed_sweep_check_counts_each_sweep_once(real_seq_root: Path, tmp_path: Path) -> None:
+    """Histories are walked one after the other, each compared with the previous only; the count of
+    needed files equals the old definition's (every history's sweeps, deduplicated as a whole)."""
+    ds = load_nuscenes(real_seq_root, sweeps=True)
+    for n in (1, 3, 10):
+        histories = Histories(ds, n)
+        needed = {sw.token: sw.path for h in histories for sw in h}
+        found = sum(p.is_file() for p in needed.values())  # the keyframes' files: the scene ships no sweeps/
+        assert len(needed) > found
+        with pytest.raises(OccDataError, match=rf"; {found} of the {len(needed)} sweep files needed were found"):
+            check_sweep_files(histories, n)
