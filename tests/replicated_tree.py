@@ -18,8 +18,12 @@ def _tok(*parts: object) -> str:
 
 
 def make_replicated_tree(
-    real_root: Path, label_file: Path, out: Path, n_scenes: int = 2, n_samples: int = 5, labels: bool = True
+    real_root: Path, label_file: Path, out: Path, n_scenes: int = 2, n_samples: int = 5, labels: bool = True,
+    boxes: int = 0,
 ) -> Path:
+    """`n_scenes` scenes of `n_samples` replays each under `out`; with `boxes`, that many tracked
+    objects per scene, one sample_annotation row each per sample (for the tables' size, not a scene's
+    truth: fixed boxes beside the road, moving 1 m per sample)."""
     real_root, label_file = real_root.resolve(), label_file.resolve()
     src = real_root / "v1.0-mini"
     tables = {t: json.loads((src / f"{t}.json").read_text()) for t in (
@@ -56,6 +60,9 @@ def make_replicated_tree(
                 label_dir.mkdir(parents=True, exist_ok=True)
                 (label_dir / "labels.npz").symlink_to(label_file)
     tables.update(scene=scenes, sample=samples, sample_data=sds, ego_pose=poses)
+    if boxes:
+        tables["instance"], tables["sample_annotation"] = _boxes(scenes, samples, tables["category"], n_samples,
+                                                                 boxes)
     vdir = out / "v1.0-mini"
     vdir.mkdir(parents=True, exist_ok=True)
     for name, rows in tables.items():
@@ -68,3 +75,27 @@ def make_replicated_tree(
     (out / "maps").mkdir(exist_ok=True)
     shutil.copy(real_root / "maps" / "placeholder.png", out / "maps" / "placeholder.png")
     return out
+
+
+def _boxes(scenes: list[dict], samples: list[dict], categories: list[dict], n_samples: int,
+           per_scene: int) -> tuple[list[dict], list[dict]]:
+    """Instances and their annotation rows, linked prev/next along each scene's samples."""
+    cars = [c["token"] for c in categories if c["name"].startswith("vehicle.")] or [categories[0]["token"]]
+    instances, rows = [], []
+    for si, scene in enumerate(scenes):
+        tokens = [s["token"] for s in samples[si * n_samples:(si + 1) * n_samples]]
+        for b in range(per_scene):
+            inst = _tok("instance", scene["name"], b)
+            ann = [_tok("ann", inst, k) for k in range(n_samples)]
+            instances.append({"token": inst, "category_token": cars[b % len(cars)], "nbr_annotations": n_samples,
+                              "first_annotation_token": ann[0], "last_annotation_token": ann[-1]})
+            for k, tok in enumerate(tokens):
+                rows.append({
+                    "token": ann[k], "sample_token": tok, "instance_token": inst, "visibility_token": "4",
+                    "attribute_tokens": [], "translation": [600.0 + 4.0 * (b % 20) + k, 1600.0 + 5.0 * (b // 20)
+                                                            + 100.0 * si, 1.0],
+                    "size": [1.9, 4.6, 1.6], "rotation": [1.0, 0.0, 0.0, 0.0],
+                    "prev": ann[k - 1] if k else "", "next": ann[k + 1] if k + 1 < n_samples else "",
+                    "num_lidar_pts": 10, "num_radar_pts": 0,
+                })
+    return instances, rows

@@ -14,18 +14,20 @@ the previous sample is kept as it is; instances only in the previous sample are 
 
 from __future__ import annotations
 
-from collections.abc import Collection, Mapping, Sequence
+from array import array
+from collections.abc import Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
 from occdata.errors import OccDataError
 from occdata.geometry import transform_from_pose
+from occdata.nuscenes.columns import ColumnTable, TableBuilder
 from occdata.nuscenes.records import LidarRecord, NuScenesDataset
 from occdata.nuscenes.rows import RowProblem, field, floats, integer, ref, short, timestamp_us
-from occdata.nuscenes.tables import iter_table_rows, load_table
+from occdata.nuscenes.tables import TokenSet, iter_table_rows, load_table
 
 __all__ = ["MOVING_TRAVEL_M", "Annotations", "BoxRecord", "box_velocity", "boxes_for_lidar", "load_annotations",
            "moving_instances", "slerp_wxyz"]
@@ -62,7 +64,7 @@ class BoxRecord:
 class Annotations:
     """The boxes of a version folder, by sample, and each instance's category name."""
 
-    boxes_by_sample: dict[str, tuple[BoxRecord, ...]]  # sample token -> its boxes (table order)
+    boxes_by_sample: Mapping[str, tuple[BoxRecord, ...]]  # sample token -> its boxes (table order): `PackedBoxes`
     instance_category: dict[str, str]  # instance token -> category name
 
     def for_samples(self, sample_tokens: Collection[str]) -> Annotations:
@@ -198,6 +200,53 @@ def boxes_for_lidar(
     return ann.boxes_at(owner.token, prev.token, prev.timestamp, owner.timestamp, lidar.timestamp)
 
 
+class PackedBoxes(Mapping[str, tuple[BoxRecord, ...]]):
+    """sample token -> its boxes (table order), each `BoxRecord` made when asked: the rows' tokens as
+    columns (`ColumnTable`), the numbers in one array per field. A box held as Python objects took
+    ~0.8 KB (nuScenes has ~35 a keyframe); here ~0.25 KB. Iteration gives the samples in the order of
+    their first box. Pickled (a task's slice), it becomes a dict."""
+
+    def __init__(self, table: ColumnTable, numbers: dict[str, np.ndarray], timestamps: np.ndarray,
+                 n_pts: np.ndarray, instance_category: dict[str, str]) -> None:
+        self._table, self._numbers = table, numbers
+        self._timestamps, self._n_pts, self._category = timestamps, n_pts, instance_category
+        sample_h = table.hashes_of("sample_token")
+        self._order = np.argsort(sample_h, kind="stable")
+        self._sorted = sample_h[self._order]
+        _, first = np.unique(sample_h, return_index=True)
+        self._first = np.sort(first)
+
+    def __len__(self) -> int:
+        return len(self._first)
+
+    def __iter__(self) -> Iterator[str]:
+        return (self._table.value_at(int(p), "sample_token") for p in self._first)
+
+    def __getitem__(self, sample_token: str) -> tuple[BoxRecord, ...]:
+        if not isinstance(sample_token, str):
+            raise KeyError(sample_token)
+        h = hash(sample_token)
+        i0, i1 = np.searchsorted(self._sorted, h, "left"), np.searchsorted(self._sorted, h, "right")
+        rows = [int(p) for p in self._order[i0:i1] if self._table.value_at(int(p), "sample_token") == sample_token]
+        if not rows:
+            raise KeyError(sample_token)
+        return tuple(self._box(p) for p in rows)
+
+    def _box(self, p: int) -> BoxRecord:
+        t = self._table
+        instance = t.value_at(p, "instance_token")
+        return BoxRecord(
+            token=t.value_at(p, "token"), instance_token=instance, sample_token=t.value_at(p, "sample_token"),
+            category=self._category[instance], center_global=self._numbers["translation"][p],
+            size_wlh=self._numbers["size"][p], rotation_wxyz=self._numbers["rotation"][p],
+            timestamp=int(self._timestamps[p]), num_lidar_pts=int(self._n_pts[p]),
+            prev=_link(t.value_at(p, "prev")), next=_link(t.value_at(p, "next")),
+        )
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (dict, (dict(self.items()),))
+
+
 def load_annotations(root: Path, version: str, sample_tokens: Collection[str] | None = None) -> Annotations:
     """Read `<root>/<version>/{sample_annotation,instance,category,sample}.json` into `Annotations`.
 
@@ -223,82 +272,80 @@ def load_annotations(root: Path, version: str, sample_tokens: Collection[str] | 
     instances = load_table(inst_path)
     instance_category = {tok: _category_name(categories, tok, row) for tok, row in instances.items()}
     sample_rows = load_table(vdir / "sample.json", columns=True)
-    rows, every_token = _read_rows(ann_path, None if sample_tokens is None else set(sample_tokens))
-    timestamps = _references(rows, sample_rows, instance_category)
-    columns = {key: _numbers(rows, key) for key in ("translation", "size", "rotation")}
-    n_pts = _counts(rows)
-    _check_tracks(rows, every_token)
-    boxes: dict[str, list[BoxRecord]] = {}
-    for i, row in enumerate(rows):
-        boxes.setdefault(row.sample, []).append(BoxRecord(
-            token=row.token, instance_token=row.instance, sample_token=row.sample,
-            category=instance_category[row.instance], center_global=columns["translation"][i],
-            size_wlh=columns["size"][i], rotation_wxyz=columns["rotation"][i], timestamp=timestamps[i],
-            num_lidar_pts=int(n_pts[i]), prev=_link(row.prev), next=_link(row.next),
-        ))
-    return Annotations(
-        boxes_by_sample={tok: tuple(b) for tok, b in boxes.items()}, instance_category=instance_category
-    )
+    table, every_token = _read_rows(ann_path, None if sample_tokens is None else set(sample_tokens))
+    timestamps = _references(table, sample_rows, instance_category)
+    numbers = {key: _numbers(table, key) for key in ("translation", "size", "rotation")}
+    n_pts = _counts(table)
+    _check_tracks(table, every_token)
+    boxes = PackedBoxes(table.without(_VALUES), numbers, timestamps, n_pts, instance_category)
+    return Annotations(boxes_by_sample=boxes, instance_category=instance_category)
 
 
-class _Row(NamedTuple):
-    """The fields of one sample_annotation row that boxes use (values as in the JSON)."""
-
-    token: str
-    sample: Any
-    instance: Any
-    prev: Any
-    next: Any
-    translation: Any
-    size: Any
-    rotation: Any
-    num_lidar_pts: Any
+_FIELDS = ("sample_token", "instance_token")
+_VALUES = ("translation", "size", "rotation", "num_lidar_pts")
 
 
-def _read_rows(path: Path, wanted: set[str] | None) -> tuple[list[_Row], set[str]]:
-    """The rows of the wanted samples (all with `wanted` None), in table order, and every token of
-    the table. Identical duplicates are kept once; a token twice with different content is an error."""
-    rows: dict[str, _Row] = {}
-    every_token: set[str] = set()
+def _read_rows(path: Path, wanted: set[str] | None) -> tuple[ColumnTable, TokenSet]:
+    """The rows of the wanted samples (all with `wanted` None), in table order, as columns of the fields
+    boxes use, and every token of the table (as hashes). Identical duplicates are kept once; a token
+    twice with different content is an error."""
+    builder = TableBuilder()
+    every = TokenSet()
     for raw in iter_table_rows(path):
         token = raw.get("token")
         if not isinstance(token, str) or not token:
             raise OccDataError(f"malformed table {path}: a row has no string 'token' field")
-        every_token.add(token)
+        every.add(token)
         sample = raw.get("sample_token")
         if wanted is not None and not (isinstance(sample, str) and sample in wanted):
             continue
-        row = _Row(
-            token, field(raw, "sample_token", "sample_annotation"), field(raw, "instance_token", "sample_annotation"),
-            raw.get("prev", ""), raw.get("next", ""),
-            *(field(raw, key, "sample_annotation") for key in ("translation", "size", "rotation", "num_lidar_pts")),
-        )
-        seen = rows.setdefault(token, row)
-        if seen is not row and seen != row:
-            raise OccDataError(f"duplicate token in {path.name}: {token!r} appears twice with different content")
-    return list(rows.values()), every_token
+        row = {"token": token, **{k: field(raw, k, "sample_annotation") for k in _FIELDS},
+               "prev": raw.get("prev", ""), "next": raw.get("next", ""),
+               **{k: field(raw, k, "sample_annotation") for k in _VALUES}}
+        builder.append(token, row)
+    table = builder.finish()
+    repeated = every.repeated()
+    return (_first_copies(path, table, repeated) if repeated else table), every
+
+
+def _first_copies(path: Path, table: ColumnTable, repeated: set[int]) -> ColumnTable:
+    """`table` with each repeated token's later, identical copies dropped; differing copies are an error."""
+    first: dict[str, dict[str, Any]] = {}
+    builder = TableBuilder()
+    for _, row in table.rows():
+        token = row["token"]
+        if hash(token) in repeated:
+            seen = first.setdefault(token, row)
+            if seen is not row:
+                if seen != row:
+                    raise OccDataError(f"duplicate token in {path.name}: {token!r} appears twice with different "
+                                       "content")
+                continue
+        builder.append(token, row)
+    return builder.finish()
 
 
 def _references(
-    rows: list[_Row], sample_rows: Mapping[str, dict[str, Any]], instance_category: dict[str, str]
-) -> list[int]:
-    """Check each row's sample and instance exist; the timestamp (us) of each row's sample."""
-    sample_ts: dict[str, int] = {}
-    out = []
-    for row in rows:
-        src = f"sample_annotation {row.token!r}"
-        if not isinstance(row.instance, str) or row.instance not in instance_category:
-            raise OccDataError(f"dangling token: {src} refers to instance {row.instance!r}, not in instance.json")
-        ts = sample_ts.get(row.sample) if isinstance(row.sample, str) else None
+    table: ColumnTable, sample_rows: Mapping[str, dict[str, Any]], instance_category: dict[str, str]
+) -> np.ndarray:
+    """Check each row's sample and instance exist; `(N,) int64` the timestamp (us) of each row's sample."""
+    sample_ts: dict[str, int] = {}  # per sample of the boxes: the tables' samples, not their boxes
+    out = array("q")
+    for p in range(len(table)):
+        instance, sample = table.value_at(p, "instance_token"), table.value_at(p, "sample_token")
+        src = f"sample_annotation {table.value_at(p, 'token')!r}"
+        if not isinstance(instance, str) or instance not in instance_category:
+            raise OccDataError(f"dangling token: {src} refers to instance {instance!r}, not in instance.json")
+        ts = sample_ts.get(sample) if isinstance(sample, str) else None
         if ts is None:
-            sample = ref(sample_rows, row.sample, "sample", src)
+            row = ref(sample_rows, sample, "sample", src)
             try:
-                ts = timestamp_us(field(sample, "timestamp", "sample"), f"sample {row.sample!r} timestamp")
+                ts = timestamp_us(field(row, "timestamp", "sample"), f"sample {sample!r} timestamp")
             except RowProblem as exc:
                 raise OccDataError(f"sample.json: {exc}") from None
-            sample_ts[row.sample] = ts
+            sample_ts[sample] = ts
         out.append(ts)
-    return out
+    return np.frombuffer(out, dtype=np.int64) if len(out) else np.zeros(0, np.int64)
 
 
 _WIDTH = {"translation": 3, "size": 3, "rotation": 4}
@@ -307,20 +354,28 @@ _WIDTH = {"translation": 3, "size": 3, "rotation": 4}
 MAX_BOX_SIZE_M = 100.0
 
 
-def _numbers(rows: list[_Row], key: str) -> np.ndarray:
+def _flat_numbers(table: ColumnTable, key: str, n: int) -> Iterator[float]:
+    """Every row's `key` as `n` numbers in a row; ValueError at a value that is not `n` numbers."""
+    for p in range(len(table)):
+        value = table.value_at(p, key)
+        if type(value) is not list or len(value) != n:
+            raise ValueError(key)
+        for v in value:
+            if type(v) not in (int, float):  # bools and strings too: the row is found and named
+                raise ValueError(key)
+            yield v
+
+
+def _numbers(table: ColumnTable, key: str) -> np.ndarray:
     """`(N, 3|4) float64` read-only column of a numeric field, checked: finite; sizes positive and at
     most `MAX_BOX_SIZE_M`; rotations unit quaternions (within 1e-3). `OccDataError` naming the first bad row."""
     n = _WIDTH[key]
-    values = [getattr(row, key) for row in rows]
     try:
-        arr = np.array(values) if values else np.zeros((0, n))
-    except ValueError:  # ragged
-        arr = np.zeros(0)
-    if arr.dtype.kind not in "fiu" or arr.shape != (len(rows), n):
-        for row in rows:  # find the row and say what is wrong with it
-            _finite_floats(row, key, n)
-        raise OccDataError(f"sample_annotation.json: a {key} value is not {n} numbers")  # (bools only)
-    arr = arr.astype(np.float64)
+        arr = np.fromiter(_flat_numbers(table, key, n), np.float64, count=len(table) * n).reshape(-1, n)
+    except (ValueError, OverflowError):
+        for p in range(len(table)):  # find the row and say what is wrong with it
+            _finite_floats(table.value_at(p, "token"), table.value_at(p, key), key, n)
+        raise OccDataError(f"sample_annotation.json: a {key} value is not {n} numbers") from None  # (bools only)
     bad = ~np.isfinite(arr).all(axis=1)
     what = "is not finite"
     if key == "size" and not bad.any():
@@ -332,30 +387,38 @@ def _numbers(rows: list[_Row], key: str) -> np.ndarray:
             bad, what = ~(np.abs(np.linalg.norm(arr, axis=1) - 1.0) <= 1e-3), "is not a unit quaternion"
     if bad.any():
         i = int(np.argmax(bad))
-        src = f"sample_annotation {rows[i].token!r}"
+        src = f"sample_annotation {table.value_at(i, 'token')!r}"
         raise OccDataError(f"sample_annotation.json: {src} {key} {arr[i].tolist()} {what}")
     arr.flags.writeable = False
     return arr
 
 
-def _counts(rows: list[_Row]) -> np.ndarray:
-    """`(N,) int64` num_lidar_pts, each a JSON integer."""
-    values = [row.num_lidar_pts for row in rows]
-    arr = np.array(values) if values else np.zeros(0, np.int64)
-    if arr.dtype.kind not in "iu" or arr.shape != (len(rows),):
-        for row in rows:
+def _integers(table: ColumnTable) -> Iterator[int]:
+    for p in range(len(table)):
+        v = table.value_at(p, "num_lidar_pts")
+        if type(v) is int or (type(v) is float and v.is_integer()):
+            yield int(v)
+        else:
+            raise ValueError("num_lidar_pts")
+
+
+def _counts(table: ColumnTable) -> np.ndarray:
+    """`(N,) int64` num_lidar_pts, each a JSON integer (an integral float is accepted)."""
+    try:
+        return np.fromiter(_integers(table), np.int64, count=len(table))
+    except (ValueError, OverflowError):
+        for p in range(len(table)):
             try:
-                integer(row.num_lidar_pts, f"sample_annotation {row.token!r} num_lidar_pts")
+                integer(table.value_at(p, "num_lidar_pts"), f"sample_annotation {table.value_at(p, 'token')!r} "
+                                                            "num_lidar_pts")
             except RowProblem as exc:
                 raise OccDataError(f"sample_annotation.json: {exc}") from None
-        arr = np.array([int(v) for v in values], dtype=np.int64)  # integral floats
-    return arr
+        raise OccDataError("sample_annotation.json: a num_lidar_pts value is out of range") from None
 
 
-def _finite_floats(row: _Row, key: str, n: int) -> None:
-    """Raise `OccDataError` naming the row if its `key` is not `n` finite numbers."""
-    src = f"sample_annotation {row.token!r}"
-    raw = getattr(row, key)
+def _finite_floats(token: str, raw: Any, key: str, n: int) -> None:
+    """Raise `OccDataError` naming the row if its `key` value `raw` is not `n` finite numbers."""
+    src = f"sample_annotation {token!r}"
     try:
         if isinstance(raw, list) and any(isinstance(v, (str, bool)) for v in raw):
             raise RowProblem(f"{src} {key} is not numeric ({short(raw)})")
@@ -374,24 +437,24 @@ def _category_name(categories: dict[str, dict[str, Any]], inst_tok: str, inst: d
     return name
 
 
-def _check_tracks(rows: list[_Row], every_token: set[str]) -> None:
+def _check_tracks(table: ColumnTable, every: TokenSet) -> None:
     """Every prev/next names a box of the table, of the same instance, that links back."""
-    by_token = {row.token: row for row in rows}
-    for row in rows:
+    for p in range(len(table)):
+        token, instance = table.value_at(p, "token"), table.value_at(p, "instance_token")
         for link, back in (("prev", "next"), ("next", "prev")):
-            other_tok = getattr(row, link)
+            other_tok = table.value_at(p, link)
             if not other_tok:
                 continue
-            where = f"sample_annotation.json: row {row.token!r} {link}"
-            if not isinstance(other_tok, str) or other_tok not in every_token:
+            where = f"sample_annotation.json: row {token!r} {link}"
+            if not isinstance(other_tok, str) or other_tok not in every:
                 raise OccDataError(f"{where} {other_tok!r} is not in sample_annotation.json")
-            other = by_token.get(other_tok)
-            if other is None:  # outside the selected samples
+            q = table.position(other_tok)
+            if q < 0:  # outside the selected samples
                 continue
-            if other.instance != row.instance:
+            if table.value_at(q, "instance_token") != instance:
                 raise OccDataError(f"{where} {other_tok!r} is a box of another instance")
-            if getattr(other, back) != row.token:
-                raise OccDataError(f"{where} is {other_tok!r}, but that row's {back} is {getattr(other, back)!r}")
+            if table.value_at(q, back) != token:
+                raise OccDataError(f"{where} is {other_tok!r}, but that row's {back} is {table.value_at(q, back)!r}")
 
 
 # An instance moves when its box centre's ground-plane (x-y) extent over the scene reaches this many

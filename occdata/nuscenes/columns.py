@@ -321,6 +321,18 @@ class ColumnTable(Mapping[str, dict[str, Any]]):
         for pos in range(len(self)):
             yield pos, self.row_at(pos)
 
+    def without(self, keys: tuple[str, ...]) -> ColumnTable:
+        """The same rows without the columns `keys` (their values were taken elsewhere); rows kept whole
+        keep every field."""
+        out = object.__new__(ColumnTable)
+        vars(out).update(vars(self))
+        kept = [(k, c) for k, c in zip(self._keys, self._cols, strict=True) if k not in keys]
+        out._keys, out._cols = tuple(k for k, _ in kept), [c for _, c in kept]
+        return out
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        raise TypeError("a ColumnTable is indexed by this process's str hashes and is not sent to other processes")
+
     def nbytes(self) -> int:
         """Bytes held in columns and indexes (not counting the rows kept whole)."""
         cols = sum(sum(a.buffer_info()[1] * a.itemsize for a in vars(c).values() if isinstance(a, array))
