@@ -142,16 +142,18 @@ def measure(code: Path, spec: dict[str, Any]) -> dict[str, Any]:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def _tree(trees: Path, n: int) -> Path:
-    """The replayed tree of `n` samples (2 scenes), made once."""
+def _tree(trees: Path, n: int, scene_samples: int = 0, boxes: int = 0) -> Path:
+    """The replayed tree of `n` samples (2 scenes, or scenes of `scene_samples`; `boxes` tracked boxes
+    per scene, one annotation each per sample), made once."""
     from benchmarks.common import SHARED_DATA
     from tests.replicated_tree import make_replicated_tree
 
-    root = trees / f"replay{n}"
+    root = trees / (f"replay{n}" + (f"_s{scene_samples}" if scene_samples else "") + (f"_b{boxes}" if boxes else ""))
     if not (root / "v1.0-mini" / "scene.json").is_file():
         shutil.rmtree(root, ignore_errors=True)
         label = next((SHARED_DATA / "occ3d-label").glob("*/labels.npz"))
-        make_replicated_tree(SHARED_DATA / "nuscenes-real", label, root, 2, n // 2)
+        per = scene_samples or n // 2
+        make_replicated_tree(SHARED_DATA / "nuscenes-real", label, root, n // per, per, boxes=boxes)
     return root
 
 
@@ -176,6 +178,10 @@ def main() -> None:
     ap.add_argument("--trace", type=int, nargs="*", default=[], metavar="N",
                     help="also trace the build's Python objects at these sizes (tracemalloc, slower)")
     ap.add_argument("--trees", type=Path, help="keep the trees here (reused when present)")
+    ap.add_argument("--scene-samples", type=int, default=0, metavar="K",
+                    help="scenes of K samples (nuScenes: ~40) instead of 2 scenes of n/2 (a labels task holds a scene)")
+    ap.add_argument("--boxes", type=int, default=0, metavar="B",
+                    help="B tracked boxes per scene, one annotation each per sample (nuScenes: ~34 a keyframe)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -198,7 +204,7 @@ def main() -> None:
     runs: dict[str, Any] = {name: {c: {} for c in commands} for name in codes}
     try:
         for n in args.sizes:
-            root = _tree(trees, n)
+            root = _tree(trees, n, args.scene_samples, args.boxes)
             for command in ["plan"] if n in args.plan_only else args.commands:
                 for name, code in codes.items():
                     out = work / f"{name}_{command}_{n}" / ("data.zarr" if command == "build" else "")
@@ -210,7 +216,8 @@ def main() -> None:
     finally:
         shutil.rmtree(work, ignore_errors=True)
     slopes = {name: {c: _slopes(r, args.sizes) for c, r in per.items()} for name, per in runs.items()}
-    emit_json({"machine": finish(record), "sizes": args.sizes, "runs": runs, "kib_per_sample": slopes}, args.json)
+    emit_json({"machine": finish(record), "sizes": args.sizes, "scene_samples": args.scene_samples or "n/2",
+               "boxes_per_scene": args.boxes, "runs": runs, "kib_per_sample": slopes}, args.json)
 
 
 if __name__ == "__main__":
