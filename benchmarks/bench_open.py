@@ -14,8 +14,10 @@ fastest of `--rounds`.
   and read through a forwarding proxy on 127.0.0.1 that sleeps `--latency-ms` before passing each
   request on, and counts them (real object stores add 10-50 ms per request).
 
-The JSON records each run's seconds, the requests the proxy saw, the machine and the load average
-(this VM is shared: timings of other work running alongside are inflated).
+The JSON records each run's seconds, the requests the proxy saw, the connects the kernel dropped during
+the run (`tcp`: ListenOverflows and TCPSynRetrans of /proc/net/netstat, counted machine-wide; each resent
+SYN stalls its request 1 s), the machine and the load average (this VM is shared: timings of other work
+running alongside are inflated).
 
     python -m benchmarks.bench_open --src /tmp/src.zarr --work /tmp/bench_open --latency-ms 20 \\
         --json docs/results/bench_open.json
@@ -62,6 +64,11 @@ class LatencyProxy(ThreadingHTTPServer):
     """An HTTP forwarding proxy on 127.0.0.1: each request waits `latency_s`, then goes to `upstream`."""
 
     daemon_threads = True
+    # socketserver listens with a backlog of 5. The client opens its 10 pooled connections at once (the
+    # concurrent zarr.json reads); when this accept thread was slow to get the GIL, one connect past the
+    # backlog had its SYN dropped, and the client resent it after TCP's 1 s initial timeout: a ~1 s stall
+    # now and then (more under load) that no real object store adds. moto, behind, listens with 128.
+    request_queue_size = 128
 
     def __init__(self, upstream_port: int, latency_s: float) -> None:
         super().__init__(("127.0.0.1", 0), _Forward)
@@ -148,6 +155,21 @@ def time_start(tree: Path, store: str, env: dict[str, str] | None = None) -> dic
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def tcp_drops() -> dict[str, int]:
+    """This network namespace's counts of connects dropped by a full accept queue and of resent SYNs
+    (/proc/net/netstat; empty elsewhere). A resent SYN costs its connection 1 s."""
+    want, out = ("ListenOverflows", "TCPSynRetrans"), {}
+    try:
+        lines = Path("/proc/net/netstat").read_text().splitlines()
+    except OSError:
+        return out
+    for names, values in zip(lines[::2], lines[1::2], strict=False):
+        for k, v in zip(names.split()[1:], values.split()[1:], strict=False):
+            if k in want:
+                out[k] = int(v)
+    return out
+
+
 def request_kinds(log: list[str]) -> dict[str, int]:
     """Requests by method and what they asked for: listings, metadata (zarr.json), chunk reads."""
     kinds: dict[str, int] = {}
@@ -160,7 +182,9 @@ def request_kinds(log: list[str]) -> dict[str, int]:
 
 
 def best(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    return {**min(runs, key=lambda r: r["total_s"]), "rounds": [round(r["total_s"], 3) for r in runs]}
+    return {**min(runs, key=lambda r: r["total_s"]), "rounds": [round(r["total_s"], 3) for r in runs],
+            "rounds_open": [round(r["open_s"], 3) for r in runs],
+            "rounds_syn_retrans": [r.get("tcp", {}).get("TCPSynRetrans") for r in runs]}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -215,10 +239,11 @@ def main(argv: list[str] | None = None) -> None:
                     proxy.latency_s = latency / 1000
                     runs = []
                     for _ in range(args.s3_rounds):
-                        before = proxy.requests
+                        before, drops = proxy.requests, tcp_drops()
                         run = time_start(tree, url, proxied)
                         runs.append({**run, "requests": proxy.requests - before,
-                                     "by_kind": request_kinds(proxy.log[before:])})
+                                     "by_kind": request_kinds(proxy.log[before:]),
+                                     "tcp": {k: v - drops[k] for k, v in tcp_drops().items() if k in drops}})
                     out[name] = best(runs)
                 proxy.latency_s = args.latency_ms / 1000
                 res["s3"][str(n)] = out
