@@ -51,23 +51,32 @@ def drop_pack(root: zarr.Group) -> None:
 def write_pack(root: zarr.Group) -> None:
     """Copy every small per-sample array into `pack/<name>` (one chunk each), then stamp the root.
 
+    One array is in memory at a time (its crc is taken in a first pass, for the generation that every
+    packed array carries): the client's peak at the final commit is the largest array, not all 13.
     The root attribute is written last: a run killed half-way leaves readers on the chunks. The caller
     rewrites the consolidated metadata afterwards (the build's final commit does)."""
     drop_pack(root)
-    data = {name: np.asarray(root[name][:]) for name in pack_names(root.attrs)}
-    generation = _generation(data)
-    for name, values in data.items():
+    names = pack_names(root.attrs)
+    facts = {}
+    for name in names:
+        values = np.asarray(root[name][:])
+        facts[name] = (values.dtype.str, values.shape, packed_crc(values))
+    generation = _generation(facts)
+    for name in names:
+        values = np.asarray(root[name][:])
         arr = root.create_array(f"{PACK_GROUP}/{name}", shape=values.shape, dtype=values.dtype,
                                 chunks=values.shape if values.size else None, compressors=ZstdCodec(level=3),
-                                overwrite=True, attributes={"generation": generation, "crc32": packed_crc(values)})
+                                overwrite=True, attributes={"generation": generation, "crc32": facts[name][2]})
         arr[...] = values
+        del values
     root.attrs[PACK_ATTR] = {"generation": generation}
 
 
-def _generation(data: dict[str, np.ndarray]) -> str:
-    """A digest of the packed content: equal stores get equal attributes (a resumed build's store is
-    identical to an uninterrupted one), and copies from another commit carry another generation."""
+def _generation(facts: dict[str, tuple[str, tuple[int, ...], int]]) -> str:
+    """A digest of the packed content (each array's dtype, shape and crc32): equal stores get equal
+    attributes (a resumed build's store is identical to an uninterrupted one), and copies from another
+    commit carry another generation."""
     h = hashlib.sha256()
-    for name, values in sorted(data.items()):
-        h.update(f"{name} {values.dtype.str} {values.shape} {packed_crc(values)};".encode())
+    for name, (dtype, shape, crc) in sorted(facts.items()):
+        h.update(f"{name} {dtype} {shape} {crc};".encode())
     return h.hexdigest()[:32]
