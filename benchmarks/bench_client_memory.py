@@ -15,10 +15,10 @@ costs, and 34,000 samples take a minute, not hours.
 `--plan-only N` measures the trees of N samples with `plan` alone: the tables read and checked
 (`read_inputs`) and the payload plan (`payload_bounds`, `plan_regions`), without the store or tasks.
 
-Figures per run: `peak_rss_mib` (VmHWM at the end), `wall_s`, and per size pair the slope in KiB per
-sample. `--trace` (slower: tracemalloc) adds, for the build, the Python objects alive right after the
-tables are read and at the end of `read_inputs`, and the traced peak, by source line. RSS is the
-figure to trust; wall times on a shared 2-core VM are noisy.
+Figures per run: `peak_rss_mib` (VmHWM at the end), `wall_s`, `cpu_s` (this process), and per size
+pair the slope in KiB per sample. `--trace` (slower: tracemalloc) adds, for the build, the Python
+objects alive right after the tables are read and at the end of `read_inputs`, and the traced peak, by
+source line. RSS is the figure to trust; wall times on a shared 2-core VM are noisy.
 """
 
 from __future__ import annotations
@@ -96,7 +96,7 @@ def child(spec: dict[str, Any]) -> dict[str, Any]:
     if spec.get("trace"):
         tracemalloc.start(1)
         _trace_tables(found)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if spec["command"] == "build":
         _no_op_build()
         from occdata.store.build import BuildConfig, build_store
@@ -126,7 +126,8 @@ def child(spec: dict[str, Any]) -> dict[str, Any]:
         from occdata.labels import LabelOptions, LabelsConfig, generate_labels
 
         generate_labels(LabelsConfig(root=root, out=out, progress=False, options=LabelOptions()))
-    return {"wall_s": round(time.perf_counter() - t0, 2), "peak_rss_mib": round(_vm_hwm_mib(), 1), **found}
+    return {"wall_s": round(time.perf_counter() - t0, 2), "cpu_s": round(time.process_time() - c0, 2),
+            "peak_rss_mib": round(_vm_hwm_mib(), 1), **found}
 
 
 # --- the parent ----------------------------------------------------------------------------------------------
