@@ -446,11 +446,11 @@ def _check_tracks(table: ColumnTable, every: TokenSet) -> None:
             if not other_tok:
                 continue
             where = f"sample_annotation.json: row {token!r} {link}"
-            if not isinstance(other_tok, str) or other_tok not in every:
-                raise OccDataError(f"{where} {other_tok!r} is not in sample_annotation.json")
-            q = table.position(other_tok)
-            if q < 0:  # outside the selected samples
-                continue
+            q = table.position(other_tok)  # a kept row first: the hash set is asked only about the others
+            if q < 0:
+                if not isinstance(other_tok, str) or other_tok not in every:
+                    raise OccDataError(f"{where} {other_tok!r} is not in sample_annotation.json")
+                continue  # outside the selected samples
             if table.value_at(q, "instance_token") != instance:
                 raise OccDataError(f"{where} {other_tok!r} is a box of another instance")
             if table.value_at(q, back) != token:

@@ -237,7 +237,9 @@ class ColumnTable(Mapping[str, dict[str, Any]]):
     def __init__(self, keys: tuple[str, ...], cols: list[Any], slots: array, odd: list[dict[str, Any]],
                  hashes: array) -> None:
         self._keys, self._cols, self._odd = keys, cols, odd
+        self._slots_a = slots  # indexed one row at a time (a Python int, no numpy scalar)
         self._slots = _view(slots)
+        self._col_of = dict(zip(keys, cols, strict=True))
         h = _view(hashes)
         order = np.argsort(h, kind="stable")
         # kept as arrays (`bisect` on them is several times faster than numpy for one token), seen as numpy
@@ -250,17 +252,17 @@ class ColumnTable(Mapping[str, dict[str, Any]]):
 
     def row_at(self, pos: int) -> dict[str, Any]:
         """The row at file position `pos` (a new dict)."""
-        slot = int(self._slots[pos])
+        slot = self._slots_a[pos]
         if slot < 0:
             return self._odd[-1 - slot]
-        return {key: col.get(slot) for key, col in zip(self._keys, self._cols, strict=True)}
+        return {key: col.get(slot) for key, col in self._col_of.items()}
 
     def value_at(self, pos: int, key: str) -> Any:
         """One field of the row at `pos` (KeyError if the row has no such field)."""
-        slot = int(self._slots[pos])
+        slot = self._slots_a[pos]
         if slot < 0:
             return self._odd[-1 - slot][key]
-        return self._cols[self._keys.index(key)].get(slot)
+        return self._col_of[key].get(slot)
 
     def get_at(self, pos: int, key: str, default: Any = None) -> Any:
         """`value_at`, or `default` where the row has no such field."""
@@ -328,6 +330,7 @@ class ColumnTable(Mapping[str, dict[str, Any]]):
         vars(out).update(vars(self))
         kept = [(k, c) for k, c in zip(self._keys, self._cols, strict=True) if k not in keys]
         out._keys, out._cols = tuple(k for k, _ in kept), [c for _, c in kept]
+        out._col_of = dict(kept)
         return out
 
     def __reduce__(self) -> tuple[Any, ...]:
