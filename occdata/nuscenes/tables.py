@@ -215,13 +215,7 @@ def load_table(
         return _load_columns(path, keep, warn, tokens)
     out: dict[str, dict[str, Any]] = {}
     every = tokens if tokens is not None else TokenSet()
-    for row in iter_table_rows(path):
-        token = row.get("token")
-        if isinstance(token, str):
-            every.add(token)
-        if keep is not None and not keep(row):
-            continue
-        token = _checked_token(path, row)
+    for token, row in _kept_rows(path, keep, every):
         seen = out.get(token)
         if seen is not None and seen != row:
             raise _duplicate(path, token, seen, row)
@@ -231,6 +225,17 @@ def load_table(
     if identical and warn is not None:
         warn(f"{path.name}: {len(identical)} identical duplicate row(s) ignored (first token {identical[0]!r})")
     return out
+
+
+def _kept_rows(path: Path, keep: Callable[[dict[str, Any]], bool] | None,
+               every: TokenSet) -> Iterator[tuple[str, dict[str, Any]]]:
+    """`(token, row)` of each row `keep` keeps, its token checked; `every` gets every row's token."""
+    for row in iter_table_rows(path):
+        token = row.get("token")
+        if isinstance(token, str):
+            every.add(token)
+        if keep is None or keep(row):
+            yield _checked_token(path, row), row
 
 
 def _checked_token(path: Path, row: dict[str, Any]) -> str:
@@ -250,13 +255,8 @@ def _load_columns(path: Path, keep: Callable[[dict[str, Any]], bool] | None, war
     """`load_table` into a `ColumnTable`: the same checks, duplicates found by the tokens' hashes."""
     builder = TableBuilder()
     every = tokens if tokens is not None else TokenSet()
-    for row in iter_table_rows(path):
-        token = row.get("token")
-        if isinstance(token, str):
-            every.add(token)
-        if keep is not None and not keep(row):
-            continue
-        builder.append(_checked_token(path, row), row)
+    for token, row in _kept_rows(path, keep, every):
+        builder.append(token, row)
     table = builder.finish()
     identical = _compare_repeated(path, every.repeated())  # differing copies raise here
     if identical:
