@@ -51,24 +51,27 @@ def drop_pack(root: zarr.Group) -> None:
 def write_pack(root: zarr.Group) -> None:
     """Copy every small per-sample array into `pack/<name>` (one chunk each), then stamp the root.
 
-    One array is in memory at a time (its crc is taken in a first pass, for the generation that every
-    packed array carries): the client's peak at the final commit is the largest array, not all 13.
-    The root attribute is written last: a run killed half-way leaves readers on the chunks. The caller
-    rewrites the consolidated metadata afterwards (the build's final commit does)."""
+    One array is in memory at a time: each is written with its crc32 as soon as it is read, and the
+    generation (a digest of all of them) is put on every packed array afterwards, so the client's peak
+    at the final commit is the largest array, not all 13, and each is read once. The root attribute is
+    written last: a run killed half-way leaves readers on the chunks (a packed array's generation must
+    equal the root's). The caller rewrites the consolidated metadata afterwards (the build's final commit
+    does)."""
     drop_pack(root)
-    names = pack_names(root.attrs)
-    facts = {}
-    for name in names:
+    facts: dict[str, tuple[str, tuple[int, ...], int]] = {}
+    packed = []
+    for name in pack_names(root.attrs):
         values = np.asarray(root[name][:])
         facts[name] = (values.dtype.str, values.shape, packed_crc(values))
-    generation = _generation(facts)
-    for name in names:
-        values = np.asarray(root[name][:])
         arr = root.create_array(f"{PACK_GROUP}/{name}", shape=values.shape, dtype=values.dtype,
                                 chunks=values.shape if values.size else None, compressors=ZstdCodec(level=3),
-                                overwrite=True, attributes={"generation": generation, "crc32": facts[name][2]})
+                                overwrite=True, attributes={"generation": "", "crc32": facts[name][2]})
         arr[...] = values
+        packed.append(arr)
         del values
+    generation = _generation(facts)
+    for arr in packed:
+        arr.attrs["generation"] = generation
     root.attrs[PACK_ATTR] = {"generation": generation}
 
 
