@@ -215,3 +215,24 @@ def test_the_streamed_sweep_check_counts_each_sweep_once(real_seq_root: Path, tm
         assert len(needed) > found
         with pytest.raises(OccDataError, match=rf"; {found} of the {len(needed)} sweep files needed were found"):
             check_sweep_files(histories, n)
+
+
+def test_packed_boxes_travel_as_a_dict_and_tables_refuse_to(real_seq_root: Path, tmp_path: Path) -> None:
+    """Boxes sent to a worker arrive as a plain dict (their index is this process's str hashes); a
+    `ColumnTable` refuses to be pickled rather than arrive with a wrong index."""
+    from occdata.nuscenes.annotations import PackedBoxes, load_annotations
+
+    ann = load_annotations(real_seq_root, "v1.0-mini")
+    assert isinstance(ann.boxes_by_sample, PackedBoxes) and len(ann.boxes_by_sample) == 41
+    token = next(iter(ann.boxes_by_sample))
+    want = [(b.token, b.center_global.tolist(), b.category) for b in ann.boxes_by_sample[token]]
+    blob = tmp_path / "ann.pkl"
+    blob.write_bytes(pickle.dumps(ann))
+    code = (f"import pickle; a = pickle.loads(open({str(blob)!r}, 'rb').read()); b = a.boxes_by_sample; "
+            f"assert type(b) is dict; print(repr([(x.token, x.center_global.tolist(), x.category) "
+            f"for x in b[{token!r}]]))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO,
+                         env={**os.environ, "PYTHONHASHSEED": "7"}).stdout.strip()
+    assert out == repr(want)
+    with pytest.raises(TypeError, match="not sent to other processes"):
+        pickle.dumps(load_table(real_seq_root / "v1.0-mini" / "sample.json", columns=True))
