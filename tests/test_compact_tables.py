@@ -236,3 +236,17 @@ def test_packed_boxes_travel_as_a_dict_and_tables_refuse_to(real_seq_root: Path,
     assert out == repr(want)
     with pytest.raises(TypeError, match="not sent to other processes"):
         pickle.dumps(load_table(real_seq_root / "v1.0-mini" / "sample.json", columns=True))
+
+
+def test_the_hash_index_gives_every_candidate_in_order_and_callers_compare() -> None:
+    """CPython hashes -1 and -2 alike (-2): a true 64-bit collision, by hand."""
+    from occdata.nuscenes.columns import HashIndex
+
+    assert hash(-1) == hash(-2)
+    keys = [-2, 5, -1, 7]
+    index = HashIndex(np.array([hash(k) for k in keys], dtype=np.int64))
+    assert list(index.candidates(-1)) == [0, 2]  # both: the caller tells them apart
+    assert next(p for p in index.candidates(-1) if keys[p] == -1) == 2
+    assert list(index.candidates(8)) == []
+    assert index.first(np.array([hash(7), hash(8), hash(-1)], dtype=np.int64)).tolist() == [3, -1, 0]
+    assert HashIndex(np.zeros(0, np.int64)).first(np.array([1], dtype=np.int64)).tolist() == [-1]

@@ -24,7 +24,7 @@ import numpy as np
 
 from occdata.errors import OccDataError
 from occdata.geometry import transform_from_pose
-from occdata.nuscenes.columns import ColumnTable, TableBuilder
+from occdata.nuscenes.columns import ColumnTable, HashIndex, TableBuilder
 from occdata.nuscenes.records import LidarRecord, NuScenesDataset
 from occdata.nuscenes.rows import RowProblem, field, floats, integer, ref, short, timestamp_us
 from occdata.nuscenes.tables import TokenSet, iter_table_rows, load_table
@@ -211,8 +211,7 @@ class PackedBoxes(Mapping[str, tuple[BoxRecord, ...]]):
         self._table, self._numbers = table, numbers
         self._timestamps, self._n_pts, self._category = timestamps, n_pts, instance_category
         sample_h = table.hashes_of("sample_token")
-        self._order = np.argsort(sample_h, kind="stable")
-        self._sorted = sample_h[self._order]
+        self._index = HashIndex(sample_h)
         _, first = np.unique(sample_h, return_index=True)
         self._first = np.sort(first)
 
@@ -225,9 +224,8 @@ class PackedBoxes(Mapping[str, tuple[BoxRecord, ...]]):
     def __getitem__(self, sample_token: str) -> tuple[BoxRecord, ...]:
         if not isinstance(sample_token, str):
             raise KeyError(sample_token)
-        h = hash(sample_token)
-        i0, i1 = np.searchsorted(self._sorted, h, "left"), np.searchsorted(self._sorted, h, "right")
-        rows = [int(p) for p in self._order[i0:i1] if self._table.value_at(int(p), "sample_token") == sample_token]
+        rows = [p for p in self._index.candidates(sample_token)
+                if self._table.value_at(p, "sample_token") == sample_token]
         if not rows:
             raise KeyError(sample_token)
         return tuple(self._box(p) for p in rows)

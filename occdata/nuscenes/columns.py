@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ColumnTable", "TableBuilder", "TextColumn"]
+__all__ = ["ColumnTable", "HashIndex", "TableBuilder", "TextColumn"]
 
 _EXACT = 2**53  # integers up to this are exact in float64
 _NO = object()  # `prepare`: the value does not fit the column
@@ -227,11 +227,42 @@ def _view(a: array) -> np.ndarray:
     return np.frombuffer(a, dtype=np.int64) if len(a) else np.zeros(0, np.int64)
 
 
+class HashIndex:
+    """Positions by `hash(key)` (16 bytes an entry, not a dict entry's ~100): `candidates(key)` yields
+    the positions whose hash is key's, in position order, and callers compare the key itself (two keys
+    may share a 64-bit hash); `first(hashes)` the first such position of many hashes at once (-1: none).
+    Str hashes differ between processes: an index is made again where it is used, never sent."""
+
+    def __init__(self, hashes: np.ndarray) -> None:
+        order = np.argsort(hashes, kind="stable")
+        # kept as arrays (`bisect` on them is several times faster than numpy for one key), seen as numpy
+        self._sorted_a, self._order_a = array("q", hashes[order].tobytes()), array("q", order.tobytes())
+        self._sorted, self._order = _view(self._sorted_a), _view(self._order_a)
+
+    def candidates(self, key: Any) -> Iterator[int]:
+        h = hash(key)
+        keys = self._sorted_a
+        i = bisect.bisect_left(keys, h)
+        while i < len(keys) and keys[i] == h:
+            yield self._order_a[i]
+            i += 1
+
+    def first(self, hashes: np.ndarray) -> np.ndarray:
+        if not len(self._sorted):
+            return np.full(len(hashes), -1, np.int64)
+        i = np.minimum(np.searchsorted(self._sorted, hashes), len(self._sorted) - 1)
+        return np.where(self._sorted[i] == hashes, self._order[i], -1)
+
+    @property
+    def nbytes(self) -> int:
+        return self._sorted.nbytes + self._order.nbytes
+
+
 class ColumnTable(Mapping[str, dict[str, Any]]):
     """Rows keyed by token, in file order; each lookup makes the row dict again (equal to the file's:
     numbers keep their int/float type except inside lists, which read back as floats).
 
-    `len` rows; `rows()` yields `(position, token, row)`; `position(token)` the row's place in file
+    `len` rows; `rows()` yields `(position, row)`; `position(token)` the row's place in file
     order (-1 if absent); `positions_of_hashes(h)` the same for many `hash(token)` values at once."""
 
     def __init__(self, keys: tuple[str, ...], cols: list[Any], slots: array, odd: list[dict[str, Any]],
@@ -240,18 +271,14 @@ class ColumnTable(Mapping[str, dict[str, Any]]):
         self._slots_a = slots  # indexed one row at a time (a Python int, no numpy scalar)
         self._slots = _view(slots)
         self._col_of = dict(zip(keys, cols, strict=True))
-        h = _view(hashes)
-        order = np.argsort(h, kind="stable")
-        # kept as arrays (`bisect` on them is several times faster than numpy for one token), seen as numpy
-        self._sorted_a, self._order_a = array("q", h[order].tobytes()), array("q", order.tobytes())
-        self._sorted, self._order = _view(self._sorted_a), _view(self._order_a)
-        self._hashes = h
+        self._hashes = _view(hashes)
+        self._index = HashIndex(self._hashes)
 
     def __len__(self) -> int:
         return len(self._slots)
 
     def row_at(self, pos: int) -> dict[str, Any]:
-        """The row at file position `pos` (a new dict)."""
+        """The row at file position `pos` (a new dict; a row kept whole is the kept dict itself)."""
         slot = self._slots_a[pos]
         if slot < 0:
             return self._odd[-1 - slot]
@@ -274,31 +301,20 @@ class ColumnTable(Mapping[str, dict[str, Any]]):
     def position(self, token: Any) -> int:
         if type(token) is not str:
             return -1
-        h = hash(token)
-        keys, order = self._sorted_a, self._order_a
-        i = bisect.bisect_left(keys, h)
-        while i < len(keys) and keys[i] == h:
-            pos = order[i]
-            if self.value_at(pos, "token") == token:
-                return pos
-            i += 1
-        return -1
+        return next((pos for pos in self._index.candidates(token) if self.value_at(pos, "token") == token), -1)
 
     def positions_of_hashes(self, hashes: np.ndarray) -> np.ndarray:
         """`(k,) int64` file positions of the rows whose token hashes are `hashes` `(k,) int64`, -1 where
         none (a 64-bit hash collision would give a wrong row; callers that must be exact compare)."""
-        i = np.searchsorted(self._sorted, hashes)
-        i = np.minimum(i, max(len(self._sorted) - 1, 0))
-        if not len(self._sorted):
-            return np.full(len(hashes), -1, np.int64)
-        return np.where(self._sorted[i] == hashes, self._order[i], -1)
+        return self._index.first(hashes)
 
     def token_hashes(self) -> np.ndarray:
         """`(len,) int64` `hash(token)` of each row in file order (read-only)."""
         return self._hashes
 
     def hashes_of(self, key: str) -> np.ndarray:
-        """`(len,) int64` `hash(row[key])` of each row, in file order (0 where the row has no such field)."""
+        """`(len,) int64` `hash(row[key])` of each row, in file order (`hash(None)` where the row has no such
+        field)."""
         return np.fromiter((hash(self._value_or_none(p, key)) for p in range(len(self))), np.int64, len(self))
 
     def _value_or_none(self, pos: int, key: str) -> Any:
@@ -340,4 +356,4 @@ class ColumnTable(Mapping[str, dict[str, Any]]):
         """Bytes held in columns and indexes (not counting the rows kept whole)."""
         cols = sum(sum(a.buffer_info()[1] * a.itemsize for a in vars(c).values() if isinstance(a, array))
                    + len(getattr(c, "buf", b"")) for c in self._cols)
-        return cols + self._slots.nbytes + self._order.nbytes + self._sorted.nbytes + self._hashes.nbytes
+        return cols + self._slots.nbytes + self._index.nbytes + self._hashes.nbytes

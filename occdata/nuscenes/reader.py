@@ -164,15 +164,20 @@ class TableIndex:
     calib_cache: dict[tuple[str, bool], tuple[np.ndarray, np.ndarray | None]] = dc_field(
         default_factory=dict)
 
-    def keyframe_rows(self, sample_token: str) -> dict[str, dict[str, Any]]:
-        """The rig's channels -> that sample's keyframe sample_data row (file order; absent ones left out)."""
+    def keyframe_positions(self, sample_token: str) -> dict[str, int]:
+        """The rig's channels -> the position in sample_data of that sample's keyframe row (in file
+        order; absent ones left out)."""
         s_pos = self.samples.position(sample_token)
         if s_pos < 0:
             return {}
         used = set(self.rig.channels)
-        found = sorted((int(p), c) for c, p in zip(self.keyframes.channels, self.keyframes.positions[s_pos],
-                                                    strict=True) if p >= 0 and c in used)
-        return {c: self.sample_data.row_at(p) for p, c in found}
+        found = sorted((p, c) for c, p in zip(self.keyframes.channels, self.keyframes.positions[s_pos].tolist(),
+                                              strict=True) if p >= 0 and c in used)
+        return {c: p for p, c in found}
+
+    def keyframe_rows(self, sample_token: str) -> dict[str, dict[str, Any]]:
+        """`keyframe_positions` with each position's row."""
+        return {c: self.sample_data.row_at(p) for c, p in self.keyframe_positions(sample_token).items()}
 
     def lidar_row(self, token: Any) -> dict[str, Any] | None:
         """The sample_data row `token` if it is a row of one of the rig's LiDARs, else None."""
@@ -226,6 +231,9 @@ def read_tables(root: Path, version: str, sweeps: bool, rig: RigChoice | None = 
     )
 
 
+_MISSING = object()  # `get_at`'s default for a field a row does not have
+
+
 def _pose_hashes(sample_data: ColumnTable, channel_of_calib: dict[str, str], rig: Rig) -> tuple[array, int]:
     """The sorted hashes of the ego_pose tokens that the rig's rows name (each must be a string), and
     how many of those rows are the rig's LiDARs'."""
@@ -245,9 +253,6 @@ def _pose_hashes(sample_data: ColumnTable, channel_of_calib: dict[str, str], rig
                                f"not a token ({short(pose_tok)})")
         hashes.append(hash(pose_tok))
     return array("q", sorted(set(hashes))), n_lidar
-
-
-_MISSING = object()
 
 
 def _has_hash(sorted_hashes: array, token: Any) -> bool:
@@ -415,11 +420,8 @@ def _prev_keys(idx: TableIndex, scene: SceneRecord, i: int) -> dict[str, str]:
 
 def _lidar_tokens(idx: TableIndex, sample_token: str) -> dict[str, str]:
     """LiDAR channel -> the keyframe sample_data token of that LiDAR in a sample."""
-    s_pos = idx.samples.position(sample_token)
-    if s_pos < 0:
-        return {}
-    at = dict(zip(idx.keyframes.channels, idx.keyframes.positions[s_pos].tolist(), strict=True))
-    return {c: idx.sample_data.value_at(at[c], "token") for c in idx.rig.lidars if at.get(c, -1) >= 0}
+    at = idx.keyframe_positions(sample_token)
+    return {c: idx.sample_data.value_at(at[c], "token") for c in idx.rig.lidars if c in at}
 
 
 def _scene_record(idx: TableIndex, sc_tok: str, sc: dict[str, Any], in_table: int, notes: list[str],

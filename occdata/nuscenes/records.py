@@ -12,6 +12,7 @@ from typing import Any, overload
 import numpy as np
 
 from occdata.geometry import invert_rigid
+from occdata.nuscenes.columns import HashIndex
 from occdata.nuscenes.rig import NUSCENES_RIG, Rig
 
 __all__ = ["CameraRecord", "CameraRig", "LazySamples", "LidarRecord", "NuScenesDataset", "SampleRecord", "SceneRecord"]
@@ -231,19 +232,16 @@ class NuScenesDataset:
     sweeps_loaded: bool = False  # read with `sweeps=True`: `SampleRecord.sweeps` are filled in
     rig: Rig = NUSCENES_RIG  # the cameras and LiDARs read (`Rig.left_out`: the sensors that were not)
     _tokens: list[str] = field(init=False, repr=False)
-    _sorted: tuple[np.ndarray, np.ndarray] = field(init=False, repr=False)
+    _index: HashIndex = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        # token -> position by sorted hashes (16 bytes a sample, not a dict entry's ~100)
         tokens = _tokens_of(self.samples)
-        h = np.fromiter((hash(t) for t in tokens), np.int64, len(tokens))
-        order = np.argsort(h, kind="stable")
         object.__setattr__(self, "_tokens", tokens)
-        object.__setattr__(self, "_sorted", (h[order], order))
+        object.__setattr__(self, "_index", HashIndex(np.fromiter((hash(t) for t in tokens), np.int64, len(tokens))))
 
     def __getstate__(self) -> dict[str, Any]:
         # the index holds str hashes, which differ between processes: made again where unpickled
-        return {k: v for k, v in vars(self).items() if k not in ("_tokens", "_sorted")}
+        return {k: v for k, v in vars(self).items() if k not in ("_tokens", "_index")}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         for k, v in state.items():
@@ -255,13 +253,9 @@ class NuScenesDataset:
 
     def index_of(self, token: str) -> int:
         """Position of a sample token in `samples` (KeyError if absent)."""
-        h, order = self._sorted
-        key = hash(token)
-        i = int(np.searchsorted(h, key))
-        while i < len(h) and h[i] == key:
-            if self._tokens[int(order[i])] == token:
-                return int(order[i])
-            i += 1
+        for pos in self._index.candidates(token):
+            if self._tokens[pos] == token:
+                return pos
         raise KeyError(token)
 
     def sample_tokens(self) -> list[str]:
