@@ -15,7 +15,7 @@ the previous sample is kept as it is; instances only in the previous sample are 
 from __future__ import annotations
 
 from array import array
-from collections.abc import Collection, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -27,6 +27,7 @@ from occdata.geometry import transform_from_pose
 from occdata.nuscenes.columns import ColumnTable, HashIndex, TableBuilder
 from occdata.nuscenes.records import LidarRecord, NuScenesDataset
 from occdata.nuscenes.rows import RowProblem, field, floats, integer, ref, short, timestamp_us
+from occdata.nuscenes.spill import Spill
 from occdata.nuscenes.tables import TokenSet, iter_table_rows, load_table
 
 __all__ = ["MOVING_TRAVEL_M", "Annotations", "BoxRecord", "box_velocity", "boxes_for_lidar", "load_annotations",
@@ -200,49 +201,104 @@ def boxes_for_lidar(
     return ann.boxes_at(owner.token, prev.token, prev.timestamp, owner.timestamp, lidar.timestamp)
 
 
+_BOX = np.dtype([("translation", "<f8", (3,)), ("size", "<f8", (3,)), ("rotation", "<f8", (4,)),
+                 ("timestamp", "<i8"), ("num_lidar_pts", "<i8")])
+
+
 class PackedBoxes(Mapping[str, tuple[BoxRecord, ...]]):
-    """sample token -> its boxes (table order), each `BoxRecord` made when asked: the rows' tokens as
-    columns (`ColumnTable`), the numbers in one array per field. A box held as Python objects took
-    ~0.8 KB (nuScenes has ~35 a keyframe); here ~0.25 KB. Iteration gives the samples in the order of
-    their first box. Pickled (a task's slice), it becomes a dict."""
+    """sample token -> its boxes (table order), each `BoxRecord` made when asked from the sample's blob
+    in a `Spill` (an unnamed temporary file): in memory a sample with boxes keeps its blob's end and an
+    index entry (~24 bytes), not its boxes (~0.8 KB each as Python objects, ~0.25 KB as columns;
+    nuScenes has ~35 a keyframe). Iteration gives the samples in the order of their first box. Pickled
+    (a task's slice), it becomes a dict.
+
+    A blob: the box count (int64), the boxes' numbers (`_BOX`), the texts' byte lengths (int32) and the
+    texts as UTF-8: the sample token, then per box its token, instance token, prev and next."""
 
     def __init__(self, table: ColumnTable, numbers: dict[str, np.ndarray], timestamps: np.ndarray,
                  n_pts: np.ndarray, instance_category: dict[str, str]) -> None:
-        self._table, self._numbers = table, numbers
-        self._timestamps, self._n_pts, self._category = timestamps, n_pts, instance_category
-        sample_h = table.hashes_of("sample_token")
-        self._index = HashIndex(sample_h)
-        _, first = np.unique(sample_h, return_index=True)
-        self._first = np.sort(first)
+        self._category = instance_category
+        self._spill = Spill()
+        hashes = array("q")
+        for rows in _sample_groups(table):
+            boxes = np.zeros(len(rows), dtype=_BOX)
+            for key in ("translation", "size", "rotation"):
+                boxes[key] = numbers[key][rows]
+            boxes["timestamp"], boxes["num_lidar_pts"] = timestamps[rows], n_pts[rows]
+            sample = table.value_at(int(rows[0]), "sample_token")
+            texts = [sample]
+            for p in rows.tolist():
+                texts += (table.value_at(p, "token"), table.value_at(p, "instance_token"),
+                          _link(table.value_at(p, "prev")), _link(table.value_at(p, "next")))
+            encoded = [t.encode("utf-8", "surrogatepass") for t in texts]
+            self._spill.add(b"".join((np.int64(len(rows)).tobytes(), boxes.tobytes(),
+                                      np.array([len(e) for e in encoded], dtype="<i4").tobytes(), *encoded)))
+            hashes.append(hash(sample))
+        self._spill.flush()
+        self._index = HashIndex(np.frombuffer(hashes, np.int64) if hashes else np.zeros(0, np.int64))
 
     def __len__(self) -> int:
-        return len(self._first)
+        return len(self._spill)
 
     def __iter__(self) -> Iterator[str]:
-        return (self._table.value_at(int(p), "sample_token") for p in self._first)
+        return (self._read(k)[0] for k in range(len(self)))
 
     def __getitem__(self, sample_token: str) -> tuple[BoxRecord, ...]:
-        if not isinstance(sample_token, str):
-            raise KeyError(sample_token)
-        rows = [p for p in self._index.candidates(sample_token)
-                if self._table.value_at(p, "sample_token") == sample_token]
-        if not rows:
-            raise KeyError(sample_token)
-        return tuple(self._box(p) for p in rows)
+        if isinstance(sample_token, str):
+            for k in self._index.candidates(sample_token):
+                sample, boxes = self._read(k)
+                if sample == sample_token:
+                    return boxes()
+        raise KeyError(sample_token)
 
-    def _box(self, p: int) -> BoxRecord:
-        t = self._table
-        instance = t.value_at(p, "instance_token")
-        return BoxRecord(
-            token=t.value_at(p, "token"), instance_token=instance, sample_token=t.value_at(p, "sample_token"),
-            category=self._category[instance], center_global=self._numbers["translation"][p],
-            size_wlh=self._numbers["size"][p], rotation_wxyz=self._numbers["rotation"][p],
-            timestamp=int(self._timestamps[p]), num_lidar_pts=int(self._n_pts[p]),
-            prev=_link(t.value_at(p, "prev")), next=_link(t.value_at(p, "next")),
-        )
+    def _read(self, k: int) -> tuple[str, Callable[[], tuple[BoxRecord, ...]]]:
+        """Blob `k`'s sample token, and a function making its boxes."""
+        blob = self._spill.get(k)
+        n = int(np.frombuffer(blob, "<i8", 1)[0])
+        boxes = np.frombuffer(blob, _BOX, n, 8)  # read-only: the records' arrays are views of it
+        at = 8 + _BOX.itemsize * n
+        ends = np.cumsum(np.frombuffer(blob, "<i4", 1 + 4 * n, at)).tolist()
+        text = blob[at + 4 * (1 + 4 * n):]
+        texts = [text[a:b].decode("utf-8", "surrogatepass") for a, b in zip([0, *ends[:-1]], ends, strict=True)]
+        sample = texts[0]
+
+        def make() -> tuple[BoxRecord, ...]:
+            stamps, n_pts = boxes["timestamp"].tolist(), boxes["num_lidar_pts"].tolist()
+            out = []
+            for i in range(n):
+                token, instance, prev, nxt = texts[1 + 4 * i: 5 + 4 * i]
+                out.append(BoxRecord(
+                    token=token, instance_token=instance, sample_token=sample, category=self._category[instance],
+                    center_global=boxes["translation"][i], size_wlh=boxes["size"][i],
+                    rotation_wxyz=boxes["rotation"][i], timestamp=stamps[i], num_lidar_pts=n_pts[i], prev=prev,
+                    next=nxt))
+            return tuple(out)
+
+        return sample, make
 
     def __reduce__(self) -> tuple[Any, ...]:
         return (dict, (dict(self.items()),))
+
+
+def _sample_groups(table: ColumnTable) -> Iterator[np.ndarray]:
+    """The rows of each sample, in table order, the samples in the order of their first row: `(k,) int64`
+    positions each (grouped by the token's hash, then split by the token itself where two share one)."""
+    sample_h = table.hashes_of("sample_token")
+    if not len(sample_h):
+        return
+    order = np.argsort(sample_h, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(sample_h[order]) != 0])
+    ends = np.r_[starts[1:], len(order)]
+    for g in np.argsort(order[starts], kind="stable"):  # by first row (the sort is stable)
+        rows = order[starts[g]:ends[g]]
+        tokens = [table.value_at(int(p), "sample_token") for p in rows]
+        if tokens.count(tokens[0]) == len(tokens):
+            yield rows
+            continue
+        by_token: dict[str, list[int]] = {}  # a 64-bit hash shared by two tokens
+        for p, t in zip(rows.tolist(), tokens, strict=True):
+            by_token.setdefault(t, []).append(p)
+        yield from (np.array(ps, dtype=np.int64) for ps in by_token.values())
 
 
 def load_annotations(root: Path, version: str, sample_tokens: Collection[str] | None = None) -> Annotations:

@@ -1,73 +1,102 @@
-"""Keyframe records packed into columns, made again when a sample is asked for (`LazySamples`).
+"""Keyframe records packed on disk, made again when a sample is asked for (`LazySamples`).
 
 A `SampleRecord` with its 7 sensor records, 13 pose matrices and 7 paths held ~7 KiB as Python
 objects; packed, a sensor is its pose's 12 numbers, a shared calibration's index, its timestamp and
-size, and its token and path as UTF-8 in shared buffers: ~250 bytes. Making a record again costs no
-table lookup, quaternion or path check (they were done once, when the tables were read).
+size, and its token and path as UTF-8: ~250 bytes, written to a `Spill` (an unnamed temporary file).
+In memory a sample keeps 8 bytes (its blob's end), the dataset its calibrations and channel names.
+Making a record again costs one read and no table lookup, quaternion or path check (they were done
+once, when the tables were read).
+
+A sample's blob: three int64 counts (head, texts, sensor rows), the head (scene, index in scene,
+timestamp, cameras, LiDARs, then each LiDAR's sweep count), the texts' byte lengths (int32), the
+sensor rows (`_ROW`: cameras, LiDARs, then the sweeps LiDAR by LiDAR) and the texts as UTF-8 (the
+sample's token, prev and next, then per sensor its token, path under the root and sample_token).
 """
 
 from __future__ import annotations
 
-from array import array
 from pathlib import Path
 
 import numpy as np
 
-from occdata.nuscenes.columns import TextColumn
 from occdata.nuscenes.records import CameraRecord, LidarRecord, SampleRecord, SceneRecord
+from occdata.nuscenes.spill import Spill
 
 __all__ = ["PackedSamples"]
 
+_ROW = np.dtype([("pose", "<f8", (12,)), ("timestamp", "<i8"), ("calib", "<i4"), ("channel", "<i4"),
+                 ("width", "<i4"), ("height", "<i4")])  # pose: T_global_from_ego[:3, :4]
+_TEXT = "surrogatepass"  # a JSON "\ud800" survives the round trip, as in the tables
 
-class _Sensors:
-    """Camera and LiDAR records as columns (a camera's `sample_token` is "", a LiDAR's size 0 x 0)."""
+
+class PackedSamples:
+    """`add(record, scene)` in sample order, then `record(k)`: the k-th record made again, equal field
+    by field (its pose arrays new, its calibration arrays the shared read-only ones).
+
+    `root` is the dataset root every record path lies under (`dataset_root`)."""
 
     def __init__(self, root: Path) -> None:
         self.root = root
         self._root_text = str(root)
-        self.channels: list[str] = []
-        self.channel = array("h")
-        self.token, self.path, self.sample_token = TextColumn(), TextColumn(), TextColumn()
-        self.pose = array("d")  # T_global_from_ego[:3, :4], 12 a row
-        self.calib = array("i")  # index into `calibs`
-        self.calibs: list[tuple[np.ndarray, np.ndarray | None]] = []
+        self._spill = Spill()
+        self._scenes: list[SceneRecord] = []
+        self._channels: list[str] = []
+        self._calibs: list[tuple[np.ndarray, np.ndarray | None]] = []
         self._calib_of: dict[tuple[int, int], int] = {}  # ids of the shared (T, K) arrays -> index
-        self.timestamp = array("q")
-        self.size = array("i")  # width, height
+        self._problems: dict[int, str] = {}  # placeholder records (rare) keep their problem
 
     def __len__(self) -> int:
-        return len(self.channel)
+        return len(self._spill)
+
+    def nbytes(self) -> int:
+        """Memory held per sample (the blobs' ends), not counting the calibrations and scenes."""
+        return self._spill.nbytes()
+
+    def flush(self) -> None:
+        """Write what is still buffered (after the last `add`: nothing stays in memory)."""
+        self._spill.flush()
+
+    def add(self, rec: SampleRecord, scene: SceneRecord) -> None:
+        if not self._scenes or self._scenes[-1] is not scene:
+            self._scenes.append(scene)
+        if rec.problem:
+            self._problems[len(self)] = rec.problem
+        lidars = rec.lidars
+        sweeps = [rec.sweeps_of(k) for k in range(len(lidars))]
+        head = [len(self._scenes) - 1, rec.index_in_scene, rec.timestamp, len(rec.cameras), len(lidars),
+                *(len(s) for s in sweeps)]
+        sensors: list[CameraRecord | LidarRecord] = [*rec.cameras, *lidars, *(r for s in sweeps for r in s)]
+        rows = np.zeros(len(sensors), dtype=_ROW)
+        texts = [rec.token, rec.prev, rec.next]
+        for i, r in enumerate(sensors):
+            row = rows[i]
+            row["pose"] = r.T_global_from_ego[:3, :4].ravel()
+            row["timestamp"] = r.timestamp
+            row["channel"] = self._code(r.channel)
+            if isinstance(r, CameraRecord):
+                row["calib"] = self._calib(r.T_ego_from_cam, r.K)
+                row["width"], row["height"] = r.width, r.height
+                texts += (r.token, self._relative(r.path), "")
+            else:
+                row["calib"] = self._calib(r.T_ego_from_lidar, None)
+                texts += (r.token, self._relative(r.path), r.sample_token)
+        encoded = [t.encode("utf-8", _TEXT) for t in texts]
+        counts = np.array([len(head), len(encoded), len(rows)], dtype="<i8")
+        self._spill.add(b"".join((counts.tobytes(), np.array(head, dtype="<i8").tobytes(),
+                                  np.array([len(e) for e in encoded], dtype="<i4").tobytes(), rows.tobytes(),
+                                  *encoded)))
 
     def _code(self, channel: str) -> int:
-        if channel not in self.channels:
-            self.channels.append(channel)
-        return self.channels.index(channel)
+        if channel not in self._channels:
+            self._channels.append(channel)
+        return self._channels.index(channel)
 
     def _calib(self, T: np.ndarray, K: np.ndarray | None) -> int:
         key = (id(T), id(K))
         if key not in self._calib_of:  # the reader shares one (T, K) per calibrated_sensor row
-            self._calib_of[key] = len(self.calibs)
-            self.calibs.append((T, K))
+            self._calib_of[key] = len(self._calibs)
+            self._calibs.append((T, K))
         return self._calib_of[key]
-
-    def add_camera(self, c: CameraRecord) -> None:
-        self._add(c.channel, c.token, c.path, c.T_global_from_ego, self._calib(c.T_ego_from_cam, c.K), c.timestamp,
-                  c.width, c.height, "")
-
-    def add_lidar(self, r: LidarRecord) -> None:
-        self._add(r.channel, r.token, r.path, r.T_global_from_ego, self._calib(r.T_ego_from_lidar, None), r.timestamp,
-                  0, 0, r.sample_token)
-
-    def _add(self, channel: str, token: str, path: Path, T: np.ndarray, calib: int, timestamp: int, width: int,
-             height: int, sample_token: str) -> None:
-        self.channel.append(self._code(channel))
-        self.token.append(token)
-        self.path.append(self._relative(path))
-        self.pose.extend(T[:3, :4].ravel().tolist())
-        self.calib.append(calib)
-        self.timestamp.append(timestamp)
-        self.size.extend((width, height))
-        self.sample_token.append(sample_token)
 
     def _relative(self, path: Path) -> str:
         """`path` under the root as text (string slicing: `Path.relative_to` was half the packing time)."""
@@ -78,87 +107,51 @@ class _Sensors:
             raise ValueError(f"{path} is not under {self.root}")
         return text[len(root.rstrip("/")) + 1:]
 
-    def _T(self, i: int) -> np.ndarray:
-        T = np.eye(4)
-        T[:3, :4] = np.frombuffer(self.pose, dtype=np.float64, count=12, offset=96 * i).reshape(3, 4)
-        return T
-
-    def camera(self, i: int) -> CameraRecord:
-        T_ego_from_cam, K = self.calibs[self.calib[i]]
-        return CameraRecord(channel=self.channels[self.channel[i]], token=self.token.get(i),
-                            path=self.root / self.path.get(i), K=K, T_ego_from_cam=T_ego_from_cam,
-                            T_global_from_ego=self._T(i), timestamp=self.timestamp[i], width=self.size[2 * i],
-                            height=self.size[2 * i + 1])
-
-    def lidar(self, i: int) -> LidarRecord:
-        return LidarRecord(channel=self.channels[self.channel[i]], token=self.token.get(i),
-                           path=self.root / self.path.get(i), T_ego_from_lidar=self.calibs[self.calib[i]][0],
-                           T_global_from_ego=self._T(i), timestamp=self.timestamp[i],
-                           sample_token=self.sample_token.get(i))
-
-
-class PackedSamples:
-    """`add(record, scene)` in sample order, then `record(k)`: the k-th record made again, equal field
-    by field (its pose arrays new, its calibration arrays the shared read-only ones).
-
-    `root` is the dataset root every record path lies under (`dataset_root`)."""
-
-    def __init__(self, root: Path) -> None:
-        self._sensors = _Sensors(root)
-        self._scenes: list[SceneRecord] = []
-        self._scene = array("i")
-        self._index = array("i")
-        self._timestamp = array("q")
-        self._token, self._prev, self._next = TextColumn(), TextColumn(), TextColumn()
-        self._first = array("q")  # the sample's first sensor row: cameras, then LiDARs, then sweeps
-        self._shape = array("i")  # cameras, LiDARs
-        self._n_sweeps = array("i")  # per sample and LiDAR, flat; `_sweep_at` the sample's first
-        self._sweep_at = array("q")
-        self._problems: dict[int, str] = {}  # placeholder records (rare) keep their problem
-
-    def __len__(self) -> int:
-        return len(self._scene)
-
-    def add(self, rec: SampleRecord, scene: SceneRecord) -> None:
-        if not self._scenes or self._scenes[-1] is not scene:
-            self._scenes.append(scene)
-        self._scene.append(len(self._scenes) - 1)
-        self._index.append(rec.index_in_scene)
-        self._timestamp.append(rec.timestamp)
-        self._token.append(rec.token)
-        self._prev.append(rec.prev)
-        self._next.append(rec.next)
-        self._first.append(len(self._sensors))
-        self._sweep_at.append(len(self._n_sweeps))
-        if rec.problem:
-            self._problems[len(self._scene) - 1] = rec.problem
-        self._shape.extend((len(rec.cameras), len(rec.lidars)))
-        for c in rec.cameras:
-            self._sensors.add_camera(c)
-        for r in rec.lidars:
-            self._sensors.add_lidar(r)
-        for k in range(len(rec.lidars)):
-            sweeps = rec.sweeps_of(k)
-            self._n_sweeps.append(len(sweeps))
-            for r in sweeps:
-                self._sensors.add_lidar(r)
-
     def record(self, k: int) -> SampleRecord:
-        n_cam, n_lid = self._shape[2 * k], self._shape[2 * k + 1]
-        row = self._first[k]
-        sweep_counts = self._n_sweeps[self._sweep_at[k]:self._sweep_at[k] + n_lid].tolist()
-        cams = tuple(self._sensors.camera(row + i) for i in range(n_cam))
-        row += n_cam
-        lidars = [self._sensors.lidar(row + i) for i in range(n_lid)]
-        row += n_lid
-        sweeps = []
+        blob = self._spill.get(k)
+        n_head, n_text, n_rows = np.frombuffer(blob, "<i8", 3).tolist()
+        at = 24
+        head = np.frombuffer(blob, "<i8", n_head, at).tolist()
+        at += 8 * n_head
+        ends = np.cumsum(np.frombuffer(blob, "<i4", n_text, at)).tolist()
+        at += 4 * n_text
+        rows = np.frombuffer(blob, _ROW, n_rows, at)
+        at += _ROW.itemsize * n_rows
+        text = blob[at:]
+        texts = [text[a:b].decode("utf-8", _TEXT) for a, b in zip([0, *ends[:-1]], ends, strict=True)]
+        scene_code, index, timestamp, n_cam, n_lid, *sweep_counts = head
+        sensors = self._sensors(rows, texts, n_cam)
+        sweeps, at = [], n_cam + n_lid
         for count in sweep_counts:
-            sweeps.append(tuple(self._sensors.lidar(row + i) for i in range(count)))
-            row += count
-        scene = self._scenes[self._scene[k]]
+            sweeps.append(tuple(sensors[at:at + count]))
+            at += count
+        lidars = sensors[n_cam:n_cam + n_lid]
+        scene = self._scenes[scene_code]
         return SampleRecord(
-            token=self._token.get(k), scene_token=scene.token, scene_name=scene.name, index_in_scene=self._index[k],
-            timestamp=self._timestamp[k], prev=self._prev.get(k), next=self._next.get(k), cameras=cams,
-            lidar=lidars[0], sweeps=sweeps[0], extra_lidars=tuple(lidars[1:]), extra_sweeps=tuple(sweeps[1:]),
-            problem=self._problems.get(k, ""),
+            token=texts[0], scene_token=scene.token, scene_name=scene.name, index_in_scene=index, timestamp=timestamp,
+            prev=texts[1], next=texts[2], cameras=tuple(sensors[:n_cam]), lidar=lidars[0], sweeps=sweeps[0],
+            extra_lidars=tuple(lidars[1:]), extra_sweeps=tuple(sweeps[1:]), problem=self._problems.get(k, ""),
         )
+
+    def _sensors(self, rows: np.ndarray, texts: list[str], n_cam: int) -> list[CameraRecord | LidarRecord]:
+        """The sensor records of a blob's `rows` (`_ROW`) and texts (the first `n_cam` rows are cameras)."""
+        n = len(rows)
+        T_global_from_ego = np.zeros((n, 4, 4))
+        T_global_from_ego[:, :3, :4] = rows["pose"].reshape(n, 3, 4)
+        T_global_from_ego[:, 3, 3] = 1.0
+        stamps, calibs, channels = rows["timestamp"].tolist(), rows["calib"].tolist(), rows["channel"].tolist()
+        widths, heights = rows["width"].tolist(), rows["height"].tolist()
+        out: list[CameraRecord | LidarRecord] = []
+        for i in range(n):
+            T_ego_from_sensor, K = self._calibs[calibs[i]]
+            token, path, sample_token = texts[3 + 3 * i: 6 + 3 * i]
+            channel, T = self._channels[channels[i]], T_global_from_ego[i].copy()
+            if i < n_cam:
+                out.append(CameraRecord(channel=channel, token=token, path=self.root / path, K=K,
+                                        T_ego_from_cam=T_ego_from_sensor, T_global_from_ego=T, timestamp=stamps[i],
+                                        width=widths[i], height=heights[i]))
+            else:
+                out.append(LidarRecord(channel=channel, token=token, path=self.root / path,
+                                       T_ego_from_lidar=T_ego_from_sensor, T_global_from_ego=T, timestamp=stamps[i],
+                                       sample_token=sample_token))
+        return out

@@ -404,6 +404,7 @@ def load_nuscenes(
             packed.add(_sample_record(idx, s_tok, scene.name, i, _prev_keys(idx, scene, i), check_files), scene)
             tokens.append(s_tok)
         scenes.append(scene)
+    packed.flush()
     absent = sorted(set(split_table) - {sc.name for sc in scenes})
     if absent:
         notes.append(f"split file {choice.file}: {len(absent)} of its scenes are not in the tables "
