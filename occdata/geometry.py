@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -27,7 +28,8 @@ def rotation_from_quaternion_wxyz(q_wxyz: Sequence[float] | np.ndarray, normalis
     q = np.asarray(q_wxyz, dtype=np.float64)
     # Quietly: a bad quaternion gives NaN/inf entries that the caller's check names (no numpy warning).
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        w, x, y, z = q / np.linalg.norm(q) if normalise else q
+        # Python floats below (the same IEEE arithmetic; numpy scalars made this 5x slower, once per pose)
+        w, x, y, z = (q / np.linalg.norm(q) if normalise else q).tolist()
         return np.array([
             [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
             [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
@@ -43,12 +45,11 @@ def quaternion_problem(q_wxyz: Sequence[float] | np.ndarray) -> str | None:
     message ("is not finite", "is implausibly large (|q| = 1e+300 ...)"), or None. Computed without
     numpy warnings (|q| of 1e300 overflows a plain norm). A moderately non-unit quaternion is None:
     the rigidity check of its matrix reports it."""
-    q = np.asarray(q_wxyz, dtype=np.float64)
-    if not np.isfinite(q).all():
+    q = np.asarray(q_wxyz, dtype=np.float64).ravel().tolist()  # Python floats: a pose's check is ~1 us
+    if not all(math.isfinite(v) for v in q):
         return "is not finite (NaN or inf)"
-    scale = float(np.abs(q).max())
-    with np.errstate(over="ignore"):
-        length = scale * float(np.sqrt(np.sum((q / scale) ** 2))) if scale > 0 else 0.0
+    scale = max((abs(v) for v in q), default=0.0)
+    length = scale * math.sqrt(sum((v / scale) ** 2 for v in q)) if scale > 0 else 0.0
     if length > QUATERNION_LENGTH_MAX:
         return f"is implausibly large (|q| = {length:.3g}; a rotation's quaternion has length 1)"
     return None

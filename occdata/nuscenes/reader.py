@@ -114,11 +114,14 @@ def confined_path(root: Path, relative: Any, where: str) -> Path:
     """
     if not isinstance(relative, str) or not relative or "\0" in relative:
         raise OccDataError(f"{where}: path {short(relative)} is not a non-empty string")
-    root = dataset_root(root)
-    path = Path(os.path.normpath(root / relative))
-    if os.path.isabs(relative) or path == root or not path.is_relative_to(root):
-        raise OccDataError(f"{where}: path {relative!r} points outside {root}")
-    return path
+    root_text = str(root)
+    if not (os.path.isabs(root_text) and os.path.normpath(root_text) == root_text):  # not already a dataset_root
+        root_text = str(dataset_root(root))
+    # on strings: pathlib's parsing was half of reading a keyframe's records
+    joined = os.path.normpath(os.path.join(root_text, relative))
+    if os.path.isabs(relative) or not joined.startswith(root_text.rstrip("/") + "/") or joined == root_text:
+        raise OccDataError(f"{where}: path {relative!r} points outside {root_text}")
+    return Path(joined)
 
 
 @dataclass(frozen=True, eq=False)
