@@ -301,3 +301,25 @@ def test_the_dataset_keeps_its_records_on_disk(real_seq_root: Path) -> None:
     ds.samples._cache.clear()  # type: ignore[attr-defined]
     held = _buffer_bytes(ds)
     assert held < 48 * len(ds.samples) + 16_384, held
+
+
+def test_the_boxes_stay_on_disk_until_asked_for(real_seq_root: Path) -> None:
+    """In memory, a sample's boxes cost its blob's end and an index entry; each box is made when asked
+    for, equal to the one the table's row gives (the real scene's boxes: ~40 a keyframe)."""
+    from occdata.nuscenes.annotations import load_annotations
+    from occdata.nuscenes.tables import iter_table_rows
+
+    ann = load_annotations(real_seq_root, "v1.0-mini")
+    n_boxes = sum(len(b) for b in ann.boxes_by_sample.values())
+    assert n_boxes > 20 * len(ann.boxes_by_sample)
+    held = _buffer_bytes(ann.boxes_by_sample)
+    assert held < 48 * len(ann.boxes_by_sample) + 4096, held
+    rows = {r["token"]: r for r in iter_table_rows(real_seq_root / "v1.0-mini" / "sample_annotation.json")}
+    for sample in ann.boxes_by_sample:
+        for b in ann.boxes_by_sample[sample]:
+            row = rows[b.token]
+            assert (b.instance_token, b.sample_token, b.prev, b.next) == (row["instance_token"], sample, row["prev"],
+                                                                         row["next"])
+            assert b.center_global.tolist() == row["translation"] and b.size_wlh.tolist() == row["size"]
+            assert b.rotation_wxyz.tolist() == row["rotation"] and b.num_lidar_pts == row["num_lidar_pts"]
+            assert not b.center_global.flags.writeable

@@ -15,7 +15,7 @@ the previous sample is kept as it is; instances only in the previous sample are 
 from __future__ import annotations
 
 from array import array
-from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
+from collections.abc import Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -24,7 +24,7 @@ import numpy as np
 
 from occdata.errors import OccDataError
 from occdata.geometry import transform_from_pose
-from occdata.nuscenes.columns import ColumnTable, HashIndex, TableBuilder
+from occdata.nuscenes.columns import ColumnTable, HashIndex
 from occdata.nuscenes.records import LidarRecord, NuScenesDataset
 from occdata.nuscenes.rows import RowProblem, field, floats, integer, ref, short, timestamp_us
 from occdata.nuscenes.spill import Spill
@@ -203,102 +203,68 @@ def boxes_for_lidar(
 
 _BOX = np.dtype([("translation", "<f8", (3,)), ("size", "<f8", (3,)), ("rotation", "<f8", (4,)),
                  ("timestamp", "<i8"), ("num_lidar_pts", "<i8")])
+_TEXTS = 5  # a box's texts: token, instance_token, sample_token, prev, next
+_BOX_HEAD = _BOX.itemsize + 4 * _TEXTS  # a box blob's fixed part: its numbers, then its texts' byte lengths
+_TEXT = "surrogatepass"  # a JSON "\ud800" survives the round trip
+
+
+def _box_blob(numbers: np.void, texts: tuple[str, ...]) -> bytes:
+    """One box as bytes: its `_BOX` numbers, the byte lengths of its `_TEXTS` texts (int32), the texts."""
+    encoded = [t.encode("utf-8", _TEXT) for t in texts]
+    return b"".join((numbers.tobytes(), np.array([len(e) for e in encoded], dtype="<i4").tobytes(), *encoded))
+
+
+def _parse_boxes(blob: bytes) -> Iterator[tuple[np.ndarray, list[str]]]:
+    """The boxes of concatenated box blobs: each one's numbers (a read-only `_BOX` array of one) and texts."""
+    at = 0
+    while at < len(blob):
+        numbers = np.frombuffer(blob, _BOX, 1, at)
+        lens = np.frombuffer(blob, "<i4", _TEXTS, at + _BOX.itemsize).tolist()
+        at += _BOX_HEAD
+        texts = []
+        for n in lens:
+            texts.append(blob[at:at + n].decode("utf-8", _TEXT))
+            at += n
+        yield numbers, texts
 
 
 class PackedBoxes(Mapping[str, tuple[BoxRecord, ...]]):
     """sample token -> its boxes (table order), each `BoxRecord` made when asked from the sample's blob
     in a `Spill` (an unnamed temporary file): in memory a sample with boxes keeps its blob's end and an
-    index entry (~24 bytes), not its boxes (~0.8 KB each as Python objects, ~0.25 KB as columns;
-    nuScenes has ~35 a keyframe). Iteration gives the samples in the order of their first box. Pickled
-    (a task's slice), it becomes a dict.
+    index entry (~24 bytes), not its boxes (~0.8 KB each as Python objects; nuScenes has ~35 a
+    keyframe). Iteration gives the samples in the order of their first box. Pickled (a task's slice),
+    it becomes a dict. A sample's blob is its boxes' blobs (`_box_blob`), one after the other."""
 
-    A blob: the box count (int64), the boxes' numbers (`_BOX`), the texts' byte lengths (int32) and the
-    texts as UTF-8: the sample token, then per box its token, instance token, prev and next."""
-
-    def __init__(self, table: ColumnTable, numbers: dict[str, np.ndarray], timestamps: np.ndarray,
-                 n_pts: np.ndarray, instance_category: dict[str, str]) -> None:
-        self._category = instance_category
-        self._spill = Spill()
-        hashes = array("q")
-        for rows in _sample_groups(table):
-            boxes = np.zeros(len(rows), dtype=_BOX)
-            for key in ("translation", "size", "rotation"):
-                boxes[key] = numbers[key][rows]
-            boxes["timestamp"], boxes["num_lidar_pts"] = timestamps[rows], n_pts[rows]
-            sample = table.value_at(int(rows[0]), "sample_token")
-            texts = [sample]
-            for p in rows.tolist():
-                texts += (table.value_at(p, "token"), table.value_at(p, "instance_token"),
-                          _link(table.value_at(p, "prev")), _link(table.value_at(p, "next")))
-            encoded = [t.encode("utf-8", "surrogatepass") for t in texts]
-            self._spill.add(b"".join((np.int64(len(rows)).tobytes(), boxes.tobytes(),
-                                      np.array([len(e) for e in encoded], dtype="<i4").tobytes(), *encoded)))
-            hashes.append(hash(sample))
-        self._spill.flush()
-        self._index = HashIndex(np.frombuffer(hashes, np.int64) if hashes else np.zeros(0, np.int64))
+    def __init__(self, spill: Spill, sample_hashes: np.ndarray, instance_category: dict[str, str]) -> None:
+        self._spill, self._category = spill, instance_category
+        self._index = HashIndex(sample_hashes)
 
     def __len__(self) -> int:
         return len(self._spill)
 
     def __iter__(self) -> Iterator[str]:
-        return (self._read(k)[0] for k in range(len(self)))
+        return (self._boxes(k)[0].sample_token for k in range(len(self)))
 
     def __getitem__(self, sample_token: str) -> tuple[BoxRecord, ...]:
         if isinstance(sample_token, str):
             for k in self._index.candidates(sample_token):
-                sample, boxes = self._read(k)
-                if sample == sample_token:
-                    return boxes()
+                boxes = self._boxes(k)
+                if boxes[0].sample_token == sample_token:
+                    return boxes
         raise KeyError(sample_token)
 
-    def _read(self, k: int) -> tuple[str, Callable[[], tuple[BoxRecord, ...]]]:
-        """Blob `k`'s sample token, and a function making its boxes."""
-        blob = self._spill.get(k)
-        n = int(np.frombuffer(blob, "<i8", 1)[0])
-        boxes = np.frombuffer(blob, _BOX, n, 8)  # read-only: the records' arrays are views of it
-        at = 8 + _BOX.itemsize * n
-        ends = np.cumsum(np.frombuffer(blob, "<i4", 1 + 4 * n, at)).tolist()
-        text = blob[at + 4 * (1 + 4 * n):]
-        texts = [text[a:b].decode("utf-8", "surrogatepass") for a, b in zip([0, *ends[:-1]], ends, strict=True)]
-        sample = texts[0]
-
-        def make() -> tuple[BoxRecord, ...]:
-            stamps, n_pts = boxes["timestamp"].tolist(), boxes["num_lidar_pts"].tolist()
-            out = []
-            for i in range(n):
-                token, instance, prev, nxt = texts[1 + 4 * i: 5 + 4 * i]
-                out.append(BoxRecord(
-                    token=token, instance_token=instance, sample_token=sample, category=self._category[instance],
-                    center_global=boxes["translation"][i], size_wlh=boxes["size"][i],
-                    rotation_wxyz=boxes["rotation"][i], timestamp=stamps[i], num_lidar_pts=n_pts[i], prev=prev,
-                    next=nxt))
-            return tuple(out)
-
-        return sample, make
+    def _boxes(self, k: int) -> tuple[BoxRecord, ...]:
+        out = []
+        for numbers, (token, instance, sample, prev, nxt) in _parse_boxes(self._spill.get(k)):
+            b = numbers[0]  # views of a read-only buffer: the records' arrays are read-only
+            out.append(BoxRecord(
+                token=token, instance_token=instance, sample_token=sample, category=self._category[instance],
+                center_global=b["translation"], size_wlh=b["size"], rotation_wxyz=b["rotation"],
+                timestamp=int(b["timestamp"]), num_lidar_pts=int(b["num_lidar_pts"]), prev=prev, next=nxt))
+        return tuple(out)
 
     def __reduce__(self) -> tuple[Any, ...]:
         return (dict, (dict(self.items()),))
-
-
-def _sample_groups(table: ColumnTable) -> Iterator[np.ndarray]:
-    """The rows of each sample, in table order, the samples in the order of their first row: `(k,) int64`
-    positions each (grouped by the token's hash, then split by the token itself where two share one)."""
-    sample_h = table.hashes_of("sample_token")
-    if not len(sample_h):
-        return
-    order = np.argsort(sample_h, kind="stable")
-    starts = np.flatnonzero(np.r_[True, np.diff(sample_h[order]) != 0])
-    ends = np.r_[starts[1:], len(order)]
-    for g in np.argsort(order[starts], kind="stable"):  # by first row (the sort is stable)
-        rows = order[starts[g]:ends[g]]
-        tokens = [table.value_at(int(p), "sample_token") for p in rows]
-        if tokens.count(tokens[0]) == len(tokens):
-            yield rows
-            continue
-        by_token: dict[str, list[int]] = {}  # a 64-bit hash shared by two tokens
-        for p, t in zip(rows.tolist(), tokens, strict=True):
-            by_token.setdefault(t, []).append(p)
-        yield from (np.array(ps, dtype=np.int64) for ps in by_token.values())
 
 
 def load_annotations(root: Path, version: str, sample_tokens: Collection[str] | None = None) -> Annotations:
@@ -306,7 +272,10 @@ def load_annotations(root: Path, version: str, sample_tokens: Collection[str] | 
 
     With `sample_tokens`, only those samples' boxes are kept (interpolating a sweep needs its sample
     and that sample's `prev`). No instance.json and no sample_annotation.json (a test split): empty
-    `Annotations`. The box arrays are read-only views into one array per field.
+    `Annotations`. The box arrays are read-only.
+
+    The boxes are streamed (`_BoxReader`): checked a chunk of rows at a time and written to a spill
+    file; what stays in memory while reading is ~60 bytes a box (the hashes the track checks need).
 
     Raises `OccDataError`, one line naming the table and token, on a broken tree: one of the two
     tables without the other, a sample_token / instance_token / category_token that is not in its
@@ -325,81 +294,191 @@ def load_annotations(root: Path, version: str, sample_tokens: Collection[str] | 
     categories = load_table(vdir / "category.json")
     instances = load_table(inst_path)
     instance_category = {tok: _category_name(categories, tok, row) for tok, row in instances.items()}
-    sample_rows = load_table(vdir / "sample.json", columns=True)
-    table, every_token = _read_rows(ann_path, None if sample_tokens is None else set(sample_tokens))
-    timestamps = _references(table, sample_rows, instance_category)
-    numbers = {key: _numbers(table, key) for key in ("translation", "size", "rotation")}
-    n_pts = _counts(table)
-    _check_tracks(table, every_token)
-    boxes = PackedBoxes(table.without(_VALUES), numbers, timestamps, n_pts, instance_category)
-    return Annotations(boxes_by_sample=boxes, instance_category=instance_category)
+    reader = _BoxReader(load_table(vdir / "sample.json", columns=True), instance_category)
+    reader.read(ann_path, None if sample_tokens is None else set(sample_tokens))
+    return Annotations(boxes_by_sample=reader.packed(), instance_category=instance_category)
 
 
 _FIELDS = ("sample_token", "instance_token")
 _VALUES = ("translation", "size", "rotation", "num_lidar_pts")
+_CHUNK = 8192  # rows checked together (vectorised number checks), then written
 
 
-def _read_rows(path: Path, wanted: set[str] | None) -> tuple[ColumnTable, TokenSet]:
-    """The rows of the wanted samples (all with `wanted` None), in table order, as columns of the fields
-    boxes use, and every token of the table (as hashes). Identical duplicates are kept once; a token
-    twice with different content is an error."""
-    builder = TableBuilder()
-    every = TokenSet()
-    for raw in iter_table_rows(path):
-        token = raw.get("token")
-        if not isinstance(token, str) or not token:
-            raise OccDataError(f"malformed table {path}: a row has no string 'token' field")
-        every.add(token)
-        sample = raw.get("sample_token")
-        if wanted is not None and not (isinstance(sample, str) and sample in wanted):
-            continue
-        row = {"token": token, **{k: field(raw, k, "sample_annotation") for k in _FIELDS},
-               "prev": raw.get("prev", ""), "next": raw.get("next", ""),
-               **{k: field(raw, k, "sample_annotation") for k in _VALUES}}
-        builder.append(token, row)
-    table = builder.finish()
-    repeated = every.repeated()
-    return (_first_copies(path, table, repeated) if repeated else table), every
+class _BoxReader:
+    """The rows of sample_annotation.json, streamed: each chunk of kept rows is checked (references,
+    numbers) and each box written to a spill file as it comes; per box, the hashes of its token,
+    instance, sample, prev and next stay in memory for the checks that need every row (duplicates,
+    tracks), then `packed()` regroups the boxes by sample into a second spill."""
 
+    def __init__(self, sample_rows: ColumnTable, instance_category: dict[str, str]) -> None:
+        self._sample_rows, self._category = sample_rows, instance_category
+        self._sample_ts: dict[str, int] = {}  # per sample with boxes: its timestamp (us)
+        self._rows = Spill()  # box k's blob
+        self._h = {key: array("q") for key in ("token", "instance", "sample", "prev", "next")}
+        self._every = TokenSet()
+        self._dropped: set[int] = set()  # later identical copies of a repeated token
 
-def _first_copies(path: Path, table: ColumnTable, repeated: set[int]) -> ColumnTable:
-    """`table` with each repeated token's later, identical copies dropped; differing copies are an error."""
-    first: dict[str, dict[str, Any]] = {}
-    builder = TableBuilder()
-    for _, row in table.rows():
-        token = row["token"]
-        if hash(token) in repeated:
-            seen = first.setdefault(token, row)
-            if seen is not row:
-                if seen != row:
-                    raise OccDataError(f"duplicate token in {path.name}: {token!r} appears twice with different "
-                                       "content")
+    def read(self, path: Path, wanted: set[str] | None) -> None:
+        chunk: list[dict[str, Any]] = []
+        for raw in iter_table_rows(path):
+            token = raw.get("token")
+            if not isinstance(token, str) or not token:
+                raise OccDataError(f"malformed table {path}: a row has no string 'token' field")
+            self._every.add(token)
+            sample = raw.get("sample_token")
+            if wanted is not None and not (isinstance(sample, str) and sample in wanted):
                 continue
-        builder.append(token, row)
-    return builder.finish()
+            chunk.append({"token": token, **{k: field(raw, k, "sample_annotation") for k in (*_FIELDS, *_VALUES)},
+                          "prev": raw.get("prev", ""), "next": raw.get("next", "")})
+            if len(chunk) == _CHUNK:
+                self._add(chunk)
+                chunk = []
+        self._add(chunk)
+        self._rows.flush()
+        self._drop_copies(path)
+        self._check_tracks()
 
+    def _add(self, rows: list[dict[str, Any]]) -> None:
+        """Check a chunk of rows and write their boxes."""
+        if not rows:
+            return
+        boxes = np.zeros(len(rows), dtype=_BOX)
+        boxes["timestamp"] = [self._timestamp(r) for r in rows]
+        tokens = [r["token"] for r in rows]
+        for key in ("translation", "size", "rotation"):
+            boxes[key] = _numbers(tokens, [r[key] for r in rows], key)
+        boxes["num_lidar_pts"] = _counts(tokens, [r["num_lidar_pts"] for r in rows])
+        for r, b in zip(rows, boxes, strict=True):
+            links = [_track_link(r, link) for link in ("prev", "next")]
+            texts = (r["token"], r["instance_token"], r["sample_token"], *links)
+            self._rows.add(_box_blob(b, texts))
+            for key, text in zip(self._h, texts, strict=True):
+                self._h[key].append(hash(text))
 
-def _references(
-    table: ColumnTable, sample_rows: Mapping[str, dict[str, Any]], instance_category: dict[str, str]
-) -> np.ndarray:
-    """Check each row's sample and instance exist; `(N,) int64` the timestamp (us) of each row's sample."""
-    sample_ts: dict[str, int] = {}  # per sample of the boxes: the tables' samples, not their boxes
-    out = array("q")
-    for p in range(len(table)):
-        instance, sample = table.value_at(p, "instance_token"), table.value_at(p, "sample_token")
-        src = f"sample_annotation {table.value_at(p, 'token')!r}"
-        if not isinstance(instance, str) or instance not in instance_category:
+    def _timestamp(self, row: dict[str, Any]) -> int:
+        """Check the row's instance and sample exist; the sample's timestamp (us)."""
+        instance, sample = row["instance_token"], row["sample_token"]
+        src = f"sample_annotation {row['token']!r}"
+        if not isinstance(instance, str) or instance not in self._category:
             raise OccDataError(f"dangling token: {src} refers to instance {instance!r}, not in instance.json")
-        ts = sample_ts.get(sample) if isinstance(sample, str) else None
+        ts = self._sample_ts.get(sample) if isinstance(sample, str) else None
         if ts is None:
-            row = ref(sample_rows, sample, "sample", src)
+            sample_row = ref(self._sample_rows, sample, "sample", src)
             try:
-                ts = timestamp_us(field(row, "timestamp", "sample"), f"sample {sample!r} timestamp")
+                ts = timestamp_us(field(sample_row, "timestamp", "sample"), f"sample {sample!r} timestamp")
             except RowProblem as exc:
                 raise OccDataError(f"sample.json: {exc}") from None
-            sample_ts[sample] = ts
-        out.append(ts)
-    return np.frombuffer(out, dtype=np.int64) if len(out) else np.zeros(0, np.int64)
+            self._sample_ts[sample] = ts
+        return ts
+
+    def _box(self, k: int) -> tuple[bytes, list[str]]:
+        """Box k's blob and texts (token, instance, sample, prev, next)."""
+        blob = self._rows.get(k)
+        return blob, next(_parse_boxes(blob))[1]
+
+    def _drop_copies(self, path: Path) -> None:
+        """A token kept twice: the later identical copies are dropped; differing copies are an error."""
+        repeated = self._every.repeated()
+        if not repeated:
+            return
+        token_h = np.frombuffer(self._h["token"], np.int64) if self._h["token"] else np.zeros(0, np.int64)
+        first: dict[str, bytes] = {}
+        for k in np.flatnonzero(np.isin(token_h, np.fromiter(repeated, np.int64, len(repeated)))).tolist():
+            blob, texts = self._box(k)
+            seen = first.setdefault(texts[0], blob)
+            if seen is not blob:
+                if seen != blob:
+                    raise OccDataError(f"duplicate token in {path.name}: {texts[0]!r} appears twice with different "
+                                       "content")
+                self._dropped.add(k)
+
+    def _check_tracks(self) -> None:
+        """Every prev/next names a box of the table, of the same instance, that links back (on the hashes,
+        `_CHUNK` rows at a time against the sorted token hashes; a row that fails is read back and named)."""
+        h = {key: np.frombuffer(a, np.int64) if a else np.zeros(0, np.int64) for key, a in self._h.items()}
+        token_h = h["token"]
+        if self._dropped:  # later identical copies are no box: "" is no box's token
+            token_h = token_h.copy()
+            token_h[list(self._dropped)] = hash("")
+        order = np.argsort(token_h)
+        sorted_h = token_h[order]
+        every = self._every.sorted_hashes()
+        for k0 in range(0, len(token_h), 8 * _CHUNK):
+            rows = slice(k0, k0 + 8 * _CHUNK)
+            bad = {link: self._track_faults(h, rows, link, back, sorted_h, order, every)
+                   for link, back in (("prev", "next"), ("next", "prev"))}
+            for k in (k0 + np.flatnonzero(bad["prev"] | bad["next"])).tolist():  # in row order, prev before next
+                if k in self._dropped:
+                    continue
+                for link, back in (("prev", "next"), ("next", "prev")):
+                    if bad[link][k - k0]:
+                        self._name_track_fault(k, link, back)
+
+    @staticmethod
+    def _track_faults(h: dict[str, np.ndarray], rows: slice, link: str, back: str, sorted_h: np.ndarray,
+                      order: np.ndarray, every: np.ndarray) -> np.ndarray:
+        """`(len(rows),) bool`: the rows whose `link` may be wrong, on the hashes: naming no kept box and
+        no token of the table, or a kept box of another instance, or one whose `back` is not this row."""
+        linked = h[link][rows]
+        has = linked != hash("")
+        i = np.minimum(np.searchsorted(sorted_h, linked), max(len(sorted_h) - 1, 0))
+        found = has & (sorted_h[i] == linked) if len(sorted_h) else np.zeros(len(linked), bool)
+        q = order[i] if len(order) else np.zeros(len(linked), np.int64)
+        j = np.minimum(np.searchsorted(every, linked), max(len(every) - 1, 0))
+        in_table = (every[j] == linked) if len(every) else np.zeros(len(linked), bool)
+        return (has & ~found & ~in_table) | (found & ((h["instance"][q] != h["instance"][rows])
+                                                      | (h[back][q] != h["token"][rows])))
+
+    def _name_track_fault(self, k: int, link: str, back: str) -> None:
+        """Raise the error for box k's `link`, found on the hashes, if the texts confirm it."""
+        _, (token, instance, _, prev, nxt) = self._box(k)
+        other = prev if link == "prev" else nxt
+        where = f"sample_annotation.json: row {token!r} {link}"
+        q = next((int(p) for p in np.flatnonzero(np.frombuffer(self._h["token"], np.int64) == hash(other))
+                  if int(p) not in self._dropped and self._box(int(p))[1][0] == other), -1)
+        if q < 0:
+            if other not in self._every:
+                raise OccDataError(f"{where} {other!r} is not in sample_annotation.json")
+            return  # outside the selected samples
+        _, (_, other_instance, _, other_prev, other_next) = self._box(q)
+        if other_instance != instance:
+            raise OccDataError(f"{where} {other!r} is a box of another instance")
+        other_back = other_prev if back == "prev" else other_next
+        if other_back != token:
+            raise OccDataError(f"{where} is {other!r}, but that row's {back} is {other_back!r}")
+
+    def packed(self) -> PackedBoxes:
+        """The boxes regrouped by sample (samples in the order of their first box, boxes in table order)."""
+        sample_h = np.frombuffer(self._h["sample"], np.int64) if self._h["sample"] else np.zeros(0, np.int64)
+        self._h = {}  # the track hashes are done with
+        out, hashes = Spill(), array("q")
+        if len(sample_h):
+            order = np.argsort(sample_h, kind="stable")
+            starts = np.flatnonzero(np.r_[True, np.diff(sample_h[order]) != 0])
+            ends = np.r_[starts[1:], len(order)]
+            for g in np.argsort(order[starts], kind="stable"):  # by first row (the sort is stable)
+                by_sample: dict[str, list[bytes]] = {}  # one entry, unless two samples share a 64-bit hash
+                for k in order[starts[g]:ends[g]].tolist():
+                    if k not in self._dropped:
+                        blob, texts = self._box(k)
+                        by_sample.setdefault(texts[2], []).append(blob)
+                for sample, blobs in by_sample.items():
+                    out.add(b"".join(blobs))
+                    hashes.append(hash(sample))
+        out.flush()
+        self._rows = Spill()  # the per-box file is closed
+        return PackedBoxes(out, np.frombuffer(hashes, np.int64) if hashes else np.zeros(0, np.int64), self._category)
+
+
+def _track_link(row: dict[str, Any], link: str) -> str:
+    """A row's prev/next as text ("" for none); a value that is not a string names no box of the table."""
+    value = row[link]
+    if not value:
+        return ""
+    if not isinstance(value, str):
+        raise OccDataError(f"sample_annotation.json: row {row['token']!r} {link} {value!r} is not in "
+                           "sample_annotation.json")
+    return value
 
 
 _WIDTH = {"translation": 3, "size": 3, "rotation": 4}
@@ -408,27 +487,26 @@ _WIDTH = {"translation": 3, "size": 3, "rotation": 4}
 MAX_BOX_SIZE_M = 100.0
 
 
-def _flat_numbers(table: ColumnTable, key: str, n: int) -> Iterator[float]:
-    """Every row's `key` as `n` numbers in a row; ValueError at a value that is not `n` numbers."""
-    for p in range(len(table)):
-        value = table.value_at(p, key)
+def _flat_numbers(values: list[Any], n: int) -> Iterator[float]:
+    """Every value as `n` numbers in a row; ValueError at a value that is not `n` numbers."""
+    for value in values:
         if type(value) is not list or len(value) != n:
-            raise ValueError(key)
+            raise ValueError(n)
         for v in value:
             if type(v) not in (int, float):  # bools and strings too: the row is found and named
-                raise ValueError(key)
+                raise ValueError(n)
             yield v
 
 
-def _numbers(table: ColumnTable, key: str) -> np.ndarray:
-    """`(N, 3|4) float64` read-only column of a numeric field, checked: finite; sizes positive and at
+def _numbers(tokens: list[str], values: list[Any], key: str) -> np.ndarray:
+    """`(N, 3|4) float64` the rows' `values` of a numeric field, checked: finite; sizes positive and at
     most `MAX_BOX_SIZE_M`; rotations unit quaternions (within 1e-3). `OccDataError` naming the first bad row."""
     n = _WIDTH[key]
     try:
-        arr = np.fromiter(_flat_numbers(table, key, n), np.float64, count=len(table) * n).reshape(-1, n)
+        arr = np.fromiter(_flat_numbers(values, n), np.float64, count=len(values) * n).reshape(-1, n)
     except (ValueError, OverflowError):
-        for p in range(len(table)):  # find the row and say what is wrong with it
-            _finite_floats(table.value_at(p, "token"), table.value_at(p, key), key, n)
+        for token, value in zip(tokens, values, strict=True):  # find the row and say what is wrong with it
+            _finite_floats(token, value, key, n)
         raise OccDataError(f"sample_annotation.json: a {key} value is not {n} numbers") from None  # (bools only)
     bad = ~np.isfinite(arr).all(axis=1)
     what = "is not finite"
@@ -441,30 +519,26 @@ def _numbers(table: ColumnTable, key: str) -> np.ndarray:
             bad, what = ~(np.abs(np.linalg.norm(arr, axis=1) - 1.0) <= 1e-3), "is not a unit quaternion"
     if bad.any():
         i = int(np.argmax(bad))
-        src = f"sample_annotation {table.value_at(i, 'token')!r}"
-        raise OccDataError(f"sample_annotation.json: {src} {key} {arr[i].tolist()} {what}")
-    arr.flags.writeable = False
+        raise OccDataError(f"sample_annotation.json: sample_annotation {tokens[i]!r} {key} {arr[i].tolist()} {what}")
     return arr
 
 
-def _integers(table: ColumnTable) -> Iterator[int]:
-    for p in range(len(table)):
-        v = table.value_at(p, "num_lidar_pts")
+def _integers(values: list[Any]) -> Iterator[int]:
+    for v in values:
         if type(v) is int or (type(v) is float and v.is_integer()):
             yield int(v)
         else:
             raise ValueError("num_lidar_pts")
 
 
-def _counts(table: ColumnTable) -> np.ndarray:
+def _counts(tokens: list[str], values: list[Any]) -> np.ndarray:
     """`(N,) int64` num_lidar_pts, each a JSON integer (an integral float is accepted)."""
     try:
-        return np.fromiter(_integers(table), np.int64, count=len(table))
+        return np.fromiter(_integers(values), np.int64, count=len(values))
     except (ValueError, OverflowError):
-        for p in range(len(table)):
+        for token, value in zip(tokens, values, strict=True):
             try:
-                integer(table.value_at(p, "num_lidar_pts"), f"sample_annotation {table.value_at(p, 'token')!r} "
-                                                            "num_lidar_pts")
+                integer(value, f"sample_annotation {token!r} num_lidar_pts")
             except RowProblem as exc:
                 raise OccDataError(f"sample_annotation.json: {exc}") from None
         raise OccDataError("sample_annotation.json: a num_lidar_pts value is out of range") from None
@@ -489,26 +563,6 @@ def _category_name(categories: dict[str, dict[str, Any]], inst_tok: str, inst: d
     if not isinstance(name, str) or not name:
         raise OccDataError(f"category.json: row {category['token']!r} has no category name")
     return name
-
-
-def _check_tracks(table: ColumnTable, every: TokenSet) -> None:
-    """Every prev/next names a box of the table, of the same instance, that links back."""
-    for p in range(len(table)):
-        token, instance = table.value_at(p, "token"), table.value_at(p, "instance_token")
-        for link, back in (("prev", "next"), ("next", "prev")):
-            other_tok = table.value_at(p, link)
-            if not other_tok:
-                continue
-            where = f"sample_annotation.json: row {token!r} {link}"
-            q = table.position(other_tok)  # a kept row first: the hash set is asked only about the others
-            if q < 0:
-                if not isinstance(other_tok, str) or other_tok not in every:
-                    raise OccDataError(f"{where} {other_tok!r} is not in sample_annotation.json")
-                continue  # outside the selected samples
-            if table.value_at(q, "instance_token") != instance:
-                raise OccDataError(f"{where} {other_tok!r} is a box of another instance")
-            if table.value_at(q, back) != token:
-                raise OccDataError(f"{where} is {other_tok!r}, but that row's {back} is {table.value_at(q, back)!r}")
 
 
 # An instance moves when its box centre's ground-plane (x-y) extent over the scene reaches this many

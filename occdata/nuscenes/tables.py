@@ -167,6 +167,10 @@ class TokenSet:
             self._sorted = np.unique(np.frombuffer(self._buf, dtype=np.int64))
         return self._sorted
 
+    def sorted_hashes(self) -> np.ndarray:
+        """`(k,) int64` the distinct hashes, sorted (read-only; made once)."""
+        return self._hashes()
+
     def __contains__(self, token: object) -> bool:
         h = self._hashes()
         i = int(np.searchsorted(h, hash(token)))
