@@ -166,21 +166,21 @@ class StoreSamples:
                     ) from None
                 raise
 
-        def flat(name: str, off: np.ndarray) -> tuple[np.ndarray, int]:
+        def span(off: np.ndarray) -> tuple[int, int]:
             sel = off[[i - lo for i in idx]]
-            start = int(sel[..., 0].min())
-            stop = int((sel[..., 0] + sel[..., 1]).max())
-            return read(name, start, stop), start
+            return int(sel[..., 0].min()), int((sel[..., 0] + sel[..., 1]).max())
 
-        img_off, uvd_off = self.img_off[lo:hi], self.uvd_off[lo:hi]
-        jpeg, j0 = flat("images/jpeg", img_off)
-        uvd, u0 = flat("depth/uvd", uvd_off)
+        (j0, j1), (u0, u1) = span(self.img_off[lo:hi]), span(self.uvd_off[lo:hi])
+        ranges = [("images/jpeg", j0, j1), ("depth/uvd", u0, u1)]
         labelled = [i for i in idx if self.present[i]]
-        labels: dict[str, np.ndarray] = {}
         if labelled:
-            a, b = min(labelled), max(labelled) + 1
-            for name in _LABELS:
-                labels[name] = read(name, a, b)
+            ranges += [(name, min(labelled), max(labelled) + 1) for name in _LABELS]
+        if per_sample_errors:  # one array at a time: the error names the array
+            parts = [read(name, start, stop) for name, start, stop in ranges]
+        else:  # all at once: one round trip over an object store
+            parts = self.reader.read_ranges(ranges)
+        jpeg, uvd = parts[0], parts[1]
+        labels = dict(zip(_LABELS, parts[2:], strict=True)) if labelled else {}
         out = []
         check = self.reader.integrity.check_rows  # a missing chunk reads as fill: compare with the checksums
         for i in idx:

@@ -180,6 +180,18 @@ class StoreReader:
                     self._cache[name] = np.asarray(data)
         return {n: self.small(n) for n in names}
 
+    def read_ranges(self, ranges: Sequence[tuple[str, int, int]]) -> list[np.ndarray]:
+        """`array[start:stop]` for each `(name, start, stop)`, fetched concurrently: one round trip on an
+        object store, not one per array (a block's images, depth and four label arrays took six). The
+        first error is raised as the sequential reads would raise it."""
+        arrays = [self.group[name] for name, _, _ in ranges]
+
+        async def fetch() -> list:  # runs on zarr's loop: no sync zarr call in here
+            return await asyncio.gather(*(a._async_array.getitem(slice(start, stop))
+                                          for a, (_, start, stop) in zip(arrays, ranges, strict=True)))
+
+        return [np.asarray(data) for data in sync(fetch())]
+
     def preload(self, arrays: dict[str, np.ndarray]) -> None:
         """Take small arrays another process already read (a loader worker: shared memory), unread."""
         self._cache.update(arrays)
