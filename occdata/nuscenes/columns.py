@@ -16,6 +16,9 @@ from __future__ import annotations
 
 import bisect
 import enum
+import mmap
+import tempfile
+import weakref
 from array import array
 from collections.abc import Iterator, Mapping
 from typing import Any
@@ -47,12 +50,74 @@ def _kind_of(value: Any) -> tuple[_Kind, int] | None:
     return None
 
 
-class TextColumn:
-    """Strings as UTF-8 bytes in one buffer with end offsets: `append(s)`, `get(i)`, `len`."""
+class _Paged:
+    """An append-only typed buffer (an `array` of `typecode`, `+=` for bytes) kept in an unnamed temporary
+    file: appended values wait in a tail written out each `_FLUSH` bytes. `seal()` gives what a finished
+    table reads, a memoryview indexed like the array: the file mapped read-only (or, under `_FLUSH`
+    bytes, the tail itself). The mapped pages are the page cache's, not this process's heap: reading
+    maps them in, `ColumnTable.release()` maps them out again."""
 
-    def __init__(self) -> None:
-        self.buf = bytearray()
-        self.ends = array("Q")
+    _FLUSH = 1 << 20
+
+    def __init__(self, typecode: str) -> None:
+        self.typecode = typecode
+        self.tail = array(typecode)
+        self._written = 0
+        self._file: Any = None
+
+    def __len__(self) -> int:
+        return self._written + len(self.tail)
+
+    def append(self, value: Any) -> None:
+        self.tail.append(value)
+        if len(self.tail) * self.tail.itemsize >= self._FLUSH:
+            self._write()
+
+    def extend(self, values: Any) -> None:
+        self.tail.extend(values)
+        if len(self.tail) * self.tail.itemsize >= self._FLUSH:
+            self._write()
+
+    def __iadd__(self, data: bytes) -> _Paged:
+        self.tail.frombytes(data)
+        if len(self.tail) >= self._FLUSH:
+            self._write()
+        return self
+
+    def _write(self) -> None:
+        if self._file is None:
+            self._file = tempfile.TemporaryFile(prefix="occdata-table-")  # already unlinked
+            weakref.finalize(self, self._file.close)  # a table abandoned half read closes its files too
+        self._file.write(self.tail)
+        self._written += len(self.tail)
+        self.tail = array(self.typecode)
+
+    def seal(self) -> tuple[memoryview, mmap.mmap | None]:
+        """The values as a read-only memoryview, and the mapping behind it (None: kept in memory)."""
+        if self._file is None:
+            return memoryview(self.tail).toreadonly(), None
+        self._write()
+        self._file.flush()
+        mapped = mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ)
+        self._file.close()  # the mapping keeps the data
+        self._file = None
+        return memoryview(mapped).cast(self.typecode), mapped
+
+
+def _store(typecode: str, paged: bool) -> Any:
+    """A column's buffer: in memory (`array`, or `bytearray` for "B") or `_Paged`."""
+    if paged:
+        return _Paged(typecode)
+    return bytearray() if typecode == "B" else array(typecode)
+
+
+class TextColumn:
+    """Strings as UTF-8 bytes in one buffer with end offsets: `append(s)`, `get(i)`, `len` (`paged`: the
+    buffers in a temporary file, `_Paged`)."""
+
+    def __init__(self, paged: bool = False) -> None:
+        self.buf = _store("B", paged)
+        self.ends = _store("Q", paged)
 
     def prepare(self, value: Any) -> Any:
         """What `push` stores for `value`, or `_NO` if it does not fit."""
@@ -75,17 +140,17 @@ class TextColumn:
 
     def get(self, i: int) -> str:
         start = self.ends[i - 1] if i else 0
-        return self.buf[start:self.ends[i]].decode("utf-8")
+        return str(self.buf[start:self.ends[i]], "utf-8")
 
 
 class _Tokens:
     """Lowercase hexadecimal tokens of one even length (nuScenes' 32 digits, Lyft's 64), or "": 16
     bytes a nuScenes token and a flag, not 32 bytes of text and an 8-byte offset."""
 
-    def __init__(self) -> None:
+    def __init__(self, paged: bool = False) -> None:
         self.width = 0  # bytes a token, set by the first one
-        self.buf = bytearray()
-        self.empty = array("b")
+        self.buf = _store("B", paged)
+        self.empty = _store("b", paged)
 
     def prepare(self, value: Any) -> Any:
         if type(value) is not str:
@@ -116,8 +181,8 @@ def _is_token(value: str) -> bool:
 
 
 class _Bool:
-    def __init__(self) -> None:
-        self.values = array("b")
+    def __init__(self, paged: bool = False) -> None:
+        self.values = _store("b", paged)
 
     def prepare(self, value: Any) -> Any:
         return value if type(value) is bool else _NO
@@ -130,9 +195,9 @@ class _Bool:
 
 
 class _Number:
-    def __init__(self) -> None:
-        self.values = array("d")
-        self.is_int = array("b")
+    def __init__(self, paged: bool = False) -> None:
+        self.values = _store("d", paged)
+        self.is_int = _store("b", paged)
 
     def prepare(self, value: Any) -> Any:
         return value if type(value) is float or (type(value) is int and -_EXACT <= value <= _EXACT) else _NO
@@ -147,9 +212,9 @@ class _Number:
 
 
 class _Numbers:
-    def __init__(self, length: int) -> None:
+    def __init__(self, length: int, paged: bool = False) -> None:
         self.length = length
-        self.values = array("d")
+        self.values = _store("d", paged)
 
     def prepare(self, value: Any) -> Any:
         if type(value) is not list or len(value) != self.length:
@@ -166,18 +231,33 @@ class _Numbers:
         return self.values[i * self.length:(i + 1) * self.length].tolist()
 
 
-def _column(kind: tuple[_Kind, int], value: Any) -> Any:
+def _column(kind: tuple[_Kind, int], value: Any, paged: bool) -> Any:
     if kind[0] is _Kind.NUMBERS:
-        return _Numbers(kind[1])
+        return _Numbers(kind[1], paged)
     if kind[0] is _Kind.TEXT:
-        return _Tokens() if _is_token(value) else TextColumn()
-    return _Bool() if kind[0] is _Kind.BOOL else _Number()
+        return _Tokens(paged) if _is_token(value) else TextColumn(paged)
+    return _Bool(paged) if kind[0] is _Kind.BOOL else _Number(paged)
+
+
+def _seal(col: Any) -> list[mmap.mmap]:
+    """Turn a column's `_Paged` buffers into read-only views; the mappings made."""
+    maps = []
+    for name, value in vars(col).items():
+        if isinstance(value, _Paged):
+            view, mapped = value.seal()
+            setattr(col, name, view)
+            if mapped is not None:
+                maps.append(mapped)
+    return maps
 
 
 class TableBuilder:
-    """Rows appended in file order (`append`), then `finish()` -> `ColumnTable`."""
+    """Rows appended in file order (`append`), then `finish()` -> `ColumnTable`. `paged`: the columns
+    are written to temporary files as they grow and mapped read-only when finished (`_Paged`); the
+    table's index (16 bytes a row) and per-row slots and hashes (8 each) stay in memory."""
 
-    def __init__(self) -> None:
+    def __init__(self, paged: bool = False) -> None:
+        self._paged = paged
         self._keys: tuple[str, ...] | None = None
         self._cols: list[Any] = []
         self._slots = array("q")  # per row: >= 0 a column row, < 0 `-1 - k`, the k-th dict row
@@ -204,7 +284,7 @@ class TableBuilder:
         self._keys = tuple(k for k, kind in kinds.items() if kind is not None)
         if len(self._keys) != len(row):
             self._keys = ()  # a value of no known kind: every row is kept whole
-        self._cols = [_column(kinds[k], row[k]) for k in self._keys]  # type: ignore[arg-type]
+        self._cols = [_column(kinds[k], row[k], self._paged) for k in self._keys]  # type: ignore[arg-type]
 
     def _prepare(self, row: dict[str, Any]) -> list[Any] | None:
         """Each column's value of `row`, ready to push; None if the row does not fit the columns."""
@@ -219,7 +299,17 @@ class TableBuilder:
         return out
 
     def finish(self) -> ColumnTable:
-        return ColumnTable(self._keys or (), self._cols, self._slots, self._odd, self._hashes)
+        maps = [m for col in self._cols for m in _seal(col)]
+        return ColumnTable(self._keys or (), self._cols, self._slots, self._odd, self._hashes, maps)
+
+
+def _held(buffer: Any) -> int:
+    """Bytes of a column buffer held in memory (a mapped one: none)."""
+    if isinstance(buffer, (array, bytearray)):
+        return len(buffer) * (buffer.itemsize if isinstance(buffer, array) else 1)
+    if isinstance(buffer, memoryview) and not isinstance(buffer.obj, mmap.mmap):
+        return buffer.nbytes
+    return 0
 
 
 def _view(a: array) -> np.ndarray:
@@ -266,8 +356,9 @@ class ColumnTable(Mapping[str, dict[str, Any]]):
     order (-1 if absent); `positions_of_hashes(h)` the same for many `hash(token)` values at once."""
 
     def __init__(self, keys: tuple[str, ...], cols: list[Any], slots: array, odd: list[dict[str, Any]],
-                 hashes: array) -> None:
+                 hashes: array, maps: list[mmap.mmap] | None = None) -> None:
         self._keys, self._cols, self._odd = keys, cols, odd
+        self._maps = maps or []  # the paged columns' mappings (`release`)
         self._slots_a = slots  # indexed one row at a time (a Python int, no numpy scalar)
         self._slots = _view(slots)
         self._col_of = dict(zip(keys, cols, strict=True))
@@ -349,11 +440,16 @@ class ColumnTable(Mapping[str, dict[str, Any]]):
         out._col_of = dict(kept)
         return out
 
+    def release(self) -> None:
+        """Map out the paged columns' pages read so far (they stay in the page cache, and are mapped in
+        again when read): what the table holds in this process then is its index, slots and hashes."""
+        for mapped in self._maps:
+            mapped.madvise(mmap.MADV_DONTNEED)
+
     def __reduce__(self) -> tuple[Any, ...]:
         raise TypeError("a ColumnTable is indexed by this process's str hashes and is not sent to other processes")
 
     def nbytes(self) -> int:
         """Bytes held in columns and indexes (not counting the rows kept whole)."""
-        cols = sum(sum(a.buffer_info()[1] * a.itemsize for a in vars(c).values() if isinstance(a, array))
-                   + len(getattr(c, "buf", b"")) for c in self._cols)
+        cols = sum(_held(a) for c in self._cols for a in vars(c).values())
         return cols + self._slots.nbytes + self._index.nbytes + self._hashes.nbytes

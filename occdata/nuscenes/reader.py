@@ -167,6 +167,11 @@ class TableIndex:
     calib_cache: dict[tuple[str, bool], tuple[np.ndarray, np.ndarray | None]] = dc_field(
         default_factory=dict)
 
+    def release(self) -> None:
+        """Map out the pages of the big tables' columns read so far (`ColumnTable.release`)."""
+        for table in (self.samples, self.sample_data, self.ego_poses):
+            table.release()
+
     def keyframe_positions(self, sample_token: str) -> dict[str, int]:
         """The rig's channels -> the position in sample_data of that sample's keyframe row (in file
         order; absent ones left out)."""
@@ -225,6 +230,8 @@ def read_tables(root: Path, version: str, sweeps: bool, rig: RigChoice | None = 
     keyframes = _keyframes_by_sample(sample_data, samples, channel_of_calib)
     resolved = resolve_rig(modalities, keyframes.present(), choice)
     pose_hashes, n_lidar_rows = _pose_hashes(sample_data, channel_of_calib, resolved)
+    sample_data.release()  # the passes above read every row: map their pages out (ColumnTable.release)
+    samples.release()
     ego_poses = load_table(vdir / "ego_pose.json", keep=lambda r: _has_hash(pose_hashes, r.get("token")),
                            warn=notes.append, columns=True)
     return TableIndex(
@@ -407,6 +414,7 @@ def load_nuscenes(
             packed.add(_sample_record(idx, s_tok, scene.name, i, _prev_keys(idx, scene, i), check_files), scene)
             tokens.append(s_tok)
         scenes.append(scene)
+        idx.release()  # the scene's rows were read: their pages are the page cache's again
     packed.flush()
     absent = sorted(set(split_table) - {sc.name for sc in scenes})
     if absent:

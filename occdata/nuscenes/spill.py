@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import tempfile
 import threading
+import weakref
 from array import array
 from typing import Any
 
@@ -27,6 +28,7 @@ class Spill:
 
     def __init__(self) -> None:
         self._file = tempfile.TemporaryFile(prefix="occdata-spill-")
+        weakref.finalize(self, self._file.close)  # closed with the spill, not left to the file's own finaliser
         self._ends = array("Q")
         self._tail = bytearray()  # added, not yet written
         self._written = 0

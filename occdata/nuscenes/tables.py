@@ -257,7 +257,7 @@ def _checked_token(path: Path, row: dict[str, Any]) -> str:
 def _load_columns(path: Path, keep: Callable[[dict[str, Any]], bool] | None, warn: Callable[[str], None] | None,
                   tokens: TokenSet | None) -> ColumnTable:
     """`load_table` into a `ColumnTable`: the same checks, duplicates found by the tokens' hashes."""
-    builder = TableBuilder()
+    builder = TableBuilder(paged=True)  # the columns in temporary files: memory keeps ~32 bytes a row
     every = tokens if tokens is not None else TokenSet()
     for token, row in _kept_rows(path, keep, every):
         builder.append(token, row)
@@ -273,7 +273,7 @@ def _load_columns(path: Path, keep: Callable[[dict[str, Any]], bool] | None, war
 def _first_copies(table: ColumnTable) -> ColumnTable:
     """`table` without the later copies of a repeated token (identical rows: checked by the caller)."""
     seen: set[str] = set()
-    builder = TableBuilder()
+    builder = TableBuilder(paged=True)
     for _, row in table.rows():
         if row["token"] not in seen:
             seen.add(row["token"])
