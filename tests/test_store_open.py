@@ -241,3 +241,24 @@ def test_a_blocks_arrays_are_read_in_one_round_trip(tiled, monkeypatch) -> None:
     monkeypatch.setattr(zarr.storage.LocalStore, "get", slow_get)
     _first_sample(tiled[24])
     assert most[0] == len(data), most[0]
+
+
+def test_packed_copies_are_written_a_chunk_of_rows_at_a_time(tiled, tmp_path: Path, monkeypatch) -> None:
+    """Past `PACK_ROWS` samples a packed copy has several chunks (the commit holds one chunk of one array,
+    whatever the size): readers take it (its crc32 is the whole array's), and it equals the chunks."""
+    import occdata.store.pack as pack
+
+    store = tmp_path / "s.zarr"
+    shutil.copytree(tiled[24], store)
+    monkeypatch.setattr(pack, "PACK_ROWS", 5)
+    root = zarr.open_group(str(store), mode="r+")
+    write_pack(root)
+    consolidate(str(store))
+    root = zarr.open_group(str(store), mode="r")  # the metadata just consolidated
+    reader = open_store(store, packed=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a crc mismatch would warn and fall back to the chunks
+        for name in pack_names(root.attrs):
+            assert root[f"pack/{name}"].chunks[0] == 5, name
+            assert np.array_equal(reader.small(name), root[name][:]), name
+            assert reader._packed(name) is not None, name

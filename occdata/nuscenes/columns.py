@@ -27,6 +27,7 @@ import numpy as np
 
 __all__ = ["ColumnTable", "HashIndex", "TableBuilder", "TextColumn"]
 
+_RELEASE_EVERY = 1 << 16  # rows between two `ColumnTable.release` in a pass over every row (`positions`)
 _EXACT = 2**53  # integers up to this are exact in float64
 _NO = object()  # `prepare`: the value does not fit the column
 
@@ -406,7 +407,7 @@ class ColumnTable(Mapping[str, dict[str, Any]]):
     def hashes_of(self, key: str) -> np.ndarray:
         """`(len,) int64` `hash(row[key])` of each row, in file order (`hash(None)` where the row has no such
         field)."""
-        return np.fromiter((hash(self._value_or_none(p, key)) for p in range(len(self))), np.int64, len(self))
+        return np.fromiter((hash(self._value_or_none(p, key)) for p in self.positions()), np.int64, len(self))
 
     def _value_or_none(self, pos: int, key: str) -> Any:
         value = self.get_at(pos, key)
@@ -422,12 +423,12 @@ class ColumnTable(Mapping[str, dict[str, Any]]):
         return self.position(token) >= 0
 
     def __iter__(self) -> Iterator[str]:
-        for pos in range(len(self)):
+        for pos in self.positions():
             yield self.value_at(pos, "token")
 
     def rows(self) -> Iterator[tuple[int, dict[str, Any]]]:
         """`(position, row)` in file order, each row a new dict."""
-        for pos in range(len(self)):
+        for pos in self.positions():
             yield pos, self.row_at(pos)
 
     def without(self, keys: tuple[str, ...]) -> ColumnTable:
@@ -439,6 +440,14 @@ class ColumnTable(Mapping[str, dict[str, Any]]):
         out._keys, out._cols = tuple(k for k, _ in kept), [c for _, c in kept]
         out._col_of = dict(kept)
         return out
+
+    def positions(self) -> Iterator[int]:
+        """0, 1, ..., len - 1, the paged columns' pages mapped out after each `_RELEASE_EVERY` rows: a
+        pass over every row holds a bounded part of the table in this process."""
+        n = len(self)
+        for p0 in range(0, n, _RELEASE_EVERY):
+            yield from range(p0, min(p0 + _RELEASE_EVERY, n))
+            self.release()
 
     def release(self) -> None:
         """Map out the paged columns' pages read so far (they stay in the page cache, and are mapped in

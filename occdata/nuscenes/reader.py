@@ -215,7 +215,7 @@ def read_tables(root: Path, version: str, sweeps: bool, rig: RigChoice | None = 
     if not scenes:
         raise OccDataError(f"{vdir / 'scene.json'} holds no scenes: nothing to read")
     samples = load_table(vdir / "sample.json", warn=notes.append, columns=True)
-    for pos in range(len(samples)):  # every sample belongs to a scene of the tables
+    for pos in samples.positions():  # every sample belongs to a scene of the tables
         ref(scenes, field(samples.row_at(pos), "scene_token", "sample"), "scene",
             f"sample {samples.value_at(pos, 'token')!r}")
     channel_of_calib = _channels_of_calibs(calibs, sensors)
@@ -250,7 +250,7 @@ def _pose_hashes(sample_data: ColumnTable, channel_of_calib: dict[str, str], rig
     used, lidars = set(rig.channels), set(rig.lidars)
     hashes = array("q")
     n_lidar = 0
-    for pos in range(len(sample_data)):
+    for pos in sample_data.positions():
         channel = channel_of_calib[sample_data.value_at(pos, "calibrated_sensor_token")]
         if channel not in used:
             continue
@@ -314,7 +314,7 @@ def _check_links(sample_data: ColumnTable, every: TokenSet) -> None:
     a row that fails is found again in file order for the message."""
     n = len(sample_data)
     for key in ("prev", "next"):  # a missing or non-string link: the first such row, by name
-        for pos in range(n):
+        for pos in sample_data.positions():
             value = sample_data.get_at(pos, key, _MISSING)
             if type(value) is not str:
                 link(sample_data.row_at(pos), key, "sample_data")
@@ -349,7 +349,7 @@ def _keyframes_by_sample(sample_data: ColumnTable, samples: ColumnTable, channel
     channels = tuple(sorted(set(channel_of_calib.values())))
     code = {c: i for i, c in enumerate(channels)}
     out = np.full((len(samples), len(channels)), -1, dtype=np.int32)
-    for pos in range(len(sample_data)):
+    for pos in sample_data.positions():
         if not sample_data.get_at(pos, "is_key_frame", False):
             continue
         sd = sample_data.row_at(pos)
@@ -402,7 +402,7 @@ def load_nuscenes(
     notes = list(idx.notes)
     choice = splits or SplitChoice()
     split_table = choice.table()
-    samples_per_scene = Counter(idx.samples.get_at(p, "scene_token") for p in range(len(idx.samples)))
+    samples_per_scene = Counter(idx.samples.get_at(p, "scene_token") for p in idx.samples.positions())
     scenes: list[SceneRecord] = []
     tokens: list[str] = []
     packed = PackedSamples(idx.root)
