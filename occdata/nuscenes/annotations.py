@@ -243,15 +243,21 @@ class PackedBoxes(Mapping[str, tuple[BoxRecord, ...]]):
         return len(self._spill)
 
     def __iter__(self) -> Iterator[str]:
-        return (self._boxes(k)[0].sample_token for k in range(len(self)))
+        return (self._sample_of(k) for k in range(len(self)))
 
     def __getitem__(self, sample_token: str) -> tuple[BoxRecord, ...]:
         if isinstance(sample_token, str):
             for k in self._index.candidates(sample_token):
-                boxes = self._boxes(k)
-                if boxes[0].sample_token == sample_token:
-                    return boxes
+                if self._sample_of(k) == sample_token:
+                    return self._boxes(k)
         raise KeyError(sample_token)
+
+    def _sample_of(self, k: int) -> str:
+        """Blob k's sample token, from its first box's texts alone (no box made)."""
+        blob = self._spill.get(k)
+        token_n, instance_n, sample_n = np.frombuffer(blob, "<i4", 3, _BOX.itemsize).tolist()
+        at = _BOX_HEAD + token_n + instance_n
+        return blob[at:at + sample_n].decode("utf-8", _TEXT)
 
     def _boxes(self, k: int) -> tuple[BoxRecord, ...]:
         out = []
