@@ -27,6 +27,7 @@ from occdata.geometry import transform_from_pose
 from occdata.nuscenes.columns import ColumnTable, HashIndex
 from occdata.nuscenes.records import LidarRecord, NuScenesDataset
 from occdata.nuscenes.rows import RowProblem, field, floats, integer, ref, short, timestamp_us
+from occdata.nuscenes.spill import TEXT_ERRORS as _TEXT
 from occdata.nuscenes.spill import Spill
 from occdata.nuscenes.tables import TokenSet, iter_table_rows, load_table
 
@@ -205,7 +206,6 @@ _BOX = np.dtype([("translation", "<f8", (3,)), ("size", "<f8", (3,)), ("rotation
                  ("timestamp", "<i8"), ("num_lidar_pts", "<i8")])
 _TEXTS = 5  # a box's texts: token, instance_token, sample_token, prev, next
 _BOX_HEAD = _BOX.itemsize + 4 * _TEXTS  # a box blob's fixed part: its numbers, then its texts' byte lengths
-_TEXT = "surrogatepass"  # a JSON "\ud800" survives the round trip
 
 
 def _box_blob(numbers: np.void, texts: tuple[str, ...]) -> bytes:

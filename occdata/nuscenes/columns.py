@@ -71,19 +71,20 @@ class _Paged:
 
     def append(self, value: Any) -> None:
         self.tail.append(value)
-        if len(self.tail) * self.tail.itemsize >= self._FLUSH:
-            self._write()
+        self._write_if_full()
 
     def extend(self, values: Any) -> None:
         self.tail.extend(values)
-        if len(self.tail) * self.tail.itemsize >= self._FLUSH:
-            self._write()
+        self._write_if_full()
 
     def __iadd__(self, data: bytes) -> _Paged:
         self.tail.frombytes(data)
-        if len(self.tail) >= self._FLUSH:
-            self._write()
+        self._write_if_full()
         return self
+
+    def _write_if_full(self) -> None:
+        if len(self.tail) * self.tail.itemsize >= self._FLUSH:
+            self._write()
 
     def _write(self) -> None:
         if self._file is None:

@@ -20,13 +20,13 @@ from pathlib import Path
 import numpy as np
 
 from occdata.nuscenes.records import CameraRecord, LidarRecord, SampleRecord, SceneRecord
+from occdata.nuscenes.spill import TEXT_ERRORS as _TEXT
 from occdata.nuscenes.spill import Spill
 
 __all__ = ["PackedSamples"]
 
 _ROW = np.dtype([("pose", "<f8", (12,)), ("timestamp", "<i8"), ("calib", "<i4"), ("channel", "<i4"),
                  ("width", "<i4"), ("height", "<i4")])  # pose: T_global_from_ego[:3, :4]
-_TEXT = "surrogatepass"  # a JSON "\ud800" survives the round trip, as in the tables
 
 
 class PackedSamples:

@@ -16,7 +16,10 @@ import weakref
 from array import array
 from typing import Any
 
-__all__ = ["Spill"]
+__all__ = ["TEXT_ERRORS", "Spill"]
+
+# How blobs encode their texts: UTF-8, a lone surrogate (JSON "\ud800", which the tables allow) kept.
+TEXT_ERRORS = "surrogatepass"
 
 _BUFFER = 1 << 20  # appends are written in batches of about this many bytes
 
