@@ -40,7 +40,7 @@ from tqdm import tqdm
 
 from occdata.errors import OccDataError
 from occdata.runtime.allocator import ALLOCATOR_ENV
-from occdata.runtime.tasks import ZARR_POOL_ENV, Task, TaskFailed, run_on_worker, worker_setup
+from occdata.runtime.tasks import ZARR_POOL_ENV, Task, TaskFailed, pickle_task, run_pickled_on_worker, worker_setup
 
 if TYPE_CHECKING:  # distributed is imported lazily: `occdata` commands that do not run tasks stay light
     from distributed import Client, Future
@@ -326,7 +326,7 @@ def _run_on(client: Client, queue: _Queue, stop: _StopSignals, bar: tqdm, on_res
 
 def _submit(client: Client, item: tuple[Any, int], addr: str, desc: str) -> Future:
     try:
-        return client.submit(run_on_worker, item[0], pure=False, priority=item[1])
+        return client.submit(run_pickled_on_worker, pickle_task(item[0]), pure=False, priority=item[1])
     except (Exception, asyncio.CancelledError) as exc:  # the task is pickled here: its errors come too
         if _is_infrastructure(exc):  # a closed client: nothing of the task's own ran yet
             raise _lost(addr, _reason(exc)) from None
