@@ -20,7 +20,7 @@ import pytest
 from conftest import REAL_SEQ, missing_fixture
 
 from occdata.errors import OccDataError
-from occdata.nuscenes import Annotations, BoxRecord, boxes_for_lidar, load_annotations, load_nuscenes
+from occdata.nuscenes import Annotations, BoxRecord, boxes_for_lidar, load_annotations, load_nuscenes, tables
 from occdata.nuscenes.annotations import slerp_wxyz
 
 needs_devkit = pytest.mark.skipif(
@@ -176,7 +176,11 @@ def test_boxes_for_lidar_on_real_sweeps_without_devkit(seq_root: Path, real_ann:
     assert "\n" not in str(info.value)
 
 
-def test_identical_duplicate_is_kept_once_and_arrays_are_read_only(seq_root: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("spilled", [False, True])
+def test_identical_duplicate_is_kept_once_and_arrays_are_read_only(seq_root: Path, tmp_path: Path, spilled: bool,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    if spilled:
+        monkeypatch.setattr(tables, "_SET_IN_MEMORY", 3)
     root = _copy_tables(seq_root, tmp_path)
     _edit(root, "sample_annotation", lambda rows: rows.append(dict(rows[5])))
     ann = load_annotations(root, "v1.0-mini")
@@ -287,8 +291,13 @@ BROKEN = {
 }
 
 
+@pytest.mark.parametrize("spilled", [False, True])
 @pytest.mark.parametrize("case", sorted(BROKEN))
-def test_broken_tables_are_one_line_errors(seq_root: Path, tmp_path: Path, case: str) -> None:
+def test_broken_tables_are_one_line_errors(seq_root: Path, tmp_path: Path, case: str, spilled: bool,
+                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same errors with the tables' token sets held or spilled to disk (as past 2**18 rows)."""
+    if spilled:
+        monkeypatch.setattr(tables, "_SET_IN_MEMORY", 3)
     table, fn, message = BROKEN[case]
     root = _copy_tables(seq_root, tmp_path)
     _edit(root, table, fn)

@@ -14,6 +14,8 @@ import os
 import pickle
 import subprocess
 import sys
+import tracemalloc
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -45,11 +47,12 @@ def _same(a: Any, b: Any) -> bool:
 @pytest.fixture(params=["memory", "paged"])
 def paging(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
     """Tables as read (their columns paged out past a MiB: the real ones are smaller), or with every
-    column paged to its temporary file after 64 bytes."""
-    from occdata.nuscenes import columns
+    column paged to its temporary file after 64 bytes and every token set spilled after 7 tokens."""
+    from occdata.nuscenes import columns, tables
 
     if request.param == "paged":
         monkeypatch.setattr(columns._Paged, "_FLUSH", 64)
+        monkeypatch.setattr(tables, "_SET_IN_MEMORY", 7)
     return str(request.param)
 
 
@@ -121,6 +124,43 @@ def test_hash_lookups_answer_many_tokens_at_once(real_seq_root: Path) -> None:
         assert (p >= 0) == any(r["token"] == t and r["is_key_frame"] for r in rows)
     found = every.has_hashes(np.array([hash(t) for t in tokens] + [hash("nope")]))
     assert found.tolist() == [True] * len(tokens) + [False]
+
+
+@pytest.mark.parametrize("in_memory", [1, 50, 1 << 20])
+def test_a_token_set_answers_the_same_spilled_or_held(in_memory: int) -> None:
+    rng = np.random.default_rng(3)
+    tokens = [f"{rng.integers(1 << 62):x}" for _ in range(700)]
+    tokens += [tokens[i] for i in (5, 5, 17, 699)]  # repeats: 5 three times
+    every = TokenSet(in_memory)
+    for t in tokens:
+        every.add(t)
+    counts = Counter(hash(t) for t in tokens)
+    assert every.repeated() == {h for h, c in counts.items() if c > 1} and len(every.repeated()) == 3
+    queries = tokens[::3] + [f"absent-{i}" for i in range(300)]
+    truth = [q in set(tokens) for q in queries]
+    assert every.has_hashes(np.array([hash(q) for q in queries], dtype=np.int64)).tolist() == truth
+    assert [q in every for q in queries[:40] + queries[-40:]] == truth[:40] + truth[-40:]
+    assert every.hits(queries) == [q for q, t in zip(queries, truth, strict=True) if t]
+    every.add("late")  # added after the queries: seen by the next ones
+    assert "late" in every and every.has_hashes(np.zeros(0, np.int64)).tolist() == []
+
+
+def test_a_large_token_set_holds_its_hashes_on_disk() -> None:
+    """A million tokens: 8 MB of hashes held in memory before (24 MB while `repeated` sorted them); now
+    2**14 at most (128 KiB) and the spill's 1 MiB write buffer, the rest in 64 buckets on disk, and a
+    query reads one bucket at a time."""
+    every = TokenSet(1 << 14)
+    tracemalloc.start()
+    for i in range(1_000_000):
+        every.add(f"tok-{i}")
+    held = tracemalloc.get_traced_memory()[0]
+    found = every.has_hashes(np.array([hash("tok-7"), hash("tok-999999"), hash("tok-1000000")], dtype=np.int64))
+    repeated = every.repeated()
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert found.tolist() == [True, True, False] and repeated == set()
+    assert held < 2_000_000, held
+    assert peak < 3_000_000, peak  # one bucket (~15,600 hashes) and its sort, not the whole set
 
 
 def _assert_same_record(a: Any, b: Any, where: str = "") -> None:

@@ -408,10 +408,10 @@ class _BoxReader:
             token_h[list(self._dropped)] = hash("")
         order = np.argsort(token_h)
         sorted_h = token_h[order]
-        every = self._every.sorted_hashes()
+        in_table = {link: self._every.has_hashes(h[link]) for link in ("prev", "next")}  # one pass each
         for k0 in range(0, len(token_h), 8 * _CHUNK):
             rows = slice(k0, k0 + 8 * _CHUNK)
-            bad = {link: self._track_faults(h, rows, link, back, sorted_h, order, every)
+            bad = {link: self._track_faults(h, rows, link, back, sorted_h, order, in_table[link][rows])
                    for link, back in (("prev", "next"), ("next", "prev"))}
             for k in (k0 + np.flatnonzero(bad["prev"] | bad["next"])).tolist():  # in row order, prev before next
                 if k in self._dropped:
@@ -422,16 +422,15 @@ class _BoxReader:
 
     @staticmethod
     def _track_faults(h: dict[str, np.ndarray], rows: slice, link: str, back: str, sorted_h: np.ndarray,
-                      order: np.ndarray, every: np.ndarray) -> np.ndarray:
+                      order: np.ndarray, in_table: np.ndarray) -> np.ndarray:
         """`(len(rows),) bool`: the rows whose `link` may be wrong, on the hashes: naming no kept box and
-        no token of the table, or a kept box of another instance, or one whose `back` is not this row."""
+        no token of the table (`in_table`: `(len(rows),) bool`, whether the link's hash is a token of the
+        table), or a kept box of another instance, or one whose `back` is not this row."""
         linked = h[link][rows]
         has = linked != hash("")
         i = np.minimum(np.searchsorted(sorted_h, linked), max(len(sorted_h) - 1, 0))
         found = has & (sorted_h[i] == linked) if len(sorted_h) else np.zeros(len(linked), bool)
         q = order[i] if len(order) else np.zeros(len(linked), np.int64)
-        j = np.minimum(np.searchsorted(every, linked), max(len(every) - 1, 0))
-        in_table = (every[j] == linked) if len(every) else np.zeros(len(linked), bool)
         return (has & ~found & ~in_table) | (found & ((h["instance"][q] != h["instance"][rows])
                                                       | (h[back][q] != h["token"][rows])))
 
