@@ -143,18 +143,21 @@ def measure(code: Path, spec: dict[str, Any]) -> dict[str, Any]:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def _tree(trees: Path, n: int, scene_samples: int = 0, boxes: int = 0) -> Path:
+def _tree(trees: Path, n: int, scene_samples: int = 0, boxes: int = 0, other_rows: int = 0) -> Path:
     """The replayed tree of `n` samples (2 scenes, or scenes of `scene_samples`; `boxes` tracked boxes
-    per scene, one annotation each per sample), made once."""
+    per scene, one annotation each per sample; `other_rows` sample_data rows a sample that no command
+    keeps), made once."""
     from benchmarks.common import SHARED_DATA
     from tests.replicated_tree import make_replicated_tree
 
-    root = trees / (f"replay{n}" + (f"_s{scene_samples}" if scene_samples else "") + (f"_b{boxes}" if boxes else ""))
+    root = trees / (f"replay{n}" + (f"_s{scene_samples}" if scene_samples else "") + (f"_b{boxes}" if boxes else "")
+                    + (f"_o{other_rows}" if other_rows else ""))
     if not (root / "v1.0-mini" / "scene.json").is_file():
         shutil.rmtree(root, ignore_errors=True)
         label = next((SHARED_DATA / "occ3d-label").glob("*/labels.npz"))
         per = scene_samples or n // 2
-        make_replicated_tree(SHARED_DATA / "nuscenes-real", label, root, n // per, per, boxes=boxes)
+        make_replicated_tree(SHARED_DATA / "nuscenes-real", label, root, n // per, per, boxes=boxes,
+                              other_rows=other_rows)
     return root
 
 
@@ -183,6 +186,8 @@ def main() -> None:
                     help="scenes of K samples (nuScenes: ~40) instead of 2 scenes of n/2 (a labels task holds a scene)")
     ap.add_argument("--boxes", type=int, default=0, metavar="B",
                     help="B tracked boxes per scene, one annotation each per sample (nuScenes: ~34 a keyframe)")
+    ap.add_argument("--other-rows", type=int, default=0, metavar="R",
+                    help="R more sample_data rows (and ego poses) a sample that no command keeps (nuScenes: ~70)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -205,7 +210,7 @@ def main() -> None:
     runs: dict[str, Any] = {name: {c: {} for c in commands} for name in codes}
     try:
         for n in args.sizes:
-            root = _tree(trees, n, args.scene_samples, args.boxes)
+            root = _tree(trees, n, args.scene_samples, args.boxes, args.other_rows)
             for command in ["plan"] if n in args.plan_only else args.commands:
                 for name, code in codes.items():
                     out = work / f"{name}_{command}_{n}" / ("data.zarr" if command == "build" else "")
@@ -218,7 +223,8 @@ def main() -> None:
         shutil.rmtree(work, ignore_errors=True)
     slopes = {name: {c: _slopes(r, args.sizes) for c, r in per.items()} for name, per in runs.items()}
     emit_json({"machine": finish(record), "sizes": args.sizes, "scene_samples": args.scene_samples or "n/2",
-               "boxes_per_scene": args.boxes, "runs": runs, "kib_per_sample": slopes}, args.json)
+               "boxes_per_scene": args.boxes,
+               "other_rows_per_sample": args.other_rows, "runs": runs, "kib_per_sample": slopes}, args.json)
 
 
 if __name__ == "__main__":

@@ -19,11 +19,14 @@ def _tok(*parts: object) -> str:
 
 def make_replicated_tree(
     real_root: Path, label_file: Path, out: Path, n_scenes: int = 2, n_samples: int = 5, labels: bool = True,
-    boxes: int = 0,
+    boxes: int = 0, other_rows: int = 0,
 ) -> Path:
     """`n_scenes` scenes of `n_samples` replays each under `out`; with `boxes`, that many tracked
     objects per scene, one sample_annotation row each per sample (for the tables' size, not a scene's
-    truth: fixed boxes beside the road, moving 1 m per sample)."""
+    truth: fixed boxes beside the road, moving 1 m per sample); with `other_rows`, that many more
+    sample_data rows per sample, each with its ego_pose row, that no command keeps (non-keyframe camera
+    rows, unlinked: nuScenes has ~70 such rows a keyframe, camera sweeps at 12 Hz and radars), for the
+    tables' size."""
     real_root, label_file = real_root.resolve(), label_file.resolve()
     src = real_root / "v1.0-mini"
     tables = {t: json.loads((src / f"{t}.json").read_text()) for t in (
@@ -55,6 +58,14 @@ def make_replicated_tree(
                 poses.append(pose)
                 sds.append({**sd, "token": _tok("sd", tok, sd["token"]), "sample_token": tok,
                             "ego_pose_token": pose["token"], "timestamp": sd["timestamp"] + dt})
+            cams = [sd for sd in sds[-len(base_sd):] if sd["fileformat"] == "jpg"]
+            for j in range(other_rows if cams else 0):
+                sd = cams[j % len(cams)]
+                pose = {**poses[-len(base_sd)], "token": _tok("pose-other", tok, j),
+                        "timestamp": sd["timestamp"] + 1000 * (j + 1)}
+                poses.append(pose)
+                sds.append({**sd, "token": _tok("sd-other", tok, j), "ego_pose_token": pose["token"],
+                            "timestamp": pose["timestamp"], "is_key_frame": False, "prev": "", "next": ""})
             if labels:
                 label_dir = out / "gts" / name / tok
                 label_dir.mkdir(parents=True, exist_ok=True)
