@@ -1,10 +1,11 @@
 """Is what a reader got from the store what the builder wrote? Chunk presence and checksums.
 
-zarr returns the fill value for a chunk that is not stored, without a word. The builder writes
-with zarr's default `write_empty_chunks=False`, so a chunk that holds only fill values is
-legitimately absent (labels of unlabelled samples, `labels/present` of an unlabelled block). A
-stored per-sample checksum tells the two cases apart: an absent chunk is fine exactly when every
-committed sample in it has the checksum of a fill row for that array. Rules:
+zarr returns the fill value for a chunk that is not stored, without a word. The builder stores
+chunks as zarr's default `write_empty_chunks=False` does (`occdata.store.blocks._write_rows`), so a
+chunk that holds only fill values is legitimately absent (labels of unlabelled samples,
+`labels/present` of an unlabelled block). A stored per-sample checksum tells the two cases apart:
+an absent chunk is fine exactly when every committed sample in it has the checksum of a fill row for
+that array. Rules:
 
 - checksummed per-sample arrays: chunk (or shard) absent -> each committed sample in it must
   have the fill row's checksum. A missing inner chunk inside a present shard reads as fill too;
