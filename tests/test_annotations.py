@@ -12,6 +12,7 @@ import json
 import os
 import shutil
 import subprocess
+import tracemalloc
 from collections import Counter
 from pathlib import Path
 
@@ -322,3 +323,45 @@ def test_missing_annotation_tables(seq_root: Path, tmp_path: Path) -> None:
     assert ann.boxes_by_sample == {} and ann.instance_category == {}
     ds = load_nuscenes(root, sweeps=True)
     assert boxes_for_lidar(ann, ds, 3, ds.samples[3].sweeps[0]) == ()
+
+
+def test_the_first_broken_row_is_named_first(seq_root: Path, tmp_path: Path) -> None:
+    """Faults found bucket by bucket are named in row order, prev before next within a row."""
+    root = _copy_tables(seq_root, tmp_path)
+
+    def two_faults(rows: list[dict]) -> None:
+        mids = [r for r in rows if r["prev"] and r["next"]]
+        mids[-1].update(prev="f" * 32)  # a late row
+        mids[3].update(next="e" * 32, prev="d" * 32)  # an earlier row, both links broken
+
+    _edit(root, "sample_annotation", two_faults)
+    with pytest.raises(OccDataError, match=f"prev '{'d' * 32}' is not in sample_annotation.json"):
+        load_annotations(root, "v1.0-mini")
+
+
+def test_boxes_hashes_are_held_on_disk(monkeypatch: pytest.MonkeyPatch) -> None:
+    """100,000 boxes: the hashes their checks need (5 a box) were 40 bytes a box in memory (4 MB); now
+    in bucket files, and memory keeps 8 bytes a box (its blob's end) and the files' write buffers (made
+    small here: they are constants)."""
+    from occdata.nuscenes import annotations, spill
+
+    monkeypatch.setattr(annotations, "_BUCKET_ROWS", 2048)
+    monkeypatch.setattr(spill, "_BUFFER", 1 << 16)
+    monkeypatch.setattr(tables, "_SET_IN_MEMORY", 4096)
+    samples = {f"s{i}": {"timestamp": 1_000_000 + i} for i in range(1000)}
+    reader = annotations._BoxReader(samples, {f"i{i}": "car" for i in range(1000)})  # type: ignore[arg-type]
+    n, chunk = 100_000, 10_000
+    rows = [[{"token": f"t{k}", "sample_token": f"s{k % 1000}", "instance_token": f"i{k % 1000}",
+              "translation": [1.0, 2.0, 3.0], "size": [1.0, 2.0, 1.5], "rotation": [1.0, 0.0, 0.0, 0.0],
+              "num_lidar_pts": 3, "prev": "", "next": ""} for k in range(c0, c0 + chunk)] for c0 in range(0, n, chunk)]
+    reader._add(rows[0])  # the buffers and caches made once
+    tracemalloc.start()
+    base = tracemalloc.get_traced_memory()[0]
+    for part in rows[1:]:
+        reader._add(part)
+    held = tracemalloc.get_traced_memory()[0] - base
+    tracemalloc.stop()
+    assert held < 8 * n + 600_000, held  # before: > 40 * n
+    boxes = reader.packed()
+    assert len(boxes) == 1000 and len(boxes["s7"]) == n // 1000
+    assert [b.token for b in boxes["s7"][:3]] == ["t7", "t1007", "t2007"]

@@ -145,6 +145,24 @@ def test_a_token_set_answers_the_same_spilled_or_held(in_memory: int) -> None:
     assert "late" in every and every.has_hashes(np.zeros(0, np.int64)).tolist() == []
 
 
+def test_a_bucket_spill_gives_each_bucket_its_rows_in_order() -> None:
+    from occdata.nuscenes.spill import BUCKETS, BucketSpill, bucket_of
+
+    dtype = np.dtype([("k", "<i8"), ("h", "<i8")])
+    rng = np.random.default_rng(5)
+    rows = np.zeros(5000, dtype)
+    rows["k"] = np.arange(5000)
+    rows["h"] = rng.integers(-(1 << 63), (1 << 63) - 1, 5000, dtype=np.int64)
+    spilled = BucketSpill(dtype, "h", in_memory=300)
+    for c0 in range(0, 5000, 700):
+        spilled.add(rows[c0:c0 + 700])
+    got = [spilled.bucket(b) for b in range(BUCKETS)]
+    for b, part in enumerate(got):
+        np.testing.assert_array_equal(part, rows[bucket_of(rows["h"]) == b])  # its rows, in the order added
+    assert sum(map(len, got)) == 5000 and sum(len(p) > 0 for p in got) == BUCKETS
+    assert bucket_of(np.array([-1, 0, (1 << 63) - 1], np.int64)).tolist() == [63, 0, 31]
+
+
 def test_a_large_token_set_holds_its_hashes_on_disk() -> None:
     """A million tokens: 8 MB of hashes held in memory before (24 MB while `repeated` sorted them); now
     2**14 at most (128 KiB) and the spill's 1 MiB write buffer, the rest in 64 buckets on disk, and a

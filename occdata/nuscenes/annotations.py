@@ -27,8 +27,8 @@ from occdata.geometry import transform_from_pose
 from occdata.nuscenes.columns import ColumnTable, HashIndex
 from occdata.nuscenes.records import LidarRecord, NuScenesDataset
 from occdata.nuscenes.rows import RowProblem, field, floats, integer, ref, short, timestamp_us
+from occdata.nuscenes.spill import BUCKETS, BucketSpill, Spill
 from occdata.nuscenes.spill import TEXT_ERRORS as _TEXT
-from occdata.nuscenes.spill import Spill
 from occdata.nuscenes.tables import TokenSet, iter_table_rows, load_table
 
 __all__ = ["MOVING_TRAVEL_M", "Annotations", "BoxRecord", "box_velocity", "boxes_for_lidar", "load_annotations",
@@ -281,7 +281,7 @@ def load_annotations(root: Path, version: str, sample_tokens: Collection[str] | 
     `Annotations`. The box arrays are read-only.
 
     The boxes are streamed (`_BoxReader`): checked a chunk of rows at a time and written to a spill
-    file; what stays in memory while reading is ~60 bytes a box (the hashes the track checks need).
+    file, their hashes in bucket files; what stays in memory is 8 bytes a box and one bucket.
 
     Raises `OccDataError`, one line naming the table and token, on a broken tree: one of the two
     tables without the other, a sample_token / instance_token / category_token that is not in its
@@ -310,18 +310,29 @@ _VALUES = ("translation", "size", "rotation", "num_lidar_pts")
 _CHUNK = 8192  # rows checked together (vectorised number checks), then written
 
 
+_TRACK = np.dtype([("k", "<i8"), ("token", "<i8"), ("instance", "<i8"), ("prev", "<i8"), ("next", "<i8")])
+_GROUP = np.dtype([("k", "<i8"), ("sample", "<i8")])
+_LINKS = (("prev", "next"), ("next", "prev"))  # a link and the one that must point back
+_BUCKET_ROWS = 1 << 16  # box hashes held in memory before they go to their bucket files
+
+
 class _BoxReader:
     """The rows of sample_annotation.json, streamed: each chunk of kept rows is checked (references,
-    numbers) and each box written to a spill file as it comes; per box, the hashes of its token,
-    instance, sample, prev and next stay in memory for the checks that need every row (duplicates,
-    tracks), then `packed()` regroups the boxes by sample into a second spill."""
+    numbers) and each box written to a spill file as it comes (box k: the k-th kept row). The checks that
+    need every row (duplicates, tracks) and the regrouping by sample run on the boxes' hashes, kept on
+    disk in buckets: by instance for the tracks (a track's boxes share a bucket), by sample for
+    `packed()`. Memory holds 8 bytes a box (its blob's end) and one bucket at a time (1/64 of the boxes),
+    not ~60 bytes a box."""
 
     def __init__(self, sample_rows: ColumnTable, instance_category: dict[str, str]) -> None:
         self._sample_rows, self._category = sample_rows, instance_category
         self._sample_ts: dict[str, int] = {}  # per sample with boxes: its timestamp (us)
         self._rows = Spill()  # box k's blob
-        self._h = {key: array("q") for key in ("token", "instance", "sample", "prev", "next")}
-        self._every = TokenSet()
+        self._by_instance = BucketSpill(_TRACK, "instance", _BUCKET_ROWS)
+        self._by_sample = BucketSpill(_GROUP, "sample", _BUCKET_ROWS)
+        self._every = TokenSet()  # every row's token
+        self._kept = TokenSet()  # the kept boxes' tokens
+        self._n = 0
         self._dropped: set[int] = set()  # later identical copies of a repeated token
 
     def read(self, path: Path, wanted: set[str] | None) -> None:
@@ -345,7 +356,7 @@ class _BoxReader:
         self._check_tracks()
 
     def _add(self, rows: list[dict[str, Any]]) -> None:
-        """Check a chunk of rows and write their boxes."""
+        """Check a chunk of rows and write their boxes and their hashes."""
         if not rows:
             return
         boxes = np.zeros(len(rows), dtype=_BOX)
@@ -354,12 +365,18 @@ class _BoxReader:
         for key in ("translation", "size", "rotation"):
             boxes[key] = _numbers(tokens, [r[key] for r in rows], key)
         boxes["num_lidar_pts"] = _counts(tokens, [r["num_lidar_pts"] for r in rows])
-        for r, b in zip(rows, boxes, strict=True):
+        track, group = np.zeros(len(rows), _TRACK), np.zeros(len(rows), _GROUP)
+        track["k"] = group["k"] = np.arange(self._n, self._n + len(rows))
+        self._n += len(rows)
+        for i, (r, b) in enumerate(zip(rows, boxes, strict=True)):
             links = [_track_link(r, link) for link in ("prev", "next")]
             texts = (r["token"], r["instance_token"], r["sample_token"], *links)
             self._rows.add(_box_blob(b, texts))
-            for key, text in zip(self._h, texts, strict=True):
-                self._h[key].append(hash(text))
+            self._kept.add(r["token"])
+            track[i] = (track["k"][i], hash(texts[0]), hash(texts[1]), hash(texts[3]), hash(texts[4]))
+            group["sample"][i] = hash(texts[2])
+        self._by_instance.add(track)
+        self._by_sample.add(group)
 
     def _timestamp(self, row: dict[str, Any]) -> int:
         """Check the row's instance and sample exist; the sample's timestamp (us)."""
@@ -382,14 +399,22 @@ class _BoxReader:
         blob = self._rows.get(k)
         return blob, next(_parse_boxes(blob))[1]
 
+    def _boxes_with_token_hash(self, hashes: np.ndarray) -> list[int]:
+        """The boxes (k, ascending) whose token hash is one of `hashes` `(m,) int64` (one pass over the
+        buckets: for the rare rows that repeat a token or fail a check)."""
+        out: list[int] = []
+        for b in range(BUCKETS):
+            rows = self._by_instance.bucket(b)
+            out.extend(rows["k"][np.isin(rows["token"], hashes)].tolist())
+        return sorted(out)
+
     def _drop_copies(self, path: Path) -> None:
         """A token kept twice: the later identical copies are dropped; differing copies are an error."""
         repeated = self._every.repeated()
         if not repeated:
             return
-        token_h = np.frombuffer(self._h["token"], np.int64) if self._h["token"] else np.zeros(0, np.int64)
         first: dict[str, bytes] = {}
-        for k in np.flatnonzero(np.isin(token_h, np.fromiter(repeated, np.int64, len(repeated)))).tolist():
+        for k in self._boxes_with_token_hash(np.fromiter(repeated, np.int64, len(repeated))):
             blob, texts = self._box(k)
             seen = first.setdefault(texts[0], blob)
             if seen is not blob:
@@ -399,48 +424,47 @@ class _BoxReader:
                 self._dropped.add(k)
 
     def _check_tracks(self) -> None:
-        """Every prev/next names a box of the table, of the same instance, that links back (on the hashes,
-        `_CHUNK` rows at a time against the sorted token hashes; a row that fails is read back and named)."""
-        h = {key: np.frombuffer(a, np.int64) if a else np.zeros(0, np.int64) for key, a in self._h.items()}
-        token_h = h["token"]
-        if self._dropped:  # later identical copies are no box: "" is no box's token
-            token_h = token_h.copy()
-            token_h[list(self._dropped)] = hash("")
-        order = np.argsort(token_h)
-        sorted_h = token_h[order]
-        in_table = {link: self._every.has_hashes(h[link]) for link in ("prev", "next")}  # one pass each
-        for k0 in range(0, len(token_h), 8 * _CHUNK):
-            rows = slice(k0, k0 + 8 * _CHUNK)
-            bad = {link: self._track_faults(h, rows, link, back, sorted_h, order, in_table[link][rows])
-                   for link, back in (("prev", "next"), ("next", "prev"))}
-            for k in (k0 + np.flatnonzero(bad["prev"] | bad["next"])).tolist():  # in row order, prev before next
-                if k in self._dropped:
-                    continue
-                for link, back in (("prev", "next"), ("next", "prev")):
-                    if bad[link][k - k0]:
-                        self._name_track_fault(k, link, back)
+        """Every prev/next names a box of the table, of the same instance, that links back. On the
+        hashes, one instance bucket at a time (a box's track partners share its bucket; a link to a kept
+        box of another bucket is a box of another instance); the rows that may be wrong are then read
+        back and named, in row order, prev before next."""
+        suspects: list[tuple[int, int]] = []  # (k, 0 for prev / 1 for next)
+        for b in range(BUCKETS):
+            rows = self._by_instance.bucket(b)
+            if self._dropped:  # later identical copies are no box: not checked, "" is no box's token
+                rows = rows[~np.isin(rows["k"], np.fromiter(self._dropped, np.int64, len(self._dropped)))]
+            for j, (link, back) in enumerate(_LINKS):
+                for k in rows["k"][self._track_faults(rows, link, back)].tolist():
+                    suspects.append((k, j))
+        for k, j in sorted(suspects):
+            self._name_track_fault(k, *_LINKS[j])
 
-    @staticmethod
-    def _track_faults(h: dict[str, np.ndarray], rows: slice, link: str, back: str, sorted_h: np.ndarray,
-                      order: np.ndarray, in_table: np.ndarray) -> np.ndarray:
-        """`(len(rows),) bool`: the rows whose `link` may be wrong, on the hashes: naming no kept box and
-        no token of the table (`in_table`: `(len(rows),) bool`, whether the link's hash is a token of the
-        table), or a kept box of another instance, or one whose `back` is not this row."""
-        linked = h[link][rows]
+    def _track_faults(self, rows: np.ndarray, link: str, back: str) -> np.ndarray:
+        """`(len(rows),) bool`: the rows (`_TRACK`, one instance bucket) whose `link` may be wrong, on the
+        hashes: naming no token of the table, or a kept box of another instance, or one whose `back` is
+        not this row."""
+        linked = rows[link]
         has = linked != hash("")
+        order = np.argsort(rows["token"], kind="stable")
+        sorted_h = rows["token"][order]
         i = np.minimum(np.searchsorted(sorted_h, linked), max(len(sorted_h) - 1, 0))
         found = has & (sorted_h[i] == linked) if len(sorted_h) else np.zeros(len(linked), bool)
         q = order[i] if len(order) else np.zeros(len(linked), np.int64)
-        return (has & ~found & ~in_table) | (found & ((h["instance"][q] != h["instance"][rows])
-                                                      | (h[back][q] != h["token"][rows])))
+        wrong_box = found & ((rows["instance"][q] != rows["instance"]) | (rows[back][q] != rows["token"]))
+        elsewhere = has & ~found
+        bad = wrong_box.copy()
+        if elsewhere.any():  # a kept box of another bucket (instance), or no token of the table
+            kept = self._kept.has_hashes(linked[elsewhere])
+            bad[elsewhere] = kept | ~self._every.has_hashes(linked[elsewhere])
+        return bad
 
     def _name_track_fault(self, k: int, link: str, back: str) -> None:
         """Raise the error for box k's `link`, found on the hashes, if the texts confirm it."""
         _, (token, instance, _, prev, nxt) = self._box(k)
         other = prev if link == "prev" else nxt
         where = f"sample_annotation.json: row {token!r} {link}"
-        q = next((int(p) for p in np.flatnonzero(np.frombuffer(self._h["token"], np.int64) == hash(other))
-                  if int(p) not in self._dropped and self._box(int(p))[1][0] == other), -1)
+        q = next((p for p in self._boxes_with_token_hash(np.array([hash(other)], np.int64))
+                  if p not in self._dropped and self._box(p)[1][0] == other), -1)
         if q < 0:
             if other not in self._every:
                 raise OccDataError(f"{where} {other!r} is not in sample_annotation.json")
@@ -453,26 +477,36 @@ class _BoxReader:
             raise OccDataError(f"{where} is {other!r}, but that row's {back} is {other_back!r}")
 
     def packed(self) -> PackedBoxes:
-        """The boxes regrouped by sample (samples in the order of their first box, boxes in table order)."""
-        sample_h = np.frombuffer(self._h["sample"], np.int64) if self._h["sample"] else np.zeros(0, np.int64)
-        self._h = {}  # the track hashes are done with
-        out, hashes = Spill(), array("q")
-        if len(sample_h):
-            order = np.argsort(sample_h, kind="stable")
-            starts = np.flatnonzero(np.r_[True, np.diff(sample_h[order]) != 0])
-            ends = np.r_[starts[1:], len(order)]
-            for g in np.argsort(order[starts], kind="stable"):  # by first row (the sort is stable)
+        """The boxes regrouped by sample (samples in the order of their first box, boxes in table order):
+        one sample bucket at a time into a first spill, then copied into sample order."""
+        grouped, first_k, hashes = Spill(), array("q"), array("q")
+        for b in range(BUCKETS):
+            rows = self._by_sample.bucket(b)  # in k order
+            order = np.argsort(rows["sample"], kind="stable")
+            starts = np.flatnonzero(np.r_[True, np.diff(rows["sample"][order]) != 0]) if len(rows) else []
+            ends = np.r_[starts[1:], len(order)] if len(rows) else []
+            for s0, s1 in zip(starts, ends, strict=True):
                 by_sample: dict[str, list[bytes]] = {}  # one entry, unless two samples share a 64-bit hash
-                for k in order[starts[g]:ends[g]].tolist():
+                first: dict[str, int] = {}
+                for k in rows["k"][order[s0:s1]].tolist():
                     if k not in self._dropped:
                         blob, texts = self._box(k)
                         by_sample.setdefault(texts[2], []).append(blob)
+                        first.setdefault(texts[2], k)
                 for sample, blobs in by_sample.items():
-                    out.add(b"".join(blobs))
+                    grouped.add(b"".join(blobs))
+                    first_k.append(first[sample])
                     hashes.append(hash(sample))
+        grouped.flush()
+        out = Spill()
+        ranks = np.argsort(np.frombuffer(first_k, np.int64), kind="stable") if first_k else np.zeros(0, np.int64)
+        for g in ranks.tolist():
+            out.add(grouped.get(g))
         out.flush()
-        self._rows = Spill()  # the per-box file is closed
-        return PackedBoxes(out, np.frombuffer(hashes, np.int64) if hashes else np.zeros(0, np.int64), self._category)
+        self._rows = Spill()  # the per-box files are closed
+        self._by_instance = self._by_sample = None  # type: ignore[assignment]
+        sample_h = np.frombuffer(hashes, np.int64)[ranks] if hashes else np.zeros(0, np.int64)
+        return PackedBoxes(out, sample_h, self._category)
 
 
 def _track_link(row: dict[str, Any], link: str) -> str:

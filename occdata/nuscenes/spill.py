@@ -16,7 +16,9 @@ import weakref
 from array import array
 from typing import Any
 
-__all__ = ["TEXT_ERRORS", "Spill"]
+import numpy as np
+
+__all__ = ["TEXT_ERRORS", "BucketSpill", "Spill"]
 
 # How blobs encode their texts: UTF-8, a lone surrogate (JSON "\ud800", which the tables allow) kept.
 TEXT_ERRORS = "surrogatepass"
@@ -70,3 +72,53 @@ class Spill:
 
     def __reduce__(self) -> Any:
         raise TypeError("a Spill is not pickled: send the records it holds")
+
+
+BUCKETS = 64  # a BucketSpill's buckets, by the top 6 bits of a hash
+
+
+def bucket_of(hashes: np.ndarray) -> np.ndarray:
+    """`(n,) int64` hashes -> `(n,) uint64` their bucket, 0..63 (the top 6 bits: str hashes are uniform)."""
+    return np.asarray(hashes, dtype=np.int64).view(np.uint64) >> np.uint64(58)
+
+
+class BucketSpill:
+    """Rows of a numpy structured `dtype`, kept on disk in `BUCKETS` buckets by the top bits of the
+    int64 hash field `key`: `add(rows)`; `bucket(b)` reads bucket b's rows back, in the order added.
+    Memory holds the rows not yet written (`in_memory` at most) and 8 bytes a written blob, so a pass
+    over the buckets holds one bucket (1/64 of the rows) however many rows there are."""
+
+    def __init__(self, dtype: np.dtype, key: str, in_memory: int = 1 << 16) -> None:
+        self._dtype, self._key, self._in_memory = np.dtype(dtype), key, in_memory
+        self._pending: list[np.ndarray] = []
+        self._n_pending = 0
+        self._spill = Spill()
+        self._blobs: list[array] = [array("q") for _ in range(BUCKETS)]
+
+    def add(self, rows: np.ndarray) -> None:
+        self._pending.append(np.asarray(rows, dtype=self._dtype))
+        self._n_pending += len(rows)
+        if self._n_pending >= self._in_memory:
+            self._write()
+
+    def _write(self) -> None:
+        if not self._n_pending:
+            return
+        rows = np.concatenate(self._pending)
+        self._pending, self._n_pending = [], 0
+        which = bucket_of(rows[self._key])
+        order = np.argsort(which, kind="stable")  # stable: a bucket keeps the order rows were added in
+        ends = np.searchsorted(which[order], np.arange(1, BUCKETS + 1, dtype=np.uint64))
+        for b, part in enumerate(np.split(rows[order], ends[:-1])):
+            if len(part):
+                self._blobs[b].append(len(self._spill))
+                self._spill.add(part.tobytes())
+
+    def bucket(self, b: int) -> np.ndarray:
+        """`(k,) dtype` bucket b's rows, in the order they were added (a new array)."""
+        self._write()
+        parts = [np.frombuffer(self._spill.get(i), self._dtype) for i in self._blobs[b]]
+        return np.concatenate(parts) if parts else np.zeros(0, self._dtype)
+
+    def __reduce__(self) -> Any:
+        raise TypeError("a BucketSpill is not pickled")
