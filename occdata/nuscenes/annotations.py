@@ -312,6 +312,7 @@ _CHUNK = 8192  # rows checked together (vectorised number checks), then written
 
 _TRACK = np.dtype([("k", "<i8"), ("token", "<i8"), ("instance", "<i8"), ("prev", "<i8"), ("next", "<i8")])
 _GROUP = np.dtype([("k", "<i8"), ("sample", "<i8")])
+_LOOKUP = np.dtype([("k", "<i8"), ("link", "<i8"), ("hash", "<i8")])  # a link to look up in the token sets
 _LINKS = (("prev", "next"), ("next", "prev"))  # a link and the one that must point back
 _BUCKET_ROWS = 1 << 16  # box hashes held in memory before they go to their bucket files
 
@@ -425,24 +426,35 @@ class _BoxReader:
 
     def _check_tracks(self) -> None:
         """Every prev/next names a box of the table, of the same instance, that links back. On the
-        hashes, one instance bucket at a time (a box's track partners share its bucket; a link to a kept
-        box of another bucket is a box of another instance); the rows that may be wrong are then read
-        back and named, in row order, prev before next."""
+        hashes, one instance bucket at a time (a box's track partners share its bucket); a link to no
+        box of its bucket is then looked up in the token sets, one hash bucket at a time (a kept box of
+        another bucket is a box of another instance; no token of the table is a dangling link). The
+        rows that may be wrong are read back and named, in row order, prev before next."""
         suspects: list[tuple[int, int]] = []  # (k, 0 for prev / 1 for next)
+        elsewhere = BucketSpill(_LOOKUP, "hash", _BUCKET_ROWS)
         for b in range(BUCKETS):
             rows = self._by_instance.bucket(b)
             if self._dropped:  # later identical copies are no box: not checked, "" is no box's token
                 rows = rows[~np.isin(rows["k"], np.fromiter(self._dropped, np.int64, len(self._dropped)))]
             for j, (link, back) in enumerate(_LINKS):
-                for k in rows["k"][self._track_faults(rows, link, back)].tolist():
-                    suspects.append((k, j))
+                wrong, away = self._track_faults(rows, link, back)
+                suspects.extend((k, j) for k in rows["k"][wrong].tolist())
+                lookup = np.zeros(int(away.sum()), _LOOKUP)
+                lookup["k"], lookup["link"], lookup["hash"] = rows["k"][away], j, rows[link][away]
+                elsewhere.add(lookup)
+        for b in range(BUCKETS):  # each token set read once, a bucket at a time
+            rows = elsewhere.bucket(b)
+            if len(rows):
+                bad = self._kept.has_hashes(rows["hash"]) | ~self._every.has_hashes(rows["hash"])
+                suspects.extend(zip(rows["k"][bad].tolist(), rows["link"][bad].tolist(), strict=True))
         for k, j in sorted(suspects):
             self._name_track_fault(k, *_LINKS[j])
 
-    def _track_faults(self, rows: np.ndarray, link: str, back: str) -> np.ndarray:
-        """`(len(rows),) bool`: the rows (`_TRACK`, one instance bucket) whose `link` may be wrong, on the
-        hashes: naming no token of the table, or a kept box of another instance, or one whose `back` is
-        not this row."""
+    @staticmethod
+    def _track_faults(rows: np.ndarray, link: str, back: str) -> tuple[np.ndarray, np.ndarray]:
+        """For the rows (`_TRACK`, one instance bucket), two `(len(rows),) bool`: whose `link` names a box
+        of the bucket that is of another instance or does not link back (wrong), and whose `link` names
+        no box of the bucket (away: a box of another instance, outside the samples read, or none)."""
         linked = rows[link]
         has = linked != hash("")
         order = np.argsort(rows["token"], kind="stable")
@@ -450,13 +462,8 @@ class _BoxReader:
         i = np.minimum(np.searchsorted(sorted_h, linked), max(len(sorted_h) - 1, 0))
         found = has & (sorted_h[i] == linked) if len(sorted_h) else np.zeros(len(linked), bool)
         q = order[i] if len(order) else np.zeros(len(linked), np.int64)
-        wrong_box = found & ((rows["instance"][q] != rows["instance"]) | (rows[back][q] != rows["token"]))
-        elsewhere = has & ~found
-        bad = wrong_box.copy()
-        if elsewhere.any():  # a kept box of another bucket (instance), or no token of the table
-            kept = self._kept.has_hashes(linked[elsewhere])
-            bad[elsewhere] = kept | ~self._every.has_hashes(linked[elsewhere])
-        return bad
+        wrong = found & ((rows["instance"][q] != rows["instance"]) | (rows[back][q] != rows["token"]))
+        return wrong, has & ~found
 
     def _name_track_fault(self, k: int, link: str, back: str) -> None:
         """Raise the error for box k's `link`, found on the hashes, if the texts confirm it."""

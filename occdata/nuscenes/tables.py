@@ -18,7 +18,7 @@ import numpy as np
 
 from occdata.errors import OccDataError
 from occdata.nuscenes.columns import ColumnTable, TableBuilder
-from occdata.nuscenes.spill import Spill
+from occdata.nuscenes.spill import BUCKETS, BucketSpill, bucket_of
 
 __all__ = ["TABLE_NAMES", "TokenSet", "iter_table_rows", "load_table", "usable_as_file_name"]
 
@@ -150,8 +150,8 @@ def iter_table_rows(path: Path) -> Iterator[dict[str, Any]]:
         fh.close()
 
 
-_SET_BUCKETS = 64  # a spilled TokenSet's buckets, by the hashes' top 6 bits
 _SET_IN_MEMORY = 1 << 18  # hashes a TokenSet holds before it writes them to disk (2 MiB)
+_HASH = np.dtype([("h", "<i8")])
 
 
 class TokenSet:
@@ -159,9 +159,9 @@ class TokenSet:
     rows kept, and which repeat. Hashes are Python's, valid in this process only; a false "exists"
     needs a 64-bit collision.
 
-    Up to `in_memory` hashes (default 2**18) stay in memory. Past that they go to an unnamed temporary file
-    (`Spill`), split into 64 buckets by their top bits, and a query reads one bucket at a time: the
-    memory held stays ~8 MiB and a query's 1/64 of the table, however large the table (nuScenes'
+    Up to `in_memory` hashes (default 2**18) stay in memory. Past that they go to an unnamed temporary
+    file in 64 buckets by their top bits (`BucketSpill`), and a query reads one bucket at a time: the
+    memory held stays ~2 MiB and a query's 1/64 of the table, however large the table (nuScenes'
     sample_data and ego_pose have ~77 rows a keyframe; a million keyframes, 77 M tokens: 616 MB of
     hashes, ~1.8 GB while `repeated` sorted them in memory)."""
 
@@ -169,8 +169,7 @@ class TokenSet:
         self._buf = array("q")
         self._in_memory = _SET_IN_MEMORY if in_memory is None else in_memory
         self._sorted: np.ndarray | None = None
-        self._spill: Spill | None = None
-        self._blobs: list[list[int]] = [[] for _ in range(_SET_BUCKETS)]  # spill blob numbers of each bucket
+        self._spilled: BucketSpill | None = None
 
     def add(self, token: str) -> None:
         self._buf.append(hash(token))
@@ -179,42 +178,38 @@ class TokenSet:
             self._write()
 
     def _write(self) -> None:
-        """The hashes in memory to the spill, bucket by bucket."""
-        if self._spill is None:
-            self._spill = Spill()
-        h = np.frombuffer(self._buf, dtype=np.int64)
-        order = np.argsort(_bucket(h), kind="stable")
-        ends = np.searchsorted(_bucket(h)[order], np.arange(1, _SET_BUCKETS + 1))
-        for k, part in enumerate(np.split(h[order], ends[:-1])):
-            if len(part):
-                self._blobs[k].append(len(self._spill))
-                self._spill.add(part.tobytes())
-        self._buf = array("q")
+        """The hashes in memory to their buckets on disk."""
+        if self._spilled is None:
+            self._spilled = BucketSpill(_HASH, "h", in_memory=1)  # each `add` written at once
+        if len(self._buf):
+            self._spilled.add(np.frombuffer(self._buf, dtype=np.int64).view(_HASH))
+            self._buf = array("q")
+
+    def _raw(self, k: int) -> np.ndarray:
+        """`(n,) int64` bucket k's hashes as added, repeats included (the whole set when it never
+        spilled: `k` ignored)."""
+        if self._spilled is None:
+            return np.frombuffer(self._buf, dtype=np.int64)
+        self._write()
+        return self._spilled.bucket(k)["h"]
 
     def _present(self, k: int) -> np.ndarray:
-        """`(n,) int64` the distinct hashes, sorted: of bucket `k` of a spilled set, or of the whole set
-        when it never spilled (`k` ignored; made once)."""
-        if self._spill is None:
+        """`(n,) int64` bucket k's distinct hashes, sorted (the whole set's, made once, when it never
+        spilled)."""
+        if self._spilled is None:
             if self._sorted is None:
-                self._sorted = np.unique(np.frombuffer(self._buf, dtype=np.int64))
+                self._sorted = np.unique(self._raw(-1))
             return self._sorted
-        return np.unique(self._raw(self._blobs[k]))
-
-    def _raw(self, blobs: list[int]) -> np.ndarray:
-        assert self._spill is not None
-        return np.concatenate([np.zeros(0, np.int64)] + [np.frombuffer(self._spill.get(b), np.int64) for b in blobs])
+        return np.unique(self._raw(k))
 
     def __contains__(self, token: object) -> bool:
         return bool(self.has_hashes(np.array([hash(token)], dtype=np.int64))[0])
 
     def repeated(self) -> set[int]:
         """The hashes added more than once (a token that repeats, or a 64-bit collision)."""
-        if self._spill is not None and len(self._buf):
-            self._write()
-        raws = ([np.frombuffer(self._buf, dtype=np.int64)] if self._spill is None
-                else (self._raw(blobs) for blobs in self._blobs))
         out: set[int] = set()
-        for raw in raws:
+        for k in range(BUCKETS if self._spilled is not None else 1):
+            raw = self._raw(k)
             if len(raw) > 1:
                 values, counts = np.unique(raw, return_counts=True)
                 out.update(int(v) for v in values[counts > 1])
@@ -224,12 +219,10 @@ class TokenSet:
         """`(k,) bool`: which of the `hash(token)` values `hashes` `(k,) int64` are in the set (a spilled
         set reads the buckets the queries fall in, one at a time)."""
         hashes = np.asarray(hashes, dtype=np.int64)
-        if self._spill is None:
+        if self._spilled is None:
             return np.isin(hashes, self._present(-1))
-        if len(self._buf):
-            self._write()
         out = np.zeros(len(hashes), dtype=bool)
-        which = _bucket(hashes)
+        which = bucket_of(hashes)
         for k in np.unique(which).tolist():
             mask = which == k
             out[mask] = np.isin(hashes[mask], self._present(int(k)))
@@ -241,11 +234,6 @@ class TokenSet:
             return []
         mask = self.has_hashes(np.fromiter((hash(t) for t in tokens), np.int64, len(tokens)))
         return [t for t, m in zip(tokens, mask, strict=True) if m]
-
-
-def _bucket(hashes: np.ndarray) -> np.ndarray:
-    """`(n,) int64` hashes -> `(n,) uint64` their bucket, 0..63 (the top 6 bits)."""
-    return hashes.view(np.uint64) >> np.uint64(58)
 
 
 def load_table(
