@@ -432,10 +432,11 @@ class _BoxReader:
         rows that may be wrong are read back and named, in row order, prev before next."""
         suspects: list[tuple[int, int]] = []  # (k, 0 for prev / 1 for next)
         elsewhere = BucketSpill(_LOOKUP, "hash", _BUCKET_ROWS)
+        dropped = np.fromiter(self._dropped, np.int64, len(self._dropped))
         for b in range(BUCKETS):
             rows = self._by_instance.bucket(b)
-            if self._dropped:  # later identical copies are no box: not checked, "" is no box's token
-                rows = rows[~np.isin(rows["k"], np.fromiter(self._dropped, np.int64, len(self._dropped)))]
+            if len(dropped):  # later identical copies are no box: not checked, "" is no box's token
+                rows = rows[~np.isin(rows["k"], dropped)]
             for j, (link, back) in enumerate(_LINKS):
                 wrong, away = self._track_faults(rows, link, back)
                 suspects.extend((k, j) for k in rows["k"][wrong].tolist())
@@ -489,9 +490,11 @@ class _BoxReader:
         grouped, first_k, hashes = Spill(), array("q"), array("q")
         for b in range(BUCKETS):
             rows = self._by_sample.bucket(b)  # in k order
+            if not len(rows):
+                continue
             order = np.argsort(rows["sample"], kind="stable")
-            starts = np.flatnonzero(np.r_[True, np.diff(rows["sample"][order]) != 0]) if len(rows) else []
-            ends = np.r_[starts[1:], len(order)] if len(rows) else []
+            starts = np.flatnonzero(np.r_[True, np.diff(rows["sample"][order]) != 0])
+            ends = np.r_[starts[1:], len(order)]
             for s0, s1 in zip(starts, ends, strict=True):
                 by_sample: dict[str, list[bytes]] = {}  # one entry, unless two samples share a 64-bit hash
                 first: dict[str, int] = {}

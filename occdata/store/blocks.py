@@ -166,14 +166,15 @@ def convert_block(job: ConvertJob) -> BlockSummary:
     root = open_for_task(job.store)
     flow, n_cams = has_flow(root.attrs), camera_count(root.attrs)
     specs = per_sample(flow, grid_shape(root.attrs), n_cams)
-    rows = _fixed_rows(root, results, specs)
+    fill = _fill_rows(root, specs)  # each array's fill row: for samples without it, and the kinds below
+    rows = _fixed_rows(results, specs, fill)
     names = checksummed_names(flow)
     sums = np.zeros((len(results), len(names)), dtype=np.uint32)
     for col, name in enumerate(names):
         if name in rows:
             sums[:, col] = [zlib.crc32(np.ascontiguousarray(row).tobytes()) for row in rows[name]]
     _write_rows([(root[n], job.i0, job.i1, a) for n, a in rows.items()], job.fence,
-                _fill_kinds(root, specs, names, sums))
+                _fill_kinds(fill, names, sums))
     payload = _payload(results, n_cams)
     errors = tuple((r.index, r.token, r.error) for r in results if r.error)
     needs = tuple(int(payload[f"{n}/rows"].sum()) for n in FLAT_ARRAYS)
@@ -203,10 +204,10 @@ def convert_block(job: ConvertJob) -> BlockSummary:
     return BlockSummary(job.block, errors, needs)
 
 
-def _fill_kinds(root: zarr.Group, specs: tuple, names: tuple[str, ...], sums: np.ndarray) -> dict[str, str]:
-    """For each checksummed fixed-shape array, whether this block's rows are all "data" (none is the
-    fill row, by checksum; `sums`: `(n, len(names)) uint32`), all "fill", or "mixed"."""
-    fill = _fill_rows(root, specs)
+def _fill_kinds(fill: dict[str, np.ndarray], names: tuple[str, ...], sums: np.ndarray) -> dict[str, str]:
+    """For each checksummed fixed-shape array (`fill`: its fill row, `_fill_rows`), whether this block's
+    rows are all "data" (none is the fill row, by checksum; `sums`: `(n, len(names)) uint32`), all
+    "fill", or "mixed"."""
     kinds = {}
     for col, name in enumerate(names):
         if name in fill:
@@ -228,9 +229,9 @@ def _clear_rows(arr: zarr.Array, i0: int, i1: int) -> bool:
     return True
 
 
-def _fixed_rows(root: zarr.Group, results: list[SampleResult], specs: tuple) -> dict[str, np.ndarray]:
-    """The block's rows of every fixed-shape array of `specs` but offsets and status, `(n, ...)` each."""
-    fill = _fill_rows(root, specs)
+def _fixed_rows(results: list[SampleResult], specs: tuple, fill: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The block's rows of every fixed-shape array of `specs` but offsets and status, `(n, ...)` each
+    (`fill`: the row of a sample without the array)."""
     return {s.name: np.stack([r.arrays.get(s.name, fill[s.name]) for r in results]).astype(s.dtype, copy=False)
             for s in specs if not s.name.startswith("status/") and s.name not in FLAT_OF_OFFSETS}
 
